@@ -1,0 +1,251 @@
+"""``Buffer``: the storage of a ``uint8[]`` message field, in CPU memory or a backend's domain.
+
+Mirrors ``rosidl::Buffer<T>``: a pimpl over a :class:`BufferImplBase`. ``Buffer()`` and
+``Buffer(array_like)`` are CPU buffers that behave like a growable 1-D array; ``Buffer(impl)`` is
+the only way to hold another backend. Operations that need host memory raise
+:class:`CpuBackendRequiredError` naming the current backend when the storage is elsewhere.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterable, Iterator
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+from .buffer_impl import CPU_BACKEND, BufferImplBase, CpuBufferImpl
+from .errors import CpuBackendRequiredError
+
+__all__ = ["Buffer"]
+
+T = TypeVar("T", bound=np.generic)
+
+
+class Buffer(Generic[T]):
+    """A contiguous 1-D array of ``dtype`` elements (default uint8) held by a backend impl.
+
+    Works on every backend: ``len``, :meth:`size`, :meth:`empty`, :meth:`get_backend_type`,
+    :meth:`get_impl`, :meth:`to_numpy`, ``==`` and ``copy.copy`` (a deep clone in the same
+    backend). Everything else (indexing, slicing, iteration, :meth:`resize`, :meth:`append`,
+    :meth:`numpy`, the buffer protocol) requires CPU storage.
+    """
+
+    __slots__ = ("_impl", "__weakref__")
+
+    def __init__(
+        self,
+        data: BufferImplBase | npt.ArrayLike | bytes | None = (),
+        dtype: npt.DTypeLike | None = None,
+    ) -> None:
+        if data is None:
+            raise TypeError(
+                "Buffer(None) is not allowed: pass a BufferImplBase, an array-like, or nothing"
+            )
+        if isinstance(data, BufferImplBase):
+            if dtype is not None and np.dtype(dtype) != data.dtype:
+                raise TypeError(f"impl stores {data.dtype}, not {np.dtype(dtype)}")
+            self._impl: BufferImplBase = data
+        else:
+            self._impl = CpuBufferImpl(data, np.uint8 if dtype is None else dtype)
+
+    # -- every backend -------------------------------------------------------------------------
+    def get_impl(self) -> BufferImplBase:
+        return self._impl
+
+    def get_backend_type(self) -> str:
+        return self._impl.get_backend_type()
+
+    def is_cpu(self) -> bool:
+        return isinstance(self._impl, CpuBufferImpl)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self._impl.dtype
+
+    @property
+    def nbytes(self) -> int:
+        return self._impl.nbytes
+
+    def size(self) -> int:
+        return self._impl.size()
+
+    def empty(self) -> bool:
+        return self._impl.size() == 0
+
+    def __len__(self) -> int:
+        return self._impl.size()
+
+    def __bool__(self) -> bool:
+        return self._impl.size() != 0
+
+    def to_numpy(self) -> np.ndarray:
+        """A CPU array of the contents: a copy (``to_cpu`` of the backend, or of CPU storage)."""
+        if isinstance(self._impl, CpuBufferImpl):
+            return self._impl.view().copy()
+        return self._impl.to_cpu().view()
+
+    def to_cpu(self) -> Buffer[T]:
+        """A CPU buffer with the same contents (a copy, whatever the backend)."""
+        return Buffer(self._impl.to_cpu())
+
+    def tobytes(self) -> bytes:
+        return self._host_view().tobytes()
+
+    def _host_view(self) -> np.ndarray:
+        """Contents in host memory: a view for CPU storage, a ``to_cpu`` copy otherwise."""
+        if isinstance(self._impl, CpuBufferImpl):
+            return self._impl.view()
+        return self._impl.to_cpu().view()
+
+    def __eq__(self, other: object) -> bool:
+        if isinstance(other, Buffer):
+            if other is self:
+                return True
+            if self.size() != other.size():
+                return False
+            return bool(np.array_equal(self._host_view(), other._host_view()))
+        if isinstance(other, (list, tuple, np.ndarray, bytes, bytearray, memoryview)):
+            theirs = np.frombuffer(other, np.uint8) if isinstance(
+                other, (bytes, bytearray, memoryview)) else np.asarray(other)
+            return theirs.ndim == 1 and bool(np.array_equal(self._host_view(), theirs))
+        return NotImplemented
+
+    __hash__ = None  # type: ignore[assignment]  # mutable, like list
+
+    def __copy__(self) -> Buffer[T]:
+        return Buffer(self._impl.clone())
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> Buffer[T]:
+        return Buffer(self._impl.clone())
+
+    def copy(self) -> Buffer[T]:
+        """Deep clone in the same backend (``rosidl::Buffer``'s copy constructor)."""
+        return Buffer(self._impl.clone())
+
+    def __repr__(self) -> str:
+        backend = self.get_backend_type()
+        if isinstance(self._impl, CpuBufferImpl):
+            return f"Buffer({np.array2string(self._impl.view(), threshold=8)}, dtype={self.dtype})"
+        return f"Buffer(<{backend}>, size={self.size()}, dtype={self.dtype})"
+
+    # -- CPU only ------------------------------------------------------------------------------
+    def _cpu(self, operation: str) -> CpuBufferImpl:
+        impl = self._impl
+        if not isinstance(impl, CpuBufferImpl):
+            raise CpuBackendRequiredError(operation, impl.get_backend_type())
+        return impl
+
+    def numpy(self) -> np.ndarray:
+        """A writable zero-copy NumPy view of CPU storage (invalidated by a later resize)."""
+        return self._cpu("numpy").writable_view()
+
+    data = numpy
+
+    def __array__(self, dtype: npt.DTypeLike | None = None, copy: bool | None = None) -> np.ndarray:
+        view = self._cpu("__array__").view()
+        if dtype is not None and np.dtype(dtype) != view.dtype:
+            return view.astype(dtype)
+        return view.copy() if copy else view
+
+    def memoryview(self) -> memoryview:
+        """The buffer protocol on Python 3.11 (3.12+ also supports ``memoryview(buffer)``)."""
+        return memoryview(self._cpu("memoryview").writable_view())
+
+    if sys.version_info >= (3, 12):
+        def __buffer__(self, flags: int) -> memoryview:
+            return memoryview(self._cpu("buffer protocol").writable_view())
+
+    def __bytes__(self) -> bytes:
+        return self._cpu("bytes").view().tobytes()
+
+    def __getitem__(self, index: int | slice) -> Any:
+        view = self._cpu("__getitem__").view()
+        return view[index]
+
+    def __setitem__(self, index: int | slice, value: Any) -> None:
+        self._cpu("__setitem__").writable_view()[index] = value
+
+    def __iter__(self) -> Iterator[Any]:
+        return iter(self._cpu("__iter__").view().tolist())
+
+    def __contains__(self, value: object) -> bool:
+        return bool(np.any(self._cpu("__contains__").view() == value))
+
+    def capacity(self) -> int:
+        return self._cpu("capacity").capacity()
+
+    def reserve(self, capacity: int) -> None:
+        self._cpu("reserve").reserve(capacity)
+
+    def resize(self, size: int, value: int | float = 0) -> None:
+        self._cpu("resize").resize(size, value)
+
+    def clear(self) -> None:
+        self._cpu("clear").resize(0)
+
+    def append(self, value: int | float) -> None:
+        impl = self._cpu("append")
+        n = impl.size()
+        impl.resize(n + 1, value)
+
+    push_back = append
+
+    def extend(self, values: Iterable[Any] | np.ndarray | bytes) -> None:
+        impl = self._cpu("extend")
+        if isinstance(values, (bytes, bytearray, memoryview)):
+            array = np.frombuffer(values, dtype=np.uint8)
+        elif isinstance(values, Buffer):
+            array = values._host_view()
+        else:
+            array = np.asarray(list(values) if not hasattr(values, "__len__") else values)
+        n = impl.size()
+        impl.resize(n + array.shape[0])
+        impl.writable_view()[n:] = array
+
+    def insert(self, index: int, value: int | float) -> None:
+        impl = self._cpu("insert")
+        n = impl.size()
+        if index < 0:
+            index = max(0, n + index)
+        index = min(index, n)
+        impl.resize(n + 1)
+        view = impl.writable_view()
+        view[index + 1:] = view[index:n].copy()
+        view[index] = value
+
+    def pop(self, index: int = -1) -> Any:
+        impl = self._cpu("pop")
+        n = impl.size()
+        if n == 0:
+            raise IndexError("pop from empty Buffer")
+        if index < 0:
+            index += n
+        if not 0 <= index < n:
+            raise IndexError("pop index out of range")
+        view = impl.writable_view()
+        value = view[index].item()
+        view[index:n - 1] = view[index + 1:n].copy()
+        impl.resize(n - 1)
+        return value
+
+    def erase(self, start: int, stop: int | None = None) -> None:
+        """Remove ``[start, stop)`` (or the one element at ``start``), like ``vector::erase``."""
+        impl = self._cpu("erase")
+        n = impl.size()
+        stop = start + 1 if stop is None else stop
+        if not 0 <= start <= stop <= n:
+            raise IndexError(f"erase range [{start}, {stop}) outside [0, {n})")
+        view = impl.writable_view()
+        view[start:n - (stop - start)] = view[stop:n].copy()
+        impl.resize(n - (stop - start))
+
+    def swap(self, other: Buffer[T]) -> None:
+        """Exchange storage with another buffer (any backends), like ``vector::swap``."""
+        self._impl, other._impl = other._impl, self._impl
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Pickling sends CPU bytes; a backend buffer is not picklable by reference.
+        return (Buffer, (self.to_numpy(),))
+

@@ -1,0 +1,63 @@
+"""Typed errors of the rosidl_buffer layer.
+
+Every error this library raises on bad input derives from :class:`RosidlBufferError`, so a caller
+(a transport, a subscription callback loop) can catch one family and keep running.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "RosidlBufferError",
+    "CpuBackendRequiredError",
+    "BackendError",
+    "UnknownBackendError",
+    "BackendLoadError",
+    "SerializationError",
+    "DeserializationError",
+    "DescriptorTooLargeError",
+    "UnknownMessageTypeError",
+]
+
+
+class RosidlBufferError(Exception):
+    """Base class of every error raised by rosidl_buffer and the packages built on it."""
+
+
+class CpuBackendRequiredError(RosidlBufferError, TypeError):
+    """A vector-like operation was used on a buffer whose storage is not CPU memory."""
+
+    def __init__(self, operation: str, backend: str) -> None:
+        super().__init__(
+            f"Operation '{operation}' requires CPU backend. Current backend: {backend}. "
+            "Use to_numpy() for a CPU copy."
+        )
+        self.operation = operation
+        self.backend = backend
+
+
+class BackendError(RosidlBufferError):
+    """A buffer backend failed or was misused."""
+
+
+class UnknownBackendError(BackendError, LookupError):
+    """No backend plugin of that name is registered."""
+
+
+class BackendLoadError(BackendError):
+    """A backend plugin is registered but could not be loaded or instantiated."""
+
+
+class SerializationError(RosidlBufferError, ValueError):
+    """A message could not be serialized (a field value does not fit its declared type)."""
+
+
+class DeserializationError(RosidlBufferError, ValueError):
+    """Bytes are not a valid CDR encoding of the requested message type."""
+
+
+class DescriptorTooLargeError(SerializationError):
+    """A backend descriptor serialized to more than MAX_BUFFER_DESCRIPTOR_SIZE bytes."""
+
+
+class UnknownMessageTypeError(RosidlBufferError, LookupError):
+    """No message definition of that name ships with the project or is known to rosbags."""

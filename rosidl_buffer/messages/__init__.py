@@ -1,0 +1,45 @@
+"""Message types and their ROS 2 CDR serialization.
+
+``get_message_type(name)`` returns the generated class of any message shipped with an installed
+package (``.msg`` files announced through the ``rosidl_buffer.interfaces`` entry points) or known
+to rosbags for ROS 2; ``serialize_message`` / ``deserialize_message`` convert to and from CDR.
+"""
+
+from ._cdr import (
+    BUFFER_DESCRIPTOR_MARKER,
+    CDR_HEADER,
+    BufferRoute,
+    deserialize_message,
+    serialize_message,
+    serialized_size,
+)
+from ._classes import Message, get_message_type
+from ._schema import (
+    INTERFACES_ENTRY_POINT_GROUP,
+    FieldSpec,
+    get_schema,
+    get_typestore,
+    normalize_type_name,
+)
+
+__all__ = [
+    "BUFFER_DESCRIPTOR_MARKER",
+    "CDR_HEADER",
+    "INTERFACES_ENTRY_POINT_GROUP",
+    "BufferRoute",
+    "FieldSpec",
+    "Message",
+    "deserialize_message",
+    "get_message_type",
+    "get_schema",
+    "get_type_hash",
+    "get_typestore",
+    "normalize_type_name",
+    "serialize_message",
+    "serialized_size",
+]
+
+
+def get_type_hash(name: str) -> str:
+    """The type's REP 2016 hash, ``RIHS01_<64 hex>``, as rmw_zenoh puts in its keys."""
+    return get_typestore().hash_rihs01(normalize_type_name(name))

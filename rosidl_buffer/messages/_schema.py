@@ -1,0 +1,180 @@
+"""Message schemas: ``.msg`` definitions parsed by rosbags, turned into field specs we can codegen.
+
+Definitions come from two places: the ROS 2 types rosbags ships, and the ``.msg`` files that
+packages of this project (or any installed distribution) ship and announce through the entry point
+group ``rosidl_buffer.interfaces`` (name = ROS package name, value = the Python package whose
+directory holds the ``.msg`` files). This keeps rosidl_buffer free of imports of its dependents.
+"""
+
+from __future__ import annotations
+
+import enum
+import functools
+import logging
+import threading
+from dataclasses import dataclass
+from importlib import metadata, resources
+
+from rosbags.interfaces import Nodetype
+from rosbags.typesys import Stores, get_types_from_msg
+from rosbags.typesys import get_typestore as _rosbags_typestore
+from rosbags.typesys.store import Typestore
+
+from ..errors import UnknownMessageTypeError
+
+__all__ = [
+    "INTERFACES_ENTRY_POINT_GROUP",
+    "FieldKind",
+    "FieldSpec",
+    "MessageSchema",
+    "get_schema",
+    "get_typestore",
+    "normalize_type_name",
+]
+
+INTERFACES_ENTRY_POINT_GROUP = "rosidl_buffer.interfaces"
+
+#: The ROS 2 distribution whose standard messages rosbags provides.
+ROS_DISTRIBUTION = Stores.ROS2_KILTED
+
+_log = logging.getLogger(__name__)
+
+# Primitive name -> struct format char (little-endian, no padding). 'byte' and 'char' are uint8
+# on the wire (rosidl maps them to octet / uint8).
+PRIMITIVE_FORMATS: dict[str, str] = {
+    "bool": "?",
+    "byte": "B",
+    "char": "B",
+    "int8": "b",
+    "uint8": "B",
+    "int16": "h",
+    "uint16": "H",
+    "int32": "i",
+    "uint32": "I",
+    "int64": "q",
+    "uint64": "Q",
+    "float32": "f",
+    "float64": "d",
+}
+
+
+class FieldKind(enum.Enum):
+    PRIMITIVE = "primitive"
+    STRING = "string"
+    MESSAGE = "message"
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """One field of a message.
+
+    ``element`` is the primitive name (``"uint8"``, ``"string"``) or the nested message type;
+    ``array_length`` > 0 for ``T[N]``; ``is_sequence`` for ``T[]`` / ``T[<=N]`` with
+    ``sequence_bound`` (0 = unbounded); ``string_bound`` for ``string<=N``.
+    """
+
+    name: str
+    kind: FieldKind
+    element: str
+    array_length: int = 0
+    is_sequence: bool = False
+    sequence_bound: int = 0
+    string_bound: int = 0
+
+    @property
+    def is_buffer(self) -> bool:
+        """An unbounded ``uint8[]``: held in a :class:`~rosidl_buffer.Buffer`."""
+        return self.is_sequence and self.sequence_bound == 0 and self.element == "uint8"
+
+    @property
+    def is_collection(self) -> bool:
+        return self.is_sequence or self.array_length > 0
+
+
+@dataclass(frozen=True)
+class MessageSchema:
+    name: str
+    fields: tuple[FieldSpec, ...]
+    constants: tuple[tuple[str, str, object], ...]
+
+
+def normalize_type_name(name: str) -> str:
+    """``pkg/Name`` or ``pkg/msg/Name`` -> ``pkg/msg/Name``."""
+    parts = name.strip().strip("/").split("/")
+    if len(parts) == 2:
+        parts = [parts[0], "msg", parts[1]]
+    if len(parts) != 3 or not all(parts):
+        raise UnknownMessageTypeError(f"not a message type name: {name!r} (expected pkg/msg/Name)")
+    return "/".join(parts)
+
+
+_lock = threading.RLock()
+_store: Typestore | None = None
+
+
+def _shipped_definitions() -> dict[str, tuple[list, list]]:
+    """Parse every ``.msg`` file announced through the interfaces entry point group."""
+    types: dict[str, tuple[list, list]] = {}
+    for entry_point in metadata.entry_points(group=INTERFACES_ENTRY_POINT_GROUP):
+        package = entry_point.name
+        try:
+            folder = resources.files(entry_point.value)
+            for item in sorted(folder.iterdir(), key=lambda p: p.name):
+                if item.name.endswith(".msg"):
+                    type_name = f"{package}/msg/{item.name[:-4]}"
+                    types.update(get_types_from_msg(item.read_text(encoding="utf-8"), type_name))
+        except Exception as exc:  # one broken package must not hide the others
+            _log.warning("cannot load message package %s (%s): %s", package, entry_point.value, exc)
+    return types
+
+
+def get_typestore() -> Typestore:
+    """The rosbags typestore holding ROS 2's standard types plus every shipped ``.msg``."""
+    global _store
+    with _lock:
+        if _store is None:
+            store = _rosbags_typestore(ROS_DISTRIBUTION)
+            shipped = _shipped_definitions()
+            if shipped:
+                store.register(shipped)
+            _store = store
+        return _store
+
+
+def _field_spec(name: str, desc: tuple) -> FieldSpec:
+    node_type, detail = desc
+    if node_type == Nodetype.BASE:
+        base, bound = detail
+        kind = FieldKind.STRING if base == "string" else FieldKind.PRIMITIVE
+        if base not in PRIMITIVE_FORMATS and base != "string":
+            # wstring and float128 have no agreed CDR form in ROS 2 Python tooling.
+            raise UnknownMessageTypeError(f"field {name!r}: type {base!r} is not supported")
+        return FieldSpec(name, kind, base, string_bound=bound)
+    if node_type == Nodetype.NAME:
+        return FieldSpec(name, FieldKind.MESSAGE, detail)
+    sub, count = detail
+    element = _field_spec(name, sub)
+    if node_type == Nodetype.ARRAY:
+        return FieldSpec(name, element.kind, element.element, array_length=count,
+                         string_bound=element.string_bound)
+    return FieldSpec(name, element.kind, element.element, is_sequence=True,
+                     sequence_bound=count, string_bound=element.string_bound)
+
+
+@functools.lru_cache(maxsize=None)
+def get_schema(type_name: str) -> MessageSchema:
+    """The schema of a message type, raising :class:`UnknownMessageTypeError` if unknown."""
+    name = normalize_type_name(type_name)
+    store = get_typestore()
+    try:
+        constants, fields = store.fielddefs[name]
+    except KeyError:
+        raise UnknownMessageTypeError(
+            f"unknown message type {name!r}: not shipped with the project nor known to rosbags "
+            f"for {ROS_DISTRIBUTION.value}"
+        ) from None
+    return MessageSchema(
+        name=name,
+        fields=tuple(_field_spec(field_name, desc) for field_name, desc in fields),
+        constants=tuple((c[0], c[1], c[2]) for c in constants),
+    )
