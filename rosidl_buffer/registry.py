@@ -120,7 +120,7 @@ def load_backends(
         try:
             loaded[name] = create_backend_instance(name)
         except BackendLoadError as exc:
-            _log.warning("%s", exc)
+            _log.debug("%s", exc)
             errors[name] = exc
         except UnknownBackendError as exc:
             errors[name] = BackendLoadError(str(exc))

@@ -20,6 +20,7 @@ from ._schema import (
     get_schema,
     get_typestore,
     normalize_type_name,
+    register_message_definitions,
 )
 
 __all__ = [
@@ -35,6 +36,7 @@ __all__ = [
     "get_type_hash",
     "get_typestore",
     "normalize_type_name",
+    "register_message_definitions",
     "serialize_message",
     "serialized_size",
 ]

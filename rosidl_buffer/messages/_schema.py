@@ -30,6 +30,7 @@ __all__ = [
     "get_schema",
     "get_typestore",
     "normalize_type_name",
+    "register_message_definitions",
 ]
 
 INTERFACES_ENTRY_POINT_GROUP = "rosidl_buffer.interfaces"
@@ -139,6 +140,19 @@ def get_typestore() -> Typestore:
                 store.register(shipped)
             _store = store
         return _store
+
+
+def register_message_definitions(definitions: dict[str, str]) -> None:
+    """Add message types at run time: ``{"pkg/msg/Name": "<.msg text>"}``.
+
+    For definitions that do not ship as files (tests, generated code). Registering a name that
+    already exists with a different definition raises rosbags' TypesysError.
+    """
+    types: dict[str, tuple[list, list]] = {}
+    for name, text in definitions.items():
+        types.update(get_types_from_msg(text, normalize_type_name(name)))
+    with _lock:
+        get_typestore().register(types)
 
 
 def _field_spec(name: str, desc: tuple) -> FieldSpec:

@@ -1,0 +1,1 @@
+"""The ``warp-buffer`` command line: ``info``, ``demo`` (the main job) and ``bench``."""
