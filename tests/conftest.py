@@ -30,3 +30,92 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if "cuda" in item.keywords:
             item.add_marker(skip_cuda)
+
+
+# --------------------------------------------------------------------------- leak guard
+SHM_DIR = pathlib.Path("/dev/shm")
+# Long-lived helpers the standard library starts once per session on purpose.
+_ALLOWED_CHILDREN = ("resource_tracker", "forkserver", "semaphore_tracker")
+
+
+def _our_shm_files() -> set[str]:
+    try:
+        return {p.name for p in SHM_DIR.iterdir() if p.name.startswith("warp_buffer")}
+    except OSError:
+        return set()
+
+
+def _child_processes() -> dict[int, str]:
+    """Live (non-zombie) processes whose parent is this test process, with their command line."""
+    me = str(os.getpid())
+    children = {}
+    for entry in pathlib.Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        state, ppid = fields[0], fields[1]
+        if ppid == me and state != "Z" and not any(a in cmdline for a in _ALLOWED_CHILDREN):
+            children[int(entry.name)] = cmdline.strip()
+    return children
+
+
+@pytest.fixture(autouse=True)
+def no_leaks(request: pytest.FixtureRequest):
+    """Fail a test that leaves a shared-memory export or a child process behind, then clean up
+    so that one leak does not fail every later test."""
+    import signal
+    import time
+
+    shm_before = _our_shm_files()
+    children_before = set(_child_processes())
+    yield
+    deadline = time.monotonic() + 3.0
+    while True:  # exports and children may take a moment to go after a clean shutdown
+        leaked_shm = _our_shm_files() - shm_before
+        leaked_children = {p: c for p, c in _child_processes().items() if p not in children_before}
+        if (not leaked_shm and not leaked_children) or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    for pid in leaked_children:
+        try:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+        except (ProcessLookupError, ChildProcessError):
+            pass
+    for name in leaked_shm:
+        try:
+            (SHM_DIR / name).unlink()
+        except OSError:
+            pass
+    problems = []
+    if leaked_shm:
+        problems.append(f"shared memory left in /dev/shm: {sorted(leaked_shm)}")
+    if leaked_children:
+        problems.append(f"child processes left running: {leaked_children}")
+    if problems:
+        pytest.fail(f"{request.node.nodeid} leaked: " + "; ".join(problems), pytrace=False)
+
+
+_session_shm_before: set[str] = set()
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    _session_shm_before.update(_our_shm_files())
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """Catch leaks of module- and session-scoped fixtures, which the per-test guard cannot see."""
+    leaked = _our_shm_files() - _session_shm_before
+    children = _child_processes()
+    if leaked or children:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+        reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+        if reporter is not None:
+            reporter.write_line(
+                f"LEAK after the session: shm={sorted(leaked)} children={children}", red=True
+            )
