@@ -78,12 +78,13 @@ class _ReadContext:
 class _Decision:
     """What pass one decided for one buffer field, replayed by pass two."""
 
-    __slots__ = ("host", "backend_name", "descriptor")
+    __slots__ = ("host", "backend_name", "descriptor", "descriptor_decisions")
 
     def __init__(self, host: np.ndarray | None, backend_name: str = "", descriptor: Any = None):
         self.host = host
         self.backend_name = backend_name
         self.descriptor = descriptor
+        self.descriptor_decisions: list[Any] = []
 
 
 # --------------------------------------------------------------------------- field operations
@@ -181,7 +182,11 @@ class _String(_Field):
         return pos + len(encoded) + 1
 
     def read(self, ctx: _ReadContext, pos: int) -> tuple[Any, int]:
-        return _read_string(ctx, pos, self.name)
+        text, end = _read_string(ctx, pos, self.name)
+        bound = self.spec.string_bound
+        if bound and end - _align(pos, 4) - 5 > bound:  # bytes before the NUL, as written
+            raise DeserializationError(f"field {self.name!r}: string longer than its bound {bound}")
+        return text, end
 
 
 class _Nested(_Field):
@@ -312,6 +317,15 @@ class _ObjectArray(_Field):
         return items, pos
 
 
+def _descriptor_size(codec: _MessageCodec, descriptor: Any) -> int:
+    """The descriptor's own CDR size (as serialized alone), which the limit applies to.
+
+    Inline, padding before and inside it depends on where the field falls in the message, so the
+    limit would otherwise shift by a few bytes with the position of the field.
+    """
+    return codec.size(descriptor, _ORIGIN, _SizeContext(None, [])) - _ORIGIN
+
+
 class _BufferField(_Field):
     """An unbounded ``uint8[]``: CPU sequence, or marker + backend name + descriptor."""
 
@@ -328,14 +342,17 @@ class _BufferField(_Field):
         ctx.decisions.append(decision)
         pos = _align(pos, 4) + 4
         pos = _String(self.spec).size(backend_name, pos, ctx)
-        start = pos
         codec = _codec(descriptor.__msgtype__)
-        end = codec.size(descriptor, pos, _SizeContext(None, []))
-        if end - start > MAX_BUFFER_DESCRIPTOR_SIZE:
+        nbytes = _descriptor_size(codec, descriptor)
+        if nbytes > MAX_BUFFER_DESCRIPTOR_SIZE:
             raise DescriptorTooLargeError(
                 f"field {self.name!r}: descriptor of backend {backend_name!r} serializes to "
-                f"{end - start} bytes, over the {MAX_BUFFER_DESCRIPTOR_SIZE}-byte limit"
+                f"{nbytes} bytes, over the {MAX_BUFFER_DESCRIPTOR_SIZE}-byte limit"
             )
+        # The descriptor's own fields (a uint8[] included) are always written as plain CDR.
+        descriptor_ctx = _SizeContext(None, [])
+        end = codec.size(descriptor, pos, descriptor_ctx)
+        decision.descriptor_decisions = descriptor_ctx.decisions[::-1]
         return end
 
     def write(self, value: Any, out: bytearray, pos: int, decisions: list[Any]) -> int:
@@ -346,7 +363,7 @@ class _BufferField(_Field):
         _U32.pack_into(out, pos, BUFFER_DESCRIPTOR_MARKER)
         pos = _String(self.spec).write(decision.backend_name, out, pos + 4, decisions)
         codec = _codec(decision.descriptor.__msgtype__)
-        return codec.write(decision.descriptor, out, pos, [])
+        return codec.write(decision.descriptor, out, pos, decision.descriptor_decisions)
 
     def read(self, ctx: _ReadContext, pos: int) -> tuple[Any, int]:
         n, pos = _read_count(ctx, pos, self.name)
@@ -361,12 +378,12 @@ class _BufferField(_Field):
                 f"field {self.name!r}: buffer from backend {backend_name!r}, which this reader "
                 f"does not have (available: {sorted(ctx.backends or {})})"
             )
-        start = pos
         descriptor_codec = _codec(backend.get_descriptor_type().__msgtype__)
         descriptor, pos = descriptor_codec.read(ctx, pos)
-        if pos - start > MAX_BUFFER_DESCRIPTOR_SIZE:
+        nbytes = _descriptor_size(descriptor_codec, descriptor)
+        if nbytes > MAX_BUFFER_DESCRIPTOR_SIZE:
             raise DeserializationError(
-                f"field {self.name!r}: descriptor is {pos - start} bytes, over the "
+                f"field {self.name!r}: descriptor is {nbytes} bytes, over the "
                 f"{MAX_BUFFER_DESCRIPTOR_SIZE}-byte limit"
             )
         if ctx.endpoint_info is None:

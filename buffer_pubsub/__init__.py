@@ -1,0 +1,54 @@
+"""buffer_pubsub: ROS 2-style publish/subscribe over Eclipse Zenoh with rosidl::Buffer backends.
+
+The RMW role of the rosidl::Buffer guides: each ``uint8[]`` field travels by the backend each
+subscription accepts (negotiated through discovery), falling back to CPU bytes. The wire layout
+follows ROS 2's rmw_zenoh (see :mod:`buffer_pubsub.wire`).
+
+Quick start::
+
+    from buffer_pubsub import Node
+    from rosidl_buffer.messages import get_message_type
+
+    Tensor = get_message_type("tensor_msgs/msg/ExperimentalTensor")
+    with Node("talker") as node:
+        pub = node.create_publisher(Tensor, "/frames", depth=10)
+        pub.wait_for_subscriptions(1, timeout=5)
+        pub.publish(Tensor(data=b"..."))
+
+    with Node("listener") as node:
+        node.create_subscription(Tensor, "/frames", print, acceptable_buffer_backends="any")
+
+Connectivity (no router by default; a config file or a router endpoint for multi-host use) is
+described in :mod:`buffer_pubsub.config`. QoS: keep-last ``depth``, reliable, volatile durability
+only (no late-joiner history).
+
+buffer_pubsub knows backends only through :class:`rosidl_buffer.BufferBackend` and
+:mod:`rosidl_buffer.registry`; it imports no backend.
+"""
+
+from .config import DEFAULT_CONFIG, make_config
+from .errors import (
+    InvalidEndpointError,
+    NodeClosedError,
+    PubSubError,
+    TransportConfigError,
+    WireFormatError,
+)
+from .node import Node
+from .publisher import Publisher
+from .subscription import MessageInfo, Subscription, SubscriptionCounters
+
+__all__ = [
+    "DEFAULT_CONFIG",
+    "InvalidEndpointError",
+    "MessageInfo",
+    "Node",
+    "NodeClosedError",
+    "PubSubError",
+    "Publisher",
+    "Subscription",
+    "SubscriptionCounters",
+    "TransportConfigError",
+    "WireFormatError",
+    "make_config",
+]

@@ -1,0 +1,82 @@
+"""Process-wide state shared by every node of this process (rmw's "context").
+
+- one id counter for node and entity ids (rmw_zenoh numbers them per context);
+- the registry of local subscriptions, for intra-process delivery, and of local publisher gids, so
+  a subscription drops the Zenoh copy of a sample it already got intra-process;
+- the backends loaded once from the registry (a backend may hold per-process state such as an
+  IPC manager, so every node of the process shares one instance of each).
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+from typing import TYPE_CHECKING
+
+from rosidl_buffer import BufferBackend
+from rosidl_buffer import registry
+
+if TYPE_CHECKING:
+    from .subscription import Subscription
+
+_lock = threading.Lock()
+_ids = itertools.count(0)
+_subscriptions: dict[str, list[Subscription]] = {}  # by domain-qualified base data key
+_subscription_gids: set[bytes] = set()
+_publisher_gids: set[bytes] = set()
+_backends: dict[str, BufferBackend] | None = None
+
+
+def next_id() -> int:
+    with _lock:
+        return next(_ids)
+
+
+def default_backends() -> dict[str, BufferBackend]:
+    """Every registered backend that loads (broken plugins are logged by the registry, skipped)."""
+    global _backends
+    with _lock:
+        if _backends is None:
+            _backends, _errors = registry.load_backends()
+        return dict(_backends)
+
+
+def add_subscription(key: str, subscription: Subscription) -> None:
+    with _lock:
+        _subscriptions.setdefault(key, []).append(subscription)
+        _subscription_gids.add(subscription.gid)
+
+
+def remove_subscription(key: str, subscription: Subscription) -> None:
+    with _lock:
+        subs = _subscriptions.get(key, [])
+        if subscription in subs:
+            subs.remove(subscription)
+        if not subs:
+            _subscriptions.pop(key, None)
+        _subscription_gids.discard(subscription.gid)
+
+
+def local_subscriptions(key: str) -> list[Subscription]:
+    with _lock:
+        return list(_subscriptions.get(key, ()))
+
+
+def is_local_subscription(gid: bytes) -> bool:
+    with _lock:
+        return gid in _subscription_gids
+
+
+def add_publisher(gid: bytes) -> None:
+    with _lock:
+        _publisher_gids.add(gid)
+
+
+def remove_publisher(gid: bytes) -> None:
+    with _lock:
+        _publisher_gids.discard(gid)
+
+
+def is_local_publisher(gid: bytes) -> bool:
+    with _lock:
+        return gid in _publisher_gids

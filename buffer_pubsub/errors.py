@@ -1,0 +1,28 @@
+"""Typed errors of buffer_pubsub; all derive from :class:`rosidl_buffer.RosidlBufferError`."""
+
+from __future__ import annotations
+
+from rosidl_buffer.errors import RosidlBufferError
+
+__all__ = ["PubSubError", "WireFormatError", "NodeClosedError", "TransportConfigError",
+           "InvalidEndpointError"]
+
+
+class PubSubError(RosidlBufferError):
+    """Base class of buffer_pubsub errors."""
+
+
+class WireFormatError(PubSubError, ValueError):
+    """A key, liveliness token or attachment does not follow the wire layout."""
+
+
+class NodeClosedError(PubSubError, RuntimeError):
+    """The node (or the endpoint) was closed and can no longer be used."""
+
+
+class TransportConfigError(PubSubError, ValueError):
+    """The Zenoh configuration (file, router endpoint, domain id) is invalid."""
+
+
+class InvalidEndpointError(PubSubError, ValueError):
+    """Bad arguments to create_publisher / create_subscription or publish."""

@@ -1,0 +1,248 @@
+"""``Publisher``: routes every message to each matched subscription by exactly one route.
+
+Per publish:
+
+- subscriptions of this process get the message object itself (intra-process, no serialization,
+  no copy of the payload) when they accept every backend the message's buffers live in, else a
+  CPU copy; they are never served through Zenoh as well;
+- a remote subscription that advertises a backend besides CPU gets its own channel
+  ``<key>/_buf/<its gid>``: a payload serialized for it alone when a backend agreed to serve it
+  (``on_discovering_endpoint``) and holds one of the message's buffers
+  (``create_descriptor_with_endpoint`` per buffer, CPU bytes where that returns None), else the
+  shared CPU serialization;
+- subscriptions that accept only CPU share one CPU serialization on ``<key>/_buf_cpu``;
+- subscriptions that know nothing of buffers (no extra segment) get CPU bytes on the base key.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import zenoh
+
+from rosidl_buffer import Buffer, EndpointInfo
+from rosidl_buffer.messages import Message, deserialize_message, serialize_message
+
+from . import _process, wire
+from ._info import endpoint_info
+from .errors import InvalidEndpointError, NodeClosedError
+
+if TYPE_CHECKING:
+    from .node import Node
+
+__all__ = ["Publisher", "buffer_backends_of"]
+
+_log = logging.getLogger(__name__)
+
+
+def buffer_backends_of(message: Message) -> set[str]:
+    """Backend names of every buffer in ``message``, nested messages included."""
+    found: set[str] = set()
+    stack: list[Any] = [message]
+    while stack:
+        item = stack.pop()
+        for name in item.__slots__:
+            value = getattr(item, name)
+            if isinstance(value, Buffer):
+                found.add(value.get_backend_type())
+            elif isinstance(value, Message):
+                stack.append(value)
+            elif isinstance(value, list):
+                stack.extend(v for v in value if isinstance(v, Message))
+    return found
+
+
+def cpu_copy(message: Message) -> Message:
+    """A deep copy of ``message`` whose buffers all live in CPU memory."""
+    return deserialize_message(serialize_message(message), type(message))
+
+
+@dataclass
+class _Peer:
+    token: wire.EndpointToken
+    info: EndpointInfo
+    served: set[str] = field(default_factory=set)  # backends that agreed to serve this peer
+    channel: Any = None  # zenoh.Publisher on <key>/_buf/<gid>, declared on first use
+
+    @property
+    def individual(self) -> bool:
+        """Served on its own channel: it advertises a backend besides CPU (see wire)."""
+        return wire.accepts_backends(self.token.backends)
+
+
+class Publisher:
+    """Created by :meth:`Node.create_publisher`; publishes ``msg_type`` messages on a topic."""
+
+    def __init__(self, node: Node, msg_type: type[Message], token: wire.EndpointToken,
+                 depth: int) -> None:
+        self.node = node
+        self.msg_type = msg_type
+        self.topic_name = token.topic
+        self.depth = depth
+        self._token = token
+        self.gid = token.gid
+        self.info = endpoint_info(token)
+        self.base_key = wire.data_key(node.domain_id, token.topic, msg_type.__msgtype__)
+        self._intra_key = self.base_key
+        self._lock = threading.Lock()
+        self._peers: dict[bytes, _Peer] = {}
+        self._sequence = 0
+        self._closed = False
+        for backend in node.backends.values():
+            backend.on_creating_endpoint(self.info)
+        session = node.session
+        # Zenoh's own same-session delivery is skipped: local subscriptions are served in-process.
+        remote = zenoh.Locality.REMOTE
+        self._base = session.declare_publisher(self.base_key, allowed_destination=remote)
+        self._cpu = session.declare_publisher(
+            wire.cpu_channel_key(self.base_key), allowed_destination=remote)
+        _process.add_publisher(self.gid)
+        self._liveliness = session.liveliness().declare_token(token.key())
+
+    def __repr__(self) -> str:
+        return f"Publisher({self.msg_type.__msgtype__}, {self.topic_name!r})"
+
+    # -- matching ------------------------------------------------------------------------------
+    def _matches(self, token: wire.EndpointToken) -> bool:
+        return (not token.is_publisher and token.topic == self._token.topic
+                and token.type_name == self._token.type_name
+                and token.type_hash == self._token.type_hash)
+
+    def _on_peer(self, token: wire.EndpointToken, appeared: bool) -> None:
+        """A matching subscription appeared or vanished (called by the node's discovery)."""
+        gid = token.gid
+        if not appeared:
+            with self._lock:
+                peer = self._peers.pop(gid, None)
+            if peer is not None and peer.channel is not None:
+                _undeclare(peer.channel)
+            return
+        info = endpoint_info(token)
+        peer = _Peer(token, info)
+        with self._lock:
+            if self._closed or gid in self._peers:
+                return
+            existing = [p.info for p in self._peers.values()]
+        if token.buffer_aware:
+            for name, backend in self.node.backends.items():
+                accepted, _groups = backend.on_discovering_endpoint(
+                    info, existing, info.supported_backends)
+                if accepted:
+                    peer.served.add(name)
+        with self._lock:
+            if not self._closed:
+                self._peers.setdefault(gid, peer)
+
+    def get_subscription_count(self) -> int:
+        """Matched subscriptions (local and remote) currently known through discovery."""
+        return self.node._count_matching(
+            wire.SUBSCRIPTION_KIND, self._token.topic, self._token.type_name,
+            self._token.type_hash)
+
+    def wait_for_subscriptions(self, count: int = 1, timeout: float | None = 10.0) -> bool:
+        """Block until at least ``count`` subscriptions are matched; False on timeout."""
+        return self.node._wait_matching(
+            wire.SUBSCRIPTION_KIND, self._token.topic, self._token.type_name,
+            self._token.type_hash, count, timeout)
+
+    # -- publishing ----------------------------------------------------------------------------
+    def publish(self, msg: Message) -> None:
+        """Send ``msg`` to every matched subscription, each by exactly one route."""
+        if not isinstance(msg, self.msg_type):
+            raise InvalidEndpointError(
+                f"publisher of {self.msg_type.__msgtype__} got {type(msg).__name__}")
+        with self._lock:
+            if self._closed:
+                raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
+            self._sequence += 1
+            sequence = self._sequence
+            peers = list(self._peers.values())
+        attachment = wire.Attachment(sequence, time.time_ns(), self.gid)
+        backends = buffer_backends_of(msg)
+        self._publish_intra(msg, backends, attachment)
+
+        cpu_payload: bytearray | None = None
+        need_cpu_channel = need_base = False
+        encoded = attachment.encode()
+        for peer in peers:
+            if _process.is_local_subscription(peer.token.gid):
+                continue
+            if not peer.token.buffer_aware:
+                need_base = True
+            elif not peer.individual:
+                need_cpu_channel = True
+            elif peer.served & backends:
+                self._put_individual(peer, self._serialize_for(peer, msg), encoded)
+            else:
+                if cpu_payload is None:
+                    cpu_payload = serialize_message(msg)
+                self._put_individual(peer, cpu_payload, encoded)
+        if need_cpu_channel or need_base:
+            if cpu_payload is None:
+                cpu_payload = serialize_message(msg)
+            if need_cpu_channel:
+                self._cpu.put(cpu_payload, attachment=encoded)
+            if need_base:
+                self._base.put(cpu_payload, attachment=encoded)
+
+    def _publish_intra(self, msg: Message, backends: set[str],
+                       attachment: wire.Attachment) -> None:
+        copy: Message | None = None
+        for subscription in _process.local_subscriptions(self._intra_key):
+            if subscription.node.domain_id != self.node.domain_id:
+                continue
+            if backends <= set(subscription.accepted):
+                subscription._deliver_intra(msg, attachment)
+            else:
+                if copy is None:
+                    copy = cpu_copy(msg)
+                subscription._deliver_intra(copy, attachment)
+
+    def _serialize_for(self, peer: _Peer, msg: Message) -> bytearray:
+        backends = self.node.backends
+
+        def route(buffer: Buffer) -> tuple[str, Any] | None:
+            name = buffer.get_backend_type()
+            if name not in peer.served:
+                return None
+            descriptor = backends[name].create_descriptor_with_endpoint(
+                buffer.get_impl(), peer.info)
+            return None if descriptor is None else (name, descriptor)
+
+        return serialize_message(msg, route=route)
+
+    def _put_individual(self, peer: _Peer, payload: bytearray, attachment: bytes) -> None:
+        if peer.channel is None:
+            peer.channel = self.node.session.declare_publisher(
+                wire.buffer_channel_key(self.base_key, peer.token.gid),
+                allowed_destination=zenoh.Locality.REMOTE)
+        peer.channel.put(payload, attachment=attachment)
+
+    # -- teardown ------------------------------------------------------------------------------
+    def destroy(self) -> None:
+        """Undeclare this publisher (also done by :meth:`Node.close`)."""
+        self.node._forget(self)
+        self._undeclare()
+
+    def _undeclare(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            peers = list(self._peers.values())
+            self._peers.clear()
+        _process.remove_publisher(self.gid)
+        for entity in (self._liveliness, self._base, self._cpu,
+                       *(p.channel for p in peers if p.channel is not None)):
+            _undeclare(entity)
+
+
+def _undeclare(entity: Any) -> None:
+    try:
+        entity.undeclare()
+    except zenoh.ZError:
+        pass

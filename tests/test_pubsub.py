@@ -1,0 +1,411 @@
+"""buffer_pubsub over real Zenoh sessions: the six topologies of the backend guide, a relay
+pipeline, discovery (SIGKILL included), error counting, and the base-key fallback.
+
+Topology tests use the ``warp`` backend once it is installed and the test-only ``fake`` backend
+(tests/fake_backend) until then; every child process is reaped in ``finally``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import time
+import uuid
+
+import numpy as np
+import pytest
+import zenoh
+
+from tests._pubsub_helpers import (
+    TENSOR,
+    Child,
+    check_frame,
+    make_frame,
+    pick_backend,
+    use_fake_backend,
+)
+
+pytestmark = pytest.mark.multiprocess
+
+use_fake_backend()
+
+from buffer_pubsub import InvalidEndpointError, Node, NodeClosedError, wire  # noqa: E402
+from rosidl_buffer import registry  # noqa: E402
+from rosidl_buffer.messages import get_message_type, serialize_message  # noqa: E402
+
+BACKEND = pick_backend()
+_domains = itertools.count(100 + os.getpid() % 50 * 40)
+COUNT = 20
+SIZE = 2048  # the fake backend carries payloads inline: stay under its 4000-byte bound
+
+
+@pytest.fixture
+def domain() -> int:
+    return next(_domains)
+
+
+@pytest.fixture
+def topic() -> str:
+    return f"/pubsub_test/t_{uuid.uuid4().hex[:10]}"
+
+
+@pytest.fixture(scope="module")
+def backends():
+    loaded, _errors = registry.load_backends()
+    assert BACKEND in loaded
+    return loaded
+
+
+def _children(*children: Child):
+    for child in children:
+        child.wait_ready()
+
+
+def _close(*children: Child) -> None:
+    for child in children:
+        child.close()
+
+
+def _check_all(records, *, backend: str, route: str, count: int, pub: int = 0) -> None:
+    mine = [r for r in records if r["pub"] == pub]
+    assert len(mine) == count, f"expected {count} frames from publisher {pub}, got {len(mine)}"
+    assert sorted(r["index"] for r in mine) == list(range(count))
+    assert all(r["ok"] for r in mine), "payload checksum mismatch"
+    assert {r["backend"] for r in mine} == {backend}
+    assert {r["route"] for r in mine} == {route}
+
+
+def _publish(pub, count: int = COUNT, backend: str = BACKEND, pub_id: int = 0) -> None:
+    for index in range(count):
+        pub.publish(make_frame(pub_id, index, SIZE, backend))
+        time.sleep(0.003)
+    time.sleep(0.3)  # let the last samples land before the children are told to stop
+
+
+# --------------------------------------------------------------------------- 1. intra-process
+def test_intra_process_shares_the_message_and_gives_cpu_only_a_copy(domain, topic, backends):
+    got_backend, got_cpu = [], []
+    with Node("intra_pub", domain_id=domain, backends=backends) as pub_node, \
+            Node("intra_sub", domain_id=domain, backends=backends) as sub_node:
+        s1 = sub_node.create_subscription(TENSOR, topic, lambda m, i: got_backend.append((m, i)),
+                                          depth=COUNT, acceptable_buffer_backends=BACKEND,
+                                          with_info=True)
+        s2 = pub_node.create_subscription(TENSOR, topic, lambda m, i: got_cpu.append((m, i)),
+                                          depth=COUNT, acceptable_buffer_backends="cpu",
+                                          with_info=True)
+        pub = pub_node.create_publisher(TENSOR, topic)
+        assert pub.wait_for_subscriptions(2, timeout=10)
+        sent = [make_frame(0, i, SIZE, BACKEND) for i in range(COUNT)]
+        for msg in sent:
+            pub.publish(msg)
+        deadline = time.monotonic() + 10
+        while (len(got_backend) < COUNT or len(got_cpu) < COUNT) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.2)  # a duplicate through Zenoh would arrive in this window
+    assert len(got_backend) == COUNT and len(got_cpu) == COUNT
+    for msg, (received, info) in zip(sent, got_backend):
+        assert received is msg  # no serialization, no payload copy
+        assert info.route == "intra"
+        assert received.data.get_backend_type() == BACKEND
+    for msg, (received, info) in zip(sent, got_cpu):
+        assert received is not msg and received.data.get_backend_type() == "cpu"
+        assert check_frame(received)["crc"] == check_frame(msg)["crc"]
+        assert check_frame(received)["ok"]
+    assert s1.counters.received == COUNT and s2.counters.received == COUNT
+    assert s1.lost == s2.lost == 0
+
+
+# --------------------------------------------------------------------------- 2. inter-process
+def test_inter_process_same_host_uses_the_backend(domain, topic, backends):
+    sub = Child("sub", domain=domain, topic=topic, accept=BACKEND, expect=COUNT)
+    try:
+        with Node("inter_pub", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic)
+            _children(sub)
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            _publish(pub)
+            result = sub.stop()
+    finally:
+        _close(sub)
+    _check_all(result["records"], backend=BACKEND, route="buffer", count=COUNT)
+    assert result["counters"]["lost"] == 0 and result["counters"]["errors"] == 0
+
+
+# --------------------------------------------------------------------------- 3 + 5. mixed, fallback
+def test_mixed_intra_inter_and_cpu_fallback(domain, topic, backends):
+    """One publisher; an intra-process subscription, a backend subscription in another process,
+    and a CPU-only subscription beside it that must get correct bytes as "cpu"."""
+    accel = Child("sub", domain=domain, topic=topic, accept=BACKEND, expect=COUNT)
+    cpu = Child("sub", domain=domain, topic=topic, accept="cpu", expect=COUNT)
+    local = []
+    try:
+        with Node("mixed_pub", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic)
+            node.create_subscription(TENSOR, topic, lambda m, i: local.append((m, i)),
+                                     depth=COUNT, acceptable_buffer_backends="any",
+                                     with_info=True)
+            _children(accel, cpu)
+            assert pub.wait_for_subscriptions(3, timeout=10)
+            assert pub.get_subscription_count() == 3
+            _publish(pub)
+            accel_result, cpu_result = accel.stop(), cpu.stop()
+    finally:
+        _close(accel, cpu)
+    _check_all(accel_result["records"], backend=BACKEND, route="buffer", count=COUNT)
+    _check_all(cpu_result["records"], backend="cpu", route="cpu", count=COUNT)
+    assert [check_frame(m)["index"] for m, _ in local] == list(range(COUNT))
+    assert {i.route for _, i in local} == {"intra"}
+    assert {m.data.get_backend_type() for m, _ in local} == {BACKEND}
+
+
+# --------------------------------------------------------------------------- 4. fan-in
+def test_multi_publisher_fan_in(domain, topic, backends):
+    pubs = [Child("pub", domain=domain, topic=topic, backend=BACKEND, pub_id=k, count=COUNT)
+            for k in (1, 2)]
+    received = []
+    try:
+        with Node("fan_in_sub", domain_id=domain, backends=backends) as node:
+            sub = node.create_subscription(TENSOR, topic, lambda m, i: received.append((m, i)),
+                                           depth=2 * COUNT, acceptable_buffer_backends=BACKEND,
+                                           with_info=True)
+            assert sub.wait_for_publishers(2, timeout=10)
+            _children(*pubs)
+            deadline = time.monotonic() + 15
+            while len(received) < 2 * COUNT and time.monotonic() < deadline:
+                time.sleep(0.02)
+            time.sleep(0.2)
+            for p in pubs:
+                assert p.stop()["matched"]
+            records = [dict(check_frame(m), route=i.route) for m, i in received]
+            assert sub.counters.lost == 0 and sub.counters.errors == 0
+    finally:
+        _close(*pubs)
+    for pub_id in (1, 2):
+        _check_all(records, backend=BACKEND, route="buffer", count=COUNT, pub=pub_id)
+    assert len(records) == 2 * COUNT
+
+
+# --------------------------------------------------------------------------- 6. no duplicates
+def test_mixed_no_duplicate(domain, topic, backends):
+    """Subscriptions accepting the backend and CPU, while CPU and backend frames alternate and a
+    CPU-only subscription shares the topic: each gets every frame once (never more)."""
+    both = Child("sub", domain=domain, topic=topic, accept=f"{BACKEND},cpu", expect=COUNT)
+    anyb = Child("sub", domain=domain, topic=topic, accept="any", expect=COUNT)
+    cpu = Child("sub", domain=domain, topic=topic, accept="cpu", expect=COUNT)
+    try:
+        with Node("dup_pub", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic)
+            _children(both, anyb, cpu)
+            assert pub.wait_for_subscriptions(3, timeout=10)
+            for index in range(COUNT):
+                pub.publish(make_frame(0, index, SIZE, BACKEND if index % 2 else "cpu"))
+                time.sleep(0.003)
+            time.sleep(0.3)
+            results = [c.stop() for c in (both, anyb, cpu)]
+    finally:
+        _close(both, anyb, cpu)
+    for result in results:
+        indices = [r["index"] for r in result["records"]]
+        assert COUNT - 1 <= len(indices) <= COUNT
+        assert len(set(indices)) == len(indices), "a frame arrived twice"
+        assert all(r["ok"] for r in result["records"])
+    for result in results[:2]:
+        assert {r["backend"] for r in result["records"] if r["index"] % 2} == {BACKEND}
+        assert {r["backend"] for r in result["records"] if not r["index"] % 2} == {"cpu"}
+    assert {r["backend"] for r in results[2]["records"]} == {"cpu"}
+
+
+# --------------------------------------------------------------------------- relay pipeline
+def test_relay_pipeline_runs_a_warp_kernel(domain, topic, backends):
+    out_topic = topic + "_out"
+    key = 0x5A
+    relay = Child("relay", domain=domain, topic=topic, out_topic=out_topic, accept=BACKEND,
+                  xor=key)
+    sink = Child("sub", domain=domain, topic=out_topic, accept=BACKEND, xor=key, expect=COUNT)
+    try:
+        with Node("relay_src", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic)
+            _children(relay, sink)
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            _publish(pub)
+            sink_result = sink.stop()
+            relay_result = relay.stop()
+    finally:
+        _close(relay, sink)
+    assert relay_result["backends"] == [BACKEND] * COUNT
+    _check_all(sink_result["records"], backend=BACKEND, route="buffer", count=COUNT)
+
+
+# --------------------------------------------------------------------------- discovery
+def test_sigkilled_subscriber_vanishes_from_the_graph(domain, topic, backends):
+    sub = Child("sub", domain=domain, topic=topic, accept="cpu")
+    try:
+        with Node("kill_pub", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic)
+            _children(sub)
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            os.kill(sub.proc.pid, signal.SIGKILL)
+            sub.proc.wait(timeout=10)
+            deadline = time.monotonic() + 5
+            while pub.get_subscription_count() and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert pub.get_subscription_count() == 0
+            pub.publish(make_frame(0, 0, SIZE, BACKEND))  # nobody left: must not fail
+    finally:
+        _close(sub)
+
+
+def test_negotiation_hooks_are_called(domain, topic, backends):
+    fake = backends["fake"]
+    created, discovered = len(fake.created), len(fake.discovered)
+    with Node("hooks", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        sub = node.create_subscription(TENSOR, topic, lambda m: None,
+                                       acceptable_buffer_backends="fake")
+        assert pub.wait_for_subscriptions(1, timeout=10)
+        deadline = time.monotonic() + 5
+        while len(fake.discovered) == discovered and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert {e.gid for e in fake.created[created:]} == {pub.gid, sub.gid}
+    peer = fake.discovered[discovered]
+    assert peer.gid == sub.gid and dict(peer.supported_backends) == {"fake": "fake-v1", "cpu": ""}
+    assert peer.process_id == os.getpid()
+
+
+# --------------------------------------------------------------------------- errors and wire
+def test_stale_descriptor_is_counted_and_the_subscription_goes_on(domain, topic, backends):
+    """Frame 1 arrives with a descriptor the backend rejects (a typed error): it is counted, and
+    the frames around it are delivered."""
+    pub = Child("pub", domain=domain, topic=topic, backend="fake", count=3, stale_index=1)
+    got = []
+    try:
+        with Node("stale_sub", domain_id=domain, backends=backends) as node:
+            sub = node.create_subscription(TENSOR, topic, got.append,
+                                           acceptable_buffer_backends="fake")
+            _children(pub)
+            deadline = time.monotonic() + 10
+            while len(got) + sub.errors < 3 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            pub.stop()
+            assert sub.errors == 1 and sub.received == 2 and sub.lost == 0
+            assert type(sub.last_error).__name__ == "BackendError"
+    finally:
+        _close(pub)
+    assert [check_frame(m)["index"] for m in got] == [0, 2]
+    assert {m.data.get_backend_type() for m in got} == {"fake"}
+
+
+def test_samples_without_attachment_are_rejected_and_base_key_serves_plain_peers(
+        domain, topic, backends):
+    """A peer that knows nothing of buffers (plain rmw_zenoh: no extra segment) gets CPU bytes on
+    the base key; a bare sample with no attachment is dropped."""
+    tensor = get_message_type(TENSOR)
+    got, plain = [], []
+    with Node("plain_pub", domain_id=domain, backends=backends) as node, \
+            zenoh.open(zenoh.Config.from_json5(
+                '{mode:"peer",listen:{endpoints:["tcp/127.0.0.1:0"]},'
+                'scouting:{multicast:{enabled:true,interface:"lo"}}}')) as raw:
+        sub = node.create_subscription(TENSOR, topic, got.append,
+                                       acceptable_buffer_backends="cpu")
+        token = wire.EndpointToken(
+            domain_id=domain, zid=str(raw.zid()), node_id=0, entity_id=1,
+            kind=wire.SUBSCRIPTION_KIND, namespace="", node_name="plain", topic=topic,
+            type_name=TENSOR, type_hash=sub._token.type_hash, qos=wire.qos_segment(10))
+        base = wire.data_key(domain, topic, TENSOR)
+        raw_sub = raw.declare_subscriber(
+            base, lambda s: plain.append((s.payload.to_bytes(), s.attachment)))
+        raw_token = raw.liveliness().declare_token(token.key())
+        pub = node.create_publisher(TENSOR, topic)
+        assert pub.wait_for_subscriptions(2, timeout=10)
+        raw.put(wire.cpu_channel_key(base), bytes(serialize_message(tensor())))  # no attachment
+        time.sleep(0.3)
+        pub.publish(make_frame(0, 7, SIZE, BACKEND))
+        deadline = time.monotonic() + 5
+        while (not plain or not got) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.2)
+        raw_token.undeclare()
+        raw_sub.undeclare()
+        assert sub.counters.rejected == 1
+    assert len(plain) == 1 and len(got) == 1
+    payload, attachment = plain[0]
+    parsed = wire.Attachment.decode(attachment.to_bytes())
+    assert parsed.sequence_number == 1 and parsed.publisher_gid == pub.gid
+    from rosidl_buffer.messages import deserialize_message
+
+    assert check_frame(deserialize_message(payload, tensor))["index"] == 7
+
+
+def test_wire_layout():
+    token = wire.EndpointToken(
+        domain_id=0, zid="abc", node_id=1, entity_id=2, kind=wire.SUBSCRIPTION_KIND,
+        namespace="/ns", node_name="n", topic="/robot1/chatter", type_name="std_msgs/msg/String",
+        type_hash="RIHS01_" + "0" * 64, qos=wire.qos_segment(10), buffer_aware=True,
+        locality=wire.Locality("id@host/x", 12, 1000),
+        backends={"warp": "dev=cpu;a/b*c", "cpu": ""})
+    key = token.key()
+    segments = key.split("/")
+    assert segments[:10] == ["@ros2_lv", "0", "abc", "1", "2", "MS", "%", "%ns", "n",
+                             "%robot1%chatter"]
+    assert segments[10:13] == ["std_msgs::msg::dds_::String_", "RIHS01_" + "0" * 64,
+                               "::,10:,:,:,,"]
+    assert len(segments) == 14 and not set("*$?#/") & set(segments[13])
+    parsed = wire.parse_token(key)
+    assert parsed == token and parsed.backends == token.backends
+    assert parsed.gid == token.gid and len(token.gid) == 16
+    assert wire.data_key(0, "/robot1/chatter", "std_msgs/msg/String").startswith(
+        "0/robot1/chatter/std_msgs::msg::dds_::String_/RIHS01_")
+    att = wire.Attachment(5, 123, token.gid)
+    assert len(att.encode()) == 33 and att.encode()[16] == 0x10
+    assert wire.Attachment.decode(att.encode()) == att
+    with pytest.raises(wire.WireFormatError):
+        wire.Attachment.decode(b"\x00" * 32)
+    import xxhash
+
+    digest = xxhash.xxh3_128_intdigest(key.encode())
+    assert token.gid[:8] == (digest & (2**64 - 1)).to_bytes(8, "little")
+
+
+def test_misuse_raises_typed_errors(domain, topic, backends):
+    node = Node("misuse", domain_id=domain, backends=backends)
+    try:
+        with pytest.raises(InvalidEndpointError):
+            node.create_subscription(TENSOR, topic, lambda m: None,
+                                     acceptable_buffer_backends="nonexistent")
+        with pytest.raises(InvalidEndpointError):
+            node.create_publisher(TENSOR, topic, depth=0)
+        pub = node.create_publisher(TENSOR, topic)
+        with pytest.raises(InvalidEndpointError):
+            pub.publish(get_message_type("sensor_msgs/msg/Image")())
+    finally:
+        node.close()
+    with pytest.raises(NodeClosedError):
+        pub.publish(make_frame(0, 0, 16, "cpu"))
+    with pytest.raises(NodeClosedError):
+        node.create_publisher(TENSOR, topic)
+    with pytest.raises(InvalidEndpointError):
+        Node("bad/name")
+
+
+def test_keep_last_depth_drops_the_oldest(domain, topic, backends):
+    import threading
+
+    gate = threading.Event()
+    got = []
+
+    def slow(msg):
+        gate.wait(5)
+        got.append(check_frame(msg)["index"])
+
+    with Node("depth", domain_id=domain, backends=backends) as node:
+        sub = node.create_subscription(TENSOR, topic, slow, depth=3)
+        pub = node.create_publisher(TENSOR, topic)
+        for index in range(10):
+            pub.publish(make_frame(0, index, 64, "cpu"))
+        gate.set()
+        deadline = time.monotonic() + 5
+        while sub.received + sub.counters.dropped < 10 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert got[-3:] == [7, 8, 9] and sub.counters.dropped == 10 - len(got)
+    assert np.all(np.diff(got) > 0)
