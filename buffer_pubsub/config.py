@@ -37,6 +37,9 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "mode": "peer",
     "listen": {"endpoints": ["tcp/127.0.0.1:0"]},
     "scouting": {"multicast": {"enabled": True, "interface": "lo"}, "gossip": {"enabled": True}},
+    # Zenoh's SHM transport made CPU-fallback samples slower here (its buffers have no Python
+    # buffer protocol, so Python copies in and out); same-host zero copy is the backends' job.
+    "transport": {"shared_memory": {"enabled": False}},
 }
 
 

@@ -94,14 +94,10 @@ class Publisher:
         self._closed = False
         for backend in node.backends.values():
             backend.on_creating_endpoint(self.info)
-        session = node.session
-        # Zenoh's own same-session delivery is skipped: local subscriptions are served in-process.
-        remote = zenoh.Locality.REMOTE
-        self._base = session.declare_publisher(self.base_key, allowed_destination=remote)
-        self._cpu = session.declare_publisher(
-            wire.cpu_channel_key(self.base_key), allowed_destination=remote)
+        self._base = self._declare_channel(self.base_key)
+        self._cpu = self._declare_channel(wire.cpu_channel_key(self.base_key))
         _process.add_publisher(self.gid)
-        self._liveliness = session.liveliness().declare_token(token.key())
+        self._liveliness = node.session.liveliness().declare_token(token.key())
 
     def __repr__(self) -> str:
         return f"Publisher({self.msg_type.__msgtype__}, {self.topic_name!r})"
@@ -217,10 +213,17 @@ class Publisher:
 
     def _put_individual(self, peer: _Peer, payload: bytearray, attachment: bytes) -> None:
         if peer.channel is None:
-            peer.channel = self.node.session.declare_publisher(
-                wire.buffer_channel_key(self.base_key, peer.token.gid),
-                allowed_destination=zenoh.Locality.REMOTE)
+            peer.channel = self._declare_channel(
+                wire.buffer_channel_key(self.base_key, peer.token.gid))
         peer.channel.put(payload, attachment=attachment)
+
+    def _declare_channel(self, key: str) -> zenoh.Publisher:
+        # Reliable QoS: block rather than drop when Zenoh's queues are full (Zenoh's default
+        # drops, which lost large messages under load). Zenoh's same-session delivery is skipped:
+        # local subscriptions are served in-process.
+        return self.node.session.declare_publisher(
+            key, allowed_destination=zenoh.Locality.REMOTE,
+            congestion_control=zenoh.CongestionControl.BLOCK)
 
     # -- teardown ------------------------------------------------------------------------------
     def destroy(self) -> None:

@@ -1,0 +1,166 @@
+"""Turn raw path results into the report: figures per path, copies, ratios vs targets, table."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from benchmarks.stats import format_size, ratio
+
+ZERO_COPY = "warp_zero_copy"
+SIZE_16M = 16 << 20
+SIZE_64M = 64 << 20
+SIZE_4K = 4 << 10
+
+
+def path_entry(name: str, module: Any, raw: dict[str, Any]) -> dict[str, Any]:
+    """The report entry of one path from what its child printed."""
+    entry: dict[str, Any] = {"label": module.LABEL, "kind": module.KIND,
+                             "topology": module.TOPOLOGY, "wall_s": raw.get("wall_s")}
+    if "unavailable" in raw:
+        entry.update(status="unavailable", reason=raw["unavailable"])
+        return entry
+    if "latency" not in raw:
+        entry.update(status="error", reason=raw.get("error", "no result"))
+        return entry
+    entry.update(status="ok" if not raw.get("errors") else "partial",
+                 errors=raw.get("errors", []), latency_us=raw["latency"], rate=raw.get("rate"),
+                 shm_removed=raw.get("shm_removed", []))
+    if module.KIND == "ours":
+        entry["copies"] = copies_per_size(raw.get("sender_report", {}),
+                                          raw.get("receiver_report", {}))
+    return entry
+
+
+def copies_per_size(sender: dict[str, Any], receiver: dict[str, Any]) -> dict[str, Any]:
+    """Bytes copied per message on each size, from the counts both sides made."""
+    result = {}
+    sent = sender.get("per_size", {})
+    received = receiver.get("per_size", {})
+    for size in sorted(set(sent) | set(received), key=int):
+        s, r = sent.get(size, {}), received.get(size, {})
+        serialized = int(s.get("serialized_bytes_per_message", 0))
+        wire = int(r.get("received_wire_bytes", 0))
+        materialized = int(r.get("materialized_bytes", 0))
+        result[size] = {
+            "serialized_bytes": serialized, "received_wire_bytes": wire,
+            "materialized_bytes": materialized,
+            "bytes_copied_per_message": serialized + wire + materialized,
+            "payload_copies": (serialized + wire + materialized) / int(size),
+            "delivered_backend": r.get("backend"), "tensor_lives_in": r.get("tensor_lives_in"),
+        }
+    return result
+
+
+def p50(paths: dict[str, Any], name: str, nbytes: int) -> float | None:
+    """Median one-way latency (us) of a path at a size, or None."""
+    latency = paths.get(name, {}).get("latency_us") or {}
+    figures = latency.get(str(nbytes))
+    return None if figures is None else figures["p50_us"]
+
+
+def _verdict(value: float | None, target: float, at_least: bool, why_missing: str) -> dict:
+    if value is None:
+        return {"value": None, "target": target, "verdict": "N/A", "detail": why_missing}
+    ok = value >= target if at_least else value <= target
+    return {"value": value, "target": target, "verdict": "PASS" if ok else "MISS", "detail": ""}
+
+
+def _missing(paths: dict[str, Any], names: tuple[str, ...], sizes: tuple[int, ...]) -> str:
+    for name in names:
+        entry = paths.get(name)
+        if entry is None:
+            return f"{name} not run"
+        if entry.get("status") in ("unavailable", "error"):
+            return f"{name} {entry['status']}: {entry.get('reason')}"
+        for size in sizes:
+            if p50(paths, name, size) is None:
+                return f"{name} has no {format_size(size)} figure"
+    return "missing figures"
+
+
+def ratios(paths: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The ratios that matter, with their targets and PASS / MISS / N/A."""
+    zc = ZERO_COPY
+    speedup = ratio(p50(paths, "zenoh_copy", SIZE_16M), p50(paths, zc, SIZE_16M))
+    vs_iox = ratio(p50(paths, zc, SIZE_16M), p50(paths, "iceoryx2", SIZE_16M))
+    flat = ratio(p50(paths, zc, SIZE_64M), p50(paths, zc, SIZE_4K))
+    result = {
+        "speedup_vs_zenoh_copy_16MiB": {
+            "description": "Zenoh copy p50 / warp zero-copy p50 at 16 MiB (higher is better)",
+            **_verdict(speedup, 50.0, True, _missing(paths, ("zenoh_copy", zc), (SIZE_16M,)))},
+        "slowdown_vs_iceoryx2_16MiB": {
+            "description": "warp zero-copy p50 / iceoryx2 p50 at 16 MiB (lower is better)",
+            **_verdict(vs_iox, 3.0, False, _missing(paths, ("iceoryx2", zc), (SIZE_16M,)))},
+        "flatness_64MiB_over_4KiB": {
+            "description": "warp zero-copy p50 at 64 MiB / p50 at 4 KiB (lower is better)",
+            **_verdict(flat, 1.2, False, _missing(paths, (zc,), (SIZE_64M, SIZE_4K)))},
+    }
+    largest = max((int(s) for s in (paths.get(zc, {}).get("latency_us") or {})), default=None)
+    if largest is not None and largest > SIZE_64M:
+        result[f"flatness_{format_size(largest).replace(' ', '')}_over_4KiB"] = {
+            "description": f"warp zero-copy p50 at {format_size(largest)} / p50 at 4 KiB (info)",
+            "value": ratio(p50(paths, zc, largest), p50(paths, zc, SIZE_4K)),
+            "target": None, "verdict": "INFO", "detail": ""}
+    return result
+
+
+# ----------------------------------------------------------------------------------- table
+
+
+def _cell(value: float | None) -> str:
+    if value is None:
+        return "-"
+    return f"{value:,.0f}" if value >= 100 else f"{value:.1f}"
+
+
+def _grid(header: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header))]
+    lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w)
+                       for i, (c, w) in enumerate(zip(row, widths))) for row in [header, *rows]]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def format_table(report: dict[str, Any]) -> str:
+    """Latency (p50/p90/p99 per size), rate and copies per path; the ratios; the machine."""
+    paths: dict[str, Any] = report["paths"]
+    sizes = report["plan"]["sizes"]
+    out = [f"Machine: {report['machine_line']}", f"Latency: {report['method']}", ""]
+    for stat in ("p50", "p90", "p99"):
+        header = [f"one-way {stat} (us)"] + [format_size(s) for s in sizes]
+        rows = []
+        for entry in paths.values():
+            latency = entry.get("latency_us") or {}
+            if entry["status"] in ("unavailable", "error"):
+                rows.append([entry["label"]] + [entry["status"]] * len(sizes))
+                continue
+            rows.append([entry["label"]] + [
+                _cell(latency.get(str(s), {}).get(f"{stat}_us")) for s in sizes])
+        out += [_grid(header, rows), ""]
+    rate_rows = []
+    for entry in paths.values():
+        rate = entry.get("rate") or {}
+        copies = entry.get("copies") or {}
+        copied = "; ".join(f"{format_size(int(s))}: {c['bytes_copied_per_message']:,} B"
+                           for s, c in copies.items()) if copies else "-"
+        rate_rows.append([entry["label"], _cell(rate.get("msgs_per_s")), copied])
+    out += [_grid(["path", "msg/s (4 KiB)", "bytes copied per message (ours, counted)"],
+                  rate_rows), ""]
+    notes = [f"  {e['label']}: {e['status']}: {e['reason']}" for e in paths.values()
+             if e["status"] in ("unavailable", "error")]
+    notes += [f"  {e['label']}: {error}" for e in paths.values() for error in e.get("errors", [])]
+    if notes:
+        out += ["Not measured:", *notes, ""]
+    out.append("Ratios (targets for the zero-copy path):")
+    for name, r in report["ratios"].items():
+        value = "n/a" if r["value"] is None else f"{r['value']:.2f}x"
+        target = "" if r["target"] is None else f" (target {'>=' if 'speedup' in name else '<='} "\
+                                                 f"{r['target']:g}x)"
+        detail = f"  [{r['detail']}]" if r.get("detail") else ""
+        out.append(f"  {r['verdict']:<5} {r['description']}: {value}{target}{detail}")
+    bandwidth = report.get("copy_bandwidth", {})
+    if bandwidth.get("status") == "ok" and bandwidth.get("text"):
+        out += ["", "Copy kernels (benchmarks.copy_bandwidth --quick):", bandwidth["text"]]
+    elif bandwidth:
+        out += ["", f"Copy kernels: {bandwidth.get('status')}: {bandwidth.get('reason', '')}"]
+    return "\n".join(out)

@@ -1,0 +1,154 @@
+"""``warp-buffer bench``: measure every path on this machine, print a table, write JSON and a plot.
+
+Each path runs in child processes of its own (``python -m benchmarks.child``), one path after the
+other, so they never compete for the two cores; every child is reaped and the shared memory it
+left is removed. Results: ``<out>/bench.json`` (every figure and the machine) and
+``<out>/latency.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import subprocess
+import sys
+import time
+import uuid
+from typing import Any
+
+from benchmarks.machine import describe, machine_info
+from benchmarks.paths import PATH_MODULES, PathSettings, load_path
+from benchmarks.processes import free_tcp_port, run_path
+from benchmarks.protocol import METHOD, progress
+from benchmarks.report import format_table, path_entry, ratios
+from benchmarks.stats import format_size, parse_size
+
+DEFAULT_SIZES = "4K,64K,1M,16M,64M,256M"
+QUICK_SIZES = "4K,1M,16M,64M"
+
+# mode -> measurement plan (sizes come from --sizes or the mode's default)
+PLANS: dict[str, dict[str, Any]] = {
+    "default": {"iterations": 300, "warmup": 5, "budget_s": 2.0, "timeout_s": 15.0,
+                "rate": {"nbytes": 4096, "count": 5000, "window": 8, "budget_s": 2.0},
+                "path_timeout_s": 150.0},
+    "quick": {"iterations": 40, "warmup": 2, "budget_s": 0.4, "timeout_s": 8.0,
+              "rate": {"nbytes": 4096, "count": 1000, "window": 8, "budget_s": 0.3},
+              "path_timeout_s": 45.0},
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``warp-buffer bench``."""
+    parser.add_argument("--quick", action="store_true",
+                        help=f"fewer sizes ({QUICK_SIZES}) and iterations: under a minute")
+    parser.add_argument("--out", default=os.path.join("benchmarks", "results"),
+                        help="directory for bench.json and latency.png (default: %(default)s)")
+    parser.add_argument("--sizes", default=None,
+                        help=f"comma-separated payload sizes, e.g. 4K,1M,16M (default: "
+                             f"{DEFAULT_SIZES}; quick: {QUICK_SIZES})")
+    parser.add_argument("--paths", default=",".join(PATH_MODULES),
+                        help="comma-separated paths to run (default: all): %(default)s")
+    parser.add_argument("--no-copy-bandwidth", action="store_true",
+                        help="skip the copy-kernel bandwidth measurement")
+
+
+def _plan(args: argparse.Namespace) -> dict[str, Any]:
+    plan = dict(PLANS["quick" if args.quick else "default"])
+    text = args.sizes or (QUICK_SIZES if args.quick else DEFAULT_SIZES)
+    plan["sizes"] = sorted({parse_size(s) for s in text.split(",") if s.strip()})
+    return plan
+
+
+def _copy_bandwidth(quick: bool, timeout_s: float) -> dict[str, Any]:
+    """The copy kernels' bandwidth from ``benchmarks.copy_bandwidth`` (another module's job),
+    run in a child so its Warp kernels and threads do not disturb the latency runs."""
+    import importlib.util
+
+    if importlib.util.find_spec("benchmarks.copy_bandwidth") is None:
+        return {"status": "unavailable", "reason": "benchmarks/copy_bandwidth.py not present"}
+    argv = ["--quick"] if quick else []
+    code = ("import sys, benchmarks.copy_bandwidth as m; "
+            f"sys.exit(m.main({argv!r}) or 0)")
+    progress("copy bandwidth: benchmarks.copy_bandwidth " + " ".join(argv))
+    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True,
+                               cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    try:
+        out, err = process.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.communicate()
+        return {"status": "error", "reason": f"timed out after {timeout_s:.0f} s"}
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    if process.returncode != 0:
+        return {"status": "error", "reason": (err.strip().splitlines() or ["failed"])[-1]}
+    return {"status": "ok", "text": out.rstrip()}
+
+
+def measure(args: argparse.Namespace) -> dict[str, Any]:
+    """Run every selected path; the full report (not yet written)."""
+    plan = _plan(args)
+    names = [n.strip() for n in args.paths.split(",") if n.strip()]
+    for name in names:
+        load_path(name)  # unknown names fail before anything runs
+    run_id = uuid.uuid4().hex[:10]
+    info = machine_info()
+    report: dict[str, Any] = {
+        "schema": 1, "tool": "warp-buffer bench",
+        "started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "mode": "quick" if args.quick else "default", "method": METHOD,
+        "machine": info, "machine_line": describe(info), "plan": plan, "paths": {},
+    }
+    started = time.monotonic()
+    progress(f"warp-buffer bench ({report['mode']}): {len(names)} paths x "
+             f"{', '.join(format_size(s) for s in plan['sizes'])} on {report['machine_line']}")
+    for index, name in enumerate(names, 1):
+        module = load_path(name)
+        progress(f"[{index}/{len(names)}] {module.LABEL} ({name})")
+        settings = PathSettings(name=name, run_id=f"{run_id}_{index}",
+                                max_nbytes=max(plan["sizes"]), port=free_tcp_port(),
+                                domain_id=100 + int(run_id[:4], 16) % 100)
+        raw = run_path(settings, plan, plan["path_timeout_s"])
+        entry = path_entry(name, module, raw)
+        report["paths"][name] = entry
+        if entry["status"] in ("unavailable", "error"):
+            progress(f"  [{name}] {entry['status']}: {entry['reason']}")
+    if not args.no_copy_bandwidth:
+        report["copy_bandwidth"] = _copy_bandwidth(args.quick, 60.0 if args.quick else 180.0)
+    report["ratios"] = ratios(report["paths"])
+    report["wall_s"] = time.monotonic() - started
+    return report
+
+
+def run(args: argparse.Namespace) -> int:
+    """Measure, print the table, write ``bench.json`` and ``latency.png`` into ``--out``."""
+    report = measure(args)
+    os.makedirs(args.out, exist_ok=True)
+    json_path = os.path.join(args.out, "bench.json")
+    png_path = os.path.join(args.out, "latency.png")
+    report["outputs"] = {"json": json_path, "png": png_path}
+    from benchmarks.plot import plot_latency
+
+    plot_latency(report, png_path)
+    with open(json_path, "w", encoding="utf-8") as handle:
+        json.dump(report, handle, indent=2)
+    print(format_table(report))
+    print(f"\nwrote {json_path} and {png_path} in {report['wall_s']:.0f} s")
+    ran = [e for e in report["paths"].values() if e["status"] in ("ok", "partial")]
+    return 0 if ran else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m benchmarks.run``."""
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__)
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,123 @@
+"""``warp-buffer bench --quick`` runs and produces sane output (not timings)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+from benchmarks import run as bench
+from benchmarks.paths import PATH_MODULES
+from benchmarks.report import ratios
+from benchmarks.stats import format_size, parse_size, summarize_latency
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+# Peers that depend on nothing of ours: they must measure, not just be "unavailable".
+ALWAYS_AVAILABLE = ("zenoh_copy", "zenoh_shm", "iceoryx2", "torch_mp")
+QUICK_SIZES = "4K,1M"  # a smaller sweep keeps the test well inside the suite's budget
+
+
+def _positive_finite(value: float) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value) and value > 0
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, str, pathlib.Path]:
+    out = tmp_path_factory.mktemp("bench")
+    process = subprocess.run(
+        [sys.executable, "-m", "benchmarks.run", "--quick", "--sizes", QUICK_SIZES,
+         "--out", str(out), "--no-copy-bandwidth"],
+        cwd=ROOT, capture_output=True, text=True, timeout=240)
+    assert process.returncode == 0, process.stderr[-3000:]
+    with open(out / "bench.json", encoding="utf-8") as handle:
+        return json.load(handle), process.stdout, out
+
+
+@pytest.mark.multiprocess
+def test_quick_run_writes_json_png_and_table(quick_run: tuple[dict, str, pathlib.Path]) -> None:
+    report, stdout, out = quick_run
+    for key in ("machine", "method", "plan", "paths", "ratios", "mode"):
+        assert key in report
+    assert report["mode"] == "quick"
+    machine = report["machine"]
+    assert machine["cpu_model"] and machine["logical_cores"] >= 1 and machine["platform"]
+    assert machine["versions"]["eclipse-zenoh"]
+    assert set(report["paths"]) == set(PATH_MODULES)
+    png = out / "latency.png"
+    assert png.stat().st_size > 1000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "one-way p50" in stdout and "Ratios" in stdout
+    for entry in report["ratios"].values():
+        assert entry["verdict"] in ("PASS", "MISS", "N/A", "INFO")
+
+
+@pytest.mark.multiprocess
+def test_quick_run_figures_are_positive_and_finite(
+        quick_run: tuple[dict, str, pathlib.Path]) -> None:
+    report, _, _ = quick_run
+    sizes = [str(s) for s in report["plan"]["sizes"]]
+    assert sizes == [str(parse_size(s)) for s in QUICK_SIZES.split(",")]
+    for name, entry in report["paths"].items():
+        if entry["status"] == "unavailable":
+            assert name not in ALWAYS_AVAILABLE, entry["reason"]
+            assert entry["reason"]
+            continue
+        assert entry["status"] == "ok", (name, entry.get("reason"), entry.get("errors"))
+        for size in sizes:
+            figures = entry["latency_us"][size]
+            for stat in ("p50_us", "p90_us", "p99_us"):
+                assert _positive_finite(figures[stat]), (name, size, stat)
+            assert figures["p50_us"] <= figures["p90_us"] <= figures["p99_us"]
+            assert figures["samples"] >= 3
+        assert _positive_finite(entry["rate"]["msgs_per_s"])
+        if entry["kind"] == "ours":
+            for size in sizes:
+                counted = entry["copies"][size]["bytes_copied_per_message"]
+                assert isinstance(counted, int) and counted >= 0
+
+
+@pytest.mark.multiprocess
+def test_quick_run_leaves_no_children_or_shm(quick_run: tuple[dict, str, pathlib.Path]) -> None:
+    report, _, _ = quick_run
+    leftovers = [n for n in os.listdir("/dev/shm") if n.startswith("iox2_")]
+    assert leftovers == []
+    ran = [e for e in report["paths"].values() if e["status"] == "ok"]
+    assert ran and all(e["wall_s"] < report["plan"]["path_timeout_s"] for e in ran)
+
+
+def test_ratios_pass_miss_and_missing() -> None:
+    def path(p50_by_size: dict[int, float]) -> dict:
+        return {"status": "ok", "latency_us": {str(s): {"p50_us": v} for s, v in
+                                               p50_by_size.items()}}
+
+    paths = {"warp_zero_copy": path({4096: 10.0, 16 << 20: 11.0, 64 << 20: 13.0}),
+             "zenoh_copy": path({16 << 20: 1100.0}), "iceoryx2": path({16 << 20: 2.0})}
+    result = ratios(paths)
+    assert result["speedup_vs_zenoh_copy_16MiB"]["verdict"] == "PASS"
+    assert result["speedup_vs_zenoh_copy_16MiB"]["value"] == pytest.approx(100.0)
+    assert result["slowdown_vs_iceoryx2_16MiB"]["verdict"] == "MISS"
+    assert result["flatness_64MiB_over_4KiB"]["verdict"] == "MISS"
+    del paths["iceoryx2"]
+    assert ratios(paths)["slowdown_vs_iceoryx2_16MiB"]["verdict"] == "N/A"
+
+
+def test_stats_helpers() -> None:
+    summary = summarize_latency([1000, 2000, 3000, 4000])
+    assert summary["p50_us"] == pytest.approx(2.5) and summary["samples"] == 4
+    assert parse_size("16M") == 16 << 20 and parse_size("4KiB") == 4096
+    assert format_size(64 << 20) == "64 MiB"
+    with pytest.raises(ValueError):
+        parse_size("0")
+
+
+def test_add_arguments_defaults() -> None:
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    args = parser.parse_args([])
+    assert args.out == os.path.join("benchmarks", "results") and not args.quick
+    assert parser.parse_args(["--quick", "--sizes", "4K"]).sizes == "4K"
