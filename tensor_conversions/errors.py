@@ -1,0 +1,33 @@
+"""Typed errors of tensor_conversions (all subclasses of ``RosidlBufferError``)."""
+
+from __future__ import annotations
+
+from rosidl_buffer.errors import RosidlBufferError
+
+__all__ = [
+    "TensorConversionError",
+    "UnsupportedDTypeError",
+    "InvalidTensorMetadataError",
+    "UnsupportedBackendError",
+    "TensorSizeError",
+]
+
+
+class TensorConversionError(RosidlBufferError):
+    """Base class of every error raised by tensor_conversions."""
+
+
+class UnsupportedDTypeError(TensorConversionError, TypeError):
+    """A dtype (DLPack code/bits/lanes or a framework dtype) that cannot be represented."""
+
+
+class InvalidTensorMetadataError(TensorConversionError, ValueError):
+    """Message metadata (shape, strides, byte_offset) is inconsistent or does not fit ``data``."""
+
+
+class UnsupportedBackendError(TensorConversionError, ValueError):
+    """A storage backend or device that cannot be served (never silently replaced by another)."""
+
+
+class TensorSizeError(TensorConversionError, ValueError):
+    """A value does not fit the preallocated ``data`` of a message."""

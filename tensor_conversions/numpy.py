@@ -1,0 +1,120 @@
+"""ExperimentalTensor <-> ``numpy.ndarray``, through NumPy's own DLPack import.
+
+NumPy has no bfloat16: messages of that dtype raise :class:`UnsupportedDTypeError` (use the torch
+or warp module). NumPy only addresses host memory: CPU-backed messages and warp-backed messages
+on Warp's ``cpu`` device convert zero-copy; for other Warp devices ``from_input_tensor_msg``
+copies to the host (``clone=True`` only) and ``to_tensor_msg`` copies host -> device with Warp.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, overload
+
+import numpy as np
+
+from . import _api
+from .dlpack import TensorView, import_warp, warp_dtype
+from .dtypes import DType, dtype_from_numpy
+from .errors import UnsupportedBackendError
+
+__all__ = ["allocate_tensor_msg", "from_input_tensor_msg", "from_output_tensor_msg",
+           "to_tensor_msg"]
+
+
+def _host_only(view: TensorView, what: str) -> None:
+    if view.device != "cpu":
+        raise UnsupportedBackendError(
+            f"NumPy cannot address {view.device} memory ({what}); use clone=True for a host copy, "
+            "or the torch/warp module")
+
+
+class _NumpyAdapter(_api.Adapter[np.ndarray]):
+    name = "numpy"
+
+    def to_dtype(self, dtype: Any) -> DType:
+        return dtype if isinstance(dtype, DType) else dtype_from_numpy(dtype)
+
+    def check_dtype(self, dtype: DType) -> None:
+        dtype.numpy_dtype()
+
+    def check_view_device(self, device: str) -> None:
+        if device != "cpu":
+            raise UnsupportedBackendError(
+                f"NumPy cannot address {device} memory; use clone=True for a host copy, "
+                "or the torch/warp module")
+
+    def from_view(self, view: TensorView) -> np.ndarray:
+        _host_only(view, "zero-copy view")
+        return view.reshape_result(np.from_dlpack(view))
+
+    def clone(self, view: TensorView) -> np.ndarray:
+        if view.device == "cpu":
+            source = view.reshape_result(np.from_dlpack(view))
+        else:
+            wp = import_warp()
+            host = wp.from_dlpack(view.atleast_1d()).numpy()  # device -> host copy
+            source = view.reshape_result(host)
+        return np.array(source, order="C", copy=True)
+
+    def readonly(self, tensor: np.ndarray) -> np.ndarray:
+        tensor.flags.writeable = False
+        return tensor
+
+    def describe(self, value: Any) -> tuple[tuple[int, ...], DType, str, str | None]:
+        array = np.asarray(value)
+        return tuple(array.shape), dtype_from_numpy(array.dtype), "cpu", None
+
+    def copy_into(self, view: TensorView, value: Any) -> None:
+        array = np.asarray(value)
+        if view.device == "cpu":
+            np.copyto(view.reshape_result(np.from_dlpack(view)), array, casting="no")
+            return
+        wp = import_warp()
+        dtype = warp_dtype(view.dtype)
+        source = wp.array(np.ascontiguousarray(array).reshape(-1), dtype=dtype, device="cpu")
+        wp.copy(wp.from_dlpack(view.atleast_1d()).flatten(), source)
+
+
+_ADAPTER = _NumpyAdapter()
+
+
+def allocate_tensor_msg(shape: Sequence[int] | int, dtype: Any, backend: str = "cpu",
+                        device: Any = None) -> Any:
+    """A new ExperimentalTensor with metadata for ``shape``/``dtype`` and zeroed ``data``.
+
+    ``backend="cpu"``: host storage (``device`` must be None or ``"cpu"``). ``backend="warp"``:
+    Warp storage on ``device`` (None = Warp's default device). Unservable requests raise
+    :class:`UnsupportedBackendError`.
+    """
+    return _api.allocate_tensor_msg(_ADAPTER, shape, dtype, backend, device)
+
+
+def from_output_tensor_msg(msg: Any) -> np.ndarray:
+    """A writable zero-copy array over ``msg.data`` (host memory only), for filling it in place.
+
+    For warp storage (Warp ``cpu`` device) the array holds the buffer's write handle while it
+    lives; see :func:`tensor_conversions.release_output`.
+    """
+    return _api.from_output_tensor_msg(_ADAPTER, msg)
+
+
+def from_input_tensor_msg(msg: Any, clone: bool = True) -> np.ndarray:
+    """The array of ``msg``: a C-contiguous copy (default) or, with ``clone=False``, a read-only
+    (``writeable=False``) zero-copy view that keeps the storage alive."""
+    return _api.from_input_tensor_msg(_ADAPTER, msg, clone)
+
+
+@overload
+def to_tensor_msg(msg: Any, value: np.ndarray) -> Any: ...
+@overload
+def to_tensor_msg(value: np.ndarray, *, backend: str | None = None, device: Any = None) -> Any: ...
+def to_tensor_msg(msg_or_value: Any, value: Any = None, *, backend: str | None = None,
+                  device: Any = None) -> Any:
+    """Copy an array into a message as a contiguous row-major payload and refresh the metadata.
+
+    ``to_tensor_msg(msg, value)`` fills ``msg``'s preallocated storage (too small raises
+    :class:`TensorSizeError`); ``to_tensor_msg(value)`` returns a new CPU-backed message unless
+    ``backend``/``device`` say otherwise.
+    """
+    return _api.to_tensor_msg(_ADAPTER, msg_or_value, value, backend=backend, device=device)

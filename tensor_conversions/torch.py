@@ -1,0 +1,127 @@
+"""ExperimentalTensor <-> ``torch.Tensor``, through PyTorch's own DLPack import.
+
+Devices: a CPU-backed message gives CPU tensors; a warp-backed message gives tensors on the Warp
+device's torch counterpart (``cuda:N``, or CPU for Warp's ``cpu`` device). Every dtype in
+:data:`tensor_conversions.SUPPORTED_DTYPES` is supported, bfloat16 and complex included (complex
+only in CPU storage: Warp has no complex type).
+
+PyTorch tensors cannot be read-only: a ``clone=False`` input view aliases the message storage and
+must be treated as read-only by convention.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, overload
+
+import torch
+
+from . import _api
+from .dlpack import TensorView
+from .dtypes import DType, dtype_from_name
+from .errors import UnsupportedBackendError, UnsupportedDTypeError
+
+__all__ = [
+    "allocate_tensor_msg",
+    "dtype_to_torch",
+    "from_input_tensor_msg",
+    "from_output_tensor_msg",
+    "to_tensor_msg",
+    "torch_to_dtype",
+]
+
+
+def torch_to_dtype(dtype: torch.dtype | str) -> DType:
+    """``torch.float32`` (or ``"float32"``) -> :class:`DType`."""
+    if isinstance(dtype, str):
+        return dtype_from_name(dtype.removeprefix("torch."))
+    if not isinstance(dtype, torch.dtype):
+        raise UnsupportedDTypeError(f"{dtype!r} is not a torch.dtype")
+    return dtype_from_name(str(dtype).removeprefix("torch."))
+
+
+def dtype_to_torch(dtype: DType) -> torch.dtype:
+    """:class:`DType` -> ``torch.dtype``."""
+    found = getattr(torch, dtype.name, None)
+    if not isinstance(found, torch.dtype):
+        raise UnsupportedDTypeError(f"PyTorch has no dtype {dtype.name}")
+    return found
+
+
+class _TorchAdapter(_api.Adapter[torch.Tensor]):
+    name = "torch"
+
+    def to_dtype(self, dtype: Any) -> DType:
+        return dtype if isinstance(dtype, DType) else torch_to_dtype(dtype)
+
+    def check_dtype(self, dtype: DType) -> None:
+        dtype_to_torch(dtype)
+
+    def from_view(self, view: TensorView) -> torch.Tensor:
+        return view.reshape_result(torch.from_dlpack(view))
+
+    def clone(self, view: TensorView) -> torch.Tensor:
+        source = view.reshape_result(torch.from_dlpack(view))
+        return source.clone(memory_format=torch.contiguous_format)
+
+    def describe(self, value: Any) -> tuple[tuple[int, ...], DType, str, str | None]:
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(f"expected a torch.Tensor, got {type(value).__name__}")
+        device = value.device
+        if device.type == "cpu":
+            backend, wp_device = "cpu", None
+        elif device.type == "cuda":
+            index = device.index if device.index is not None else torch.cuda.current_device()
+            backend, wp_device = "warp", f"cuda:{index}"
+        else:
+            raise UnsupportedBackendError(f"no storage backend for torch device {device}")
+        return tuple(value.shape), torch_to_dtype(value.dtype), backend, wp_device
+
+    def copy_into(self, view: TensorView, value: Any) -> None:
+        view.reshape_result(torch.from_dlpack(view)).copy_(value)
+
+
+_ADAPTER = _TorchAdapter()
+
+
+def allocate_tensor_msg(shape: Sequence[int] | int, dtype: torch.dtype | str,
+                        backend: str = "cpu", device: Any = None) -> Any:
+    """A new ExperimentalTensor with metadata for ``shape``/``dtype`` and zeroed ``data``.
+
+    ``backend="cpu"``: host storage (``device`` must be None or ``"cpu"``). ``backend="warp"``:
+    Warp storage on ``device`` (``"cpu"``, ``"cuda:0"``, ...; None = Warp's default device).
+    A backend or device that cannot be served raises :class:`UnsupportedBackendError`.
+    """
+    return _api.allocate_tensor_msg(_ADAPTER, shape, dtype, backend, device)
+
+
+def from_output_tensor_msg(msg: Any) -> torch.Tensor:
+    """A writable zero-copy tensor over ``msg.data``, for filling the message in place.
+
+    For warp storage the tensor holds the buffer's single write handle until it (and every other
+    view sharing it) is garbage-collected, or :func:`tensor_conversions.release_output` is called.
+    """
+    return _api.from_output_tensor_msg(_ADAPTER, msg)
+
+
+def from_input_tensor_msg(msg: Any, clone: bool = True) -> torch.Tensor:
+    """The tensor of ``msg``: an independent contiguous copy (default) or, with ``clone=False``,
+    a zero-copy alias of the storage (treat as read-only) that keeps the storage alive."""
+    return _api.from_input_tensor_msg(_ADAPTER, msg, clone)
+
+
+@overload
+def to_tensor_msg(msg: Any, value: torch.Tensor) -> Any: ...
+@overload
+def to_tensor_msg(value: torch.Tensor, *, backend: str | None = None,
+                  device: Any = None) -> Any: ...
+def to_tensor_msg(msg_or_value: Any, value: Any = None, *, backend: str | None = None,
+                  device: Any = None) -> Any:
+    """Copy a tensor into a message as a contiguous row-major payload and refresh the metadata.
+
+    ``to_tensor_msg(msg, value)`` writes into ``msg``'s preallocated storage (too small raises
+    :class:`TensorSizeError`) and returns ``msg``. ``to_tensor_msg(value)`` returns a new message:
+    CPU storage for a CPU tensor, warp storage on ``cuda:N`` for a CUDA tensor, unless
+    ``backend``/``device`` say otherwise.
+    """
+    return _api.to_tensor_msg(_ADAPTER, msg_or_value, value, backend=backend, device=device)

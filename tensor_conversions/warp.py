@@ -1,0 +1,123 @@
+"""ExperimentalTensor <-> ``wp.array``, through Warp's own DLPack import.
+
+Devices: a warp-backed message gives arrays on its Warp device; a CPU-backed message gives arrays
+on Warp's ``cpu`` device over the host memory. Warp has no 0-d arrays, so a scalar tensor
+(shape ``()``) converts to shape ``(1,)``; and no complex types (those raise
+:class:`UnsupportedDTypeError`). Every other supported dtype works, bool and bfloat16 included.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, overload
+
+import warp as wp
+
+from . import _api
+from .dlpack import TensorView, import_warp, warp_dtype
+from .dtypes import DType, dtype_from_name
+from .errors import UnsupportedDTypeError
+
+__all__ = [
+    "allocate_tensor_msg",
+    "dtype_to_warp",
+    "from_input_tensor_msg",
+    "from_output_tensor_msg",
+    "to_tensor_msg",
+    "warp_to_dtype",
+]
+
+
+def warp_to_dtype(dtype: Any) -> DType:
+    """``wp.float32`` (or ``"float32"``) -> :class:`DType`; vector/struct types raise."""
+    if isinstance(dtype, str):
+        return dtype_from_name(dtype)
+    if hasattr(dtype, "_wp_scalar_type_") or not isinstance(dtype, type):
+        raise UnsupportedDTypeError(
+            f"{dtype!r} is not a Warp scalar type; view vector data with a scalar dtype")
+    name = getattr(dtype, "__name__", "")
+    if getattr(wp, name, None) is not dtype:
+        raise UnsupportedDTypeError(f"{dtype!r} is not a Warp scalar type")
+    return dtype_from_name(name)
+
+
+def dtype_to_warp(dtype: DType) -> Any:
+    """:class:`DType` -> Warp scalar type."""
+    return warp_dtype(dtype)
+
+
+class _WarpAdapter(_api.Adapter[wp.array]):
+    name = "warp"
+
+    def to_dtype(self, dtype: Any) -> DType:
+        return dtype if isinstance(dtype, DType) else warp_to_dtype(dtype)
+
+    def check_dtype(self, dtype: DType) -> None:
+        warp_dtype(dtype)
+
+    def from_view(self, view: TensorView) -> wp.array:
+        import_warp()
+        return wp.from_dlpack(view.atleast_1d())
+
+    def clone(self, view: TensorView) -> wp.array:
+        import_warp()
+        source = wp.from_dlpack(view.atleast_1d())
+        return source.contiguous() if not source.is_contiguous else wp.clone(source)
+
+    def describe(self, value: Any) -> tuple[tuple[int, ...], DType, str, str | None]:
+        if not isinstance(value, wp.array):
+            raise TypeError(f"expected a wp.array, got {type(value).__name__}")
+        return tuple(value.shape), warp_to_dtype(value.dtype), "warp", str(value.device)
+
+    def copy_into(self, view: TensorView, value: Any) -> None:
+        import_warp()
+        dest = wp.from_dlpack(view.atleast_1d())
+        if str(value.device) != str(dest.device) and not value.is_contiguous:
+            value = value.contiguous()  # Warp copies across devices only contiguous arrays
+        if tuple(dest.shape) != tuple(value.shape):  # scalar carried as (1,)
+            value = value.reshape(dest.shape)
+        wp.copy(dest, value)
+
+
+_ADAPTER = _WarpAdapter()
+
+
+def allocate_tensor_msg(shape: Sequence[int] | int, dtype: Any, backend: str = "cpu",
+                        device: Any = None) -> Any:
+    """A new ExperimentalTensor with metadata for ``shape``/``dtype`` and zeroed ``data``.
+
+    ``backend="cpu"``: host storage (``device`` None or ``"cpu"``). ``backend="warp"``: Warp
+    storage on ``device`` (None = Warp's default device). Unservable requests raise
+    :class:`UnsupportedBackendError`.
+    """
+    return _api.allocate_tensor_msg(_ADAPTER, shape, dtype, backend, device)
+
+
+def from_output_tensor_msg(msg: Any) -> wp.array:
+    """A writable zero-copy array over ``msg.data``, for filling the message in place.
+
+    For warp storage the array holds the buffer's single write handle until it (and every view
+    sharing it) is collected, or :func:`tensor_conversions.release_output` is called.
+    """
+    return _api.from_output_tensor_msg(_ADAPTER, msg)
+
+
+def from_input_tensor_msg(msg: Any, clone: bool = True) -> wp.array:
+    """The array of ``msg``: a contiguous copy on the same device (default) or, with
+    ``clone=False``, a zero-copy alias (treat as read-only) that keeps the storage alive."""
+    return _api.from_input_tensor_msg(_ADAPTER, msg, clone)
+
+
+@overload
+def to_tensor_msg(msg: Any, value: wp.array) -> Any: ...
+@overload
+def to_tensor_msg(value: wp.array, *, backend: str | None = None, device: Any = None) -> Any: ...
+def to_tensor_msg(msg_or_value: Any, value: Any = None, *, backend: str | None = None,
+                  device: Any = None) -> Any:
+    """Copy a Warp array into a message as a contiguous payload and refresh the metadata.
+
+    ``to_tensor_msg(msg, value)`` fills ``msg``'s preallocated storage (too small raises
+    :class:`TensorSizeError`); ``to_tensor_msg(value)`` returns a new warp-backed message on the
+    array's device unless ``backend``/``device`` say otherwise.
+    """
+    return _api.to_tensor_msg(_ADAPTER, msg_or_value, value, backend=backend, device=device)
