@@ -59,13 +59,16 @@ class CpuBufferImpl(BufferImplBase):
             self._storage = np.empty(0, dtype=self.dtype)
         elif isinstance(data, (bytes, bytearray, memoryview)) and self.dtype == np.uint8:
             self._storage = np.frombuffer(data, dtype=np.uint8)
-        else:
-            array = np.asarray(data)
-            if array.ndim != 1:
-                array = array.reshape(-1)
+        elif isinstance(data, np.ndarray):
+            array = data.reshape(-1)
             if array.dtype != self.dtype:
                 array = array.astype(self.dtype, casting="same_kind")
-            self._storage = array
+            # Contiguous storage: serialization and the buffer protocol need one flat block.
+            self._storage = np.ascontiguousarray(array)
+        else:
+            # Python sequences: () / [1, 2, 3] take the buffer's dtype (NumPy would infer float64
+            # or int64, which a same_kind cast to uint8 refuses). Out-of-range ints raise.
+            self._storage = np.asarray(data, dtype=self.dtype).reshape(-1)
         self._size = self._storage.shape[0]
 
     @classmethod
