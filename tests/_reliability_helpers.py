@@ -1,0 +1,227 @@
+"""Child programs and parent-side helpers for the reliability tests (faults, hostile input, soak).
+
+Run a child as ``python -m tests._reliability_helpers <role> ...`` from the repository root.
+Same stdout protocol as :mod:`tests._pubsub_helpers` (``READY``, then ``RESULT <json>`` after
+``stop`` on stdin), plus progress lines:
+
+- ``hold``: a warp subscription that keeps every message it receives (so its process holds the
+  imported blocks) and prints ``HELD <n>`` each time it holds ``--hold`` more; killed by the test.
+- ``soak``: subscriptions that join and leave in turns of ``--turn`` seconds until ``stop``;
+  reports messages received, bad payloads, typed errors and its own resource samples.
+- ``export``: allocates and exports ``--count`` warp buffers, prints ``READY`` and waits to be
+  killed (leaves orphan exports behind).
+- ``sweep``: starts the library the way any process of it starts (the warp backend's first
+  endpoint) and prints ``RESULT`` with the exports it can still see.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import queue
+import subprocess
+import sys
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from tests import _pubsub_helpers as pubsub
+from tests._pubsub_helpers import TENSOR, check_frame, child_env
+
+MODULE = "tests._reliability_helpers"
+SHM_DIR = "/dev/shm"
+
+
+# --------------------------------------------------------------------------- resource probes
+def resources() -> dict[str, int]:
+    """This process's open fds, /dev/shm mappings, our /dev/shm files, and RSS in KiB."""
+    from warp_buffer import ipc
+
+    with open("/proc/self/maps") as maps:
+        mappings = sum(1 for line in maps if f" {SHM_DIR}/" in line)
+    with open("/proc/self/status") as status:
+        rss = next(int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
+    return {"fds": len(os.listdir("/proc/self/fd")), "maps": mappings,
+            "shm_files": len(ipc.list_exports()), "rss_kib": rss}
+
+
+# --------------------------------------------------------------------------- child programs
+def _emit(line: str) -> None:
+    sys.stdout.write(line + "\n")
+    sys.stdout.flush()
+
+
+def run_hold(args: argparse.Namespace) -> int:
+    from buffer_pubsub import Node
+
+    held: list[Any] = []
+    with Node(f"holder_{os.getpid()}", domain_id=args.domain) as node:
+        def on_msg(msg) -> None:
+            if check_frame(msg)["ok"] and msg.data.get_backend_type() == "warp":
+                held.append(msg)
+            if len(held) % args.hold == 0:
+                _emit(f"HELD {len(held)}")
+
+        node.create_subscription(TENSOR, args.topic, on_msg, depth=args.depth,
+                                 acceptable_buffer_backends="warp")
+        _emit("READY")
+        sys.stdin.readline()  # held until the parent kills us (or says stop)
+    return 0
+
+
+def run_soak(args: argparse.Namespace) -> int:
+    """Subscriptions join and leave; every received frame is verified then dropped."""
+    from buffer_pubsub import Node
+
+    stats = {"received": 0, "bad": 0, "errors": 0, "dropped": 0, "turns": 0,
+             "backends": {}, "samples": []}
+    stop = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.readline(), stop.set()), daemon=True).start()
+
+    def on_msg(msg) -> None:
+        record = check_frame(msg)
+        stats["received"] += 1
+        stats["bad"] += not record["ok"]
+        stats["backends"][record["backend"]] = stats["backends"].get(record["backend"], 0) + 1
+
+    with Node(f"soak_{os.getpid()}", domain_id=args.domain) as node:
+        _emit("READY")
+        while not stop.is_set():
+            sub = node.create_subscription(TENSOR, args.topic, on_msg, depth=args.depth,
+                                           acceptable_buffer_backends="warp")
+            stop.wait(args.turn)
+            time.sleep(0.05)  # let the executor drain what is queued
+            sub.destroy()
+            stats["errors"] += sub.counters.errors
+            stats["dropped"] += sub.counters.dropped
+            stats["turns"] += 1
+            stats["samples"].append(resources())
+            stop.wait(args.gap)
+    _emit("RESULT " + json.dumps(stats))
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from warp_buffer import allocate_buffer, ipc
+
+    buffers = [allocate_buffer(4096) for _ in range(args.count)]
+    for buffer in buffers:
+        ipc.export_buffer(buffer)
+    _emit("READY")
+    sys.stdin.readline()
+    return 0
+
+
+def run_sweep(args: argparse.Namespace) -> int:
+    from rosidl_buffer import EndpointInfo, EndpointType, local_host_id
+    from rosidl_buffer.registry import create_backend_instance
+    from warp_buffer import ipc
+
+    info = EndpointInfo(gid=bytes(16), node_name="sweeper", node_namespace="/",
+                        topic_name="/sweep", topic_type=TENSOR,
+                        endpoint_type=EndpointType.PUBLISHER, host_id=local_host_id(),
+                        process_id=os.getpid(), user_id=os.getuid())
+    create_backend_instance("warp").on_creating_endpoint(info)
+    left = [f.path for f in ipc.list_exports()]
+    _emit("RESULT " + json.dumps({"exports": left}))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog=MODULE)
+    parser.add_argument("role", choices=["hold", "soak", "export", "sweep"])
+    parser.add_argument("--domain", type=int, default=0)
+    parser.add_argument("--topic", default="/reliability")
+    parser.add_argument("--depth", type=int, default=100)
+    parser.add_argument("--hold", type=int, default=8, help="hold: report every N held")
+    parser.add_argument("--count", type=int, default=2, help="export: buffers to export")
+    parser.add_argument("--turn", type=float, default=2.0, help="soak: seconds subscribed")
+    parser.add_argument("--gap", type=float, default=0.3, help="soak: seconds unsubscribed")
+    args = parser.parse_args(argv)
+    roles = {"hold": run_hold, "soak": run_soak, "export": run_export, "sweep": run_sweep}
+    return roles[args.role](args)
+
+
+# --------------------------------------------------------------------------- parent side
+class Child(pubsub.Child):
+    """A child running a role of this module (or of ``module``), with extra environment."""
+
+    def __init__(self, role: str, *, module: str = MODULE, env: dict[str, str] | None = None,
+                 **options: Any) -> None:
+        argv = [sys.executable, "-m", module, role]
+        for key, value in options.items():
+            argv += [f"--{key.replace('_', '-')}", str(value)]
+        environment = child_env()
+        environment.update(env or {})
+        self.proc = subprocess.Popen(argv, cwd=pubsub.ROOT, env=environment,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        self._lines: queue.Queue[str | None] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def expect(self, prefix: str, timeout: float = 30.0) -> str:
+        return self._expect(prefix, timeout)
+
+    def result(self, timeout: float = 30.0) -> dict[str, Any]:
+        """The RESULT of a child that ends by itself."""
+        line = self._expect("RESULT ", timeout)
+        self.proc.wait(timeout=timeout)
+        return json.loads(line[len("RESULT "):])
+
+    def kill(self) -> None:
+        """SIGKILL and reap (no clean shutdown: the kernel drops its locks and mappings)."""
+        self.proc.kill()
+        self.proc.wait(timeout=10)
+
+
+def publisher_child(**options: Any) -> Child:
+    """A warp publisher child of :mod:`tests._pubsub_helpers` (self-checking frames)."""
+    return Child("pub", module=pubsub.__name__, backend="warp", **options)
+
+
+class ForgedPublisher:
+    """A hand-made publisher: its own Zenoh session and liveliness token (a real, discovered
+    buffer-aware publisher of this host and user), putting arbitrary payloads straight on a
+    subscription's ``_buf/<gid>`` channel, so hostile descriptors reach the real receive path."""
+
+    def __init__(self, domain: int, topic: str) -> None:
+        from buffer_pubsub import make_config, wire
+        from rosidl_buffer import local_host_id
+        from rosidl_buffer.messages import get_type_hash
+
+        self._wire = wire
+        self.session = zenoh.open(make_config())
+        self.token = wire.EndpointToken(
+            domain_id=domain, zid=str(self.session.zid()), node_id=0, entity_id=1,
+            kind=wire.PUBLISHER_KIND, namespace="", node_name="forger", topic=topic,
+            type_name=TENSOR, type_hash=get_type_hash(TENSOR), qos=wire.qos_segment(10),
+            buffer_aware=True, locality=wire.Locality(local_host_id(), os.getpid(), os.getuid()))
+        self._liveliness = self.session.liveliness().declare_token(self.token.key())
+        self._sequence = 0
+
+    def send(self, subscription: Any, payload: bytes | bytearray) -> None:
+        self._sequence += 1
+        attachment = self._wire.Attachment(self._sequence, time.time_ns(), self.token.gid)
+        self.session.put(self._wire.buffer_channel_key(subscription.base_key, subscription.gid),
+                         bytes(payload), attachment=attachment.encode())
+
+    def close(self) -> None:
+        try:
+            self._liveliness.undeclare()
+        finally:
+            self.session.close()
+
+
+def wait_until(predicate, timeout: float = 10.0, interval: float = 0.005) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(interval)
+    return True
+
+
+if __name__ == "__main__":
+    sys.exit(main())

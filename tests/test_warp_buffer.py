@@ -1,0 +1,343 @@
+"""warp_buffer in one process: WarpBufferImpl, the user API (handles, promotion, to_buffer),
+the copy kernels, write ordering and the pool (reuse, giving memory back)."""
+
+from __future__ import annotations
+
+import gc
+import os
+import time
+
+import numpy as np
+import pytest
+import torch
+import warp as wp
+
+import warp_buffer
+from rosidl_buffer import Buffer, RosidlBufferError
+from tests._warp_helpers import expected_pattern, fill_pattern
+from warp_buffer import (
+    DeviceUnavailableError,
+    EmptyBufferError,
+    HandleReleasedError,
+    SizeMismatchError,
+    WarpBufferError,
+    WarpBufferImpl,
+    WriteHandleError,
+    allocate_buffer,
+    from_input_buffer,
+    from_output_buffer,
+    ipc,
+    kernels,
+    to_buffer,
+)
+from warp_buffer.pool import get_pool, size_class
+
+
+@pytest.fixture(autouse=True)
+def _give_pool_memory_back():
+    """Return every pooled block after each test, so the suite's /dev/shm leak guard is exact."""
+    yield
+    deadline = time.monotonic() + 3.0
+    while True:
+        gc.collect()
+        warp_buffer.trim_pools(0.0, inflight_grace=0.0)
+        stats = warp_buffer.pool_stats().values()
+        if all(s["leased"] == 0 and s["free_blocks"] == 0 for s in stats):
+            return
+        if time.monotonic() > deadline:
+            pytest.fail(f"warp buffers still alive after the test: {list(stats)}")
+        time.sleep(0.02)
+
+
+def _written(nbytes: int, seed: int = 3) -> Buffer:
+    buffer = allocate_buffer(nbytes, "cpu")
+    with from_output_buffer(buffer) as out:
+        fill_pattern(out.array, seed)
+    return buffer
+
+
+def test_allocate_is_a_warp_buffer_on_the_requested_device():
+    buffer = allocate_buffer(1000, "cpu")
+    impl = buffer.get_impl()
+    assert isinstance(impl, WarpBufferImpl)
+    assert buffer.get_backend_type() == impl.get_backend_type() == "warp"
+    assert impl.size() == len(buffer) == 1000
+    assert impl.device == "cpu"
+    assert impl.array.dtype == wp.uint8 and impl.array.shape == (1000,)
+    assert allocate_buffer(10).get_impl().device == wp.get_device().alias  # follows Warp
+
+
+@pytest.mark.parametrize("nbytes", [0, -1])
+def test_empty_or_negative_sizes_raise_a_typed_error(nbytes):
+    with pytest.raises(EmptyBufferError):
+        allocate_buffer(nbytes)
+    assert issubclass(EmptyBufferError, RosidlBufferError)
+
+
+def test_unavailable_device_and_bad_size_type():
+    with pytest.raises(DeviceUnavailableError):
+        allocate_buffer(16, "cuda:7")
+    with pytest.raises(TypeError):
+        allocate_buffer(16.0)  # type: ignore[arg-type]
+
+
+def test_kernel_written_bytes_reach_to_cpu_and_views_reinterpret_without_copy():
+    buffer = _written(4096, seed=11)
+    np.testing.assert_array_equal(buffer.to_numpy(), expected_pattern(4096, 11))
+    with from_input_buffer(buffer) as view:
+        floats = view.view(wp.float32, (32, 32))
+        assert floats.shape == (32, 32) and floats.ptr == view.ptr == buffer.get_impl().array.ptr
+        np.testing.assert_array_equal(floats.numpy().view(np.uint8).reshape(-1),
+                                      expected_pattern(4096, 11))
+        assert view.view(np.uint16).shape == (2048,)
+        assert view.view(wp.vec4, 10).shape == (10,)  # smaller than the buffer is fine
+        with pytest.raises(SizeMismatchError):
+            view.view(wp.float32, (33, 32))
+        with pytest.raises(SizeMismatchError):
+            view.view(wp.vec3)  # 4096 is not a whole number of 12-byte elements
+
+
+@pytest.mark.parametrize("nbytes", [1, 15, 16, 17, 4099, (4 << 20) + 3])
+def test_to_cpu_and_clone_copy_every_byte(nbytes):
+    buffer = allocate_buffer(nbytes, "cpu")
+    data = np.random.default_rng(nbytes).integers(0, 256, nbytes, dtype=np.uint8)
+    with from_output_buffer(buffer) as out:
+        to_buffer(data, out)
+    np.testing.assert_array_equal(buffer.to_numpy(), data)
+    clone = buffer.copy()
+    assert clone.get_impl() is not buffer.get_impl()
+    assert clone.get_backend_type() == "warp" and clone == buffer
+    assert clone.get_impl().array.ptr != buffer.get_impl().array.ptr
+    with from_output_buffer(clone) as out:  # a clone is a fresh, writable buffer
+        out.array.zero_()
+    np.testing.assert_array_equal(buffer.to_numpy(), data)
+    assert not clone.to_numpy().any()
+
+
+@pytest.mark.parametrize("offset", [0, 1, 3])
+@pytest.mark.parametrize("nbytes", [100, (4 << 20) + 5])
+def test_copy_kernel_handles_any_alignment(offset, nbytes):
+    src = np.random.default_rng(1).integers(0, 256, nbytes + 8, dtype=np.uint8)
+    dst = np.zeros(nbytes + 8, dtype=np.uint8)
+    a = wp.array(ptr=src.ctypes.data + offset, dtype=wp.uint8, shape=(nbytes,), device="cpu")
+    b = wp.array(ptr=dst.ctypes.data + 8 - offset, dtype=wp.uint8, shape=(nbytes,), device="cpu")
+    kernels.copy_bytes(b, a)
+    np.testing.assert_array_equal(dst[8 - offset:8 - offset + nbytes], src[offset:offset + nbytes])
+    assert not dst[:8 - offset].any() and not dst[8 - offset + nbytes:].any()
+
+
+def test_one_write_handle_ever():
+    buffer = allocate_buffer(64, "cpu")
+    with from_output_buffer(buffer):
+        with pytest.raises(WriteHandleError):
+            from_output_buffer(buffer)
+    with pytest.raises(WriteHandleError):
+        from_output_buffer(buffer)
+
+
+def test_no_write_after_publish_or_read():
+    published = allocate_buffer(64, "cpu")
+    ipc.export_buffer(published)
+    with pytest.raises(WriteHandleError):
+        from_output_buffer(published)
+    read = allocate_buffer(64, "cpu")
+    from_input_buffer(read).release()
+    with pytest.raises(WriteHandleError):
+        from_output_buffer(read)
+
+
+def test_an_open_write_handle_is_sealed_by_a_read_and_by_a_publish():
+    for end in ("read", "publish"):
+        buffer = allocate_buffer(64, "cpu")
+        handle = from_output_buffer(buffer)
+        handle.array.fill_(5)
+        if end == "read":
+            reader = from_input_buffer(buffer)
+            assert (reader.array.numpy() == 5).all()
+        else:
+            ipc.export_buffer(buffer)
+        with pytest.raises(WriteHandleError):
+            handle.array  # noqa: B018
+        with pytest.raises(WriteHandleError):
+            to_buffer(np.zeros(64, np.uint8), handle)
+        handle.release()
+        assert (buffer.to_numpy() == 5).all()
+
+
+def test_release_is_idempotent_and_released_handles_refuse_access():
+    buffer = allocate_buffer(64, "cpu")
+    handle = from_output_buffer(buffer)
+    handle.release()
+    handle.release()
+    for access in (lambda: handle.array, lambda: handle.ptr, lambda: handle.view(wp.uint8)):
+        with pytest.raises(HandleReleasedError):
+            access()
+    reader = from_input_buffer(buffer)
+    reader.release()
+    reader.release()
+    with pytest.raises(HandleReleasedError):
+        reader.array  # noqa: B018
+
+
+def test_garbage_collected_write_handle_records_the_generation_stamp():
+    buffer = allocate_buffer(64, "cpu")
+    impl = buffer.get_impl()
+    handle = from_output_buffer(buffer)
+    handle.array.fill_(9)
+    assert impl._generation == 0
+    del handle
+    gc.collect()
+    assert impl._generation != 0
+    # The stamp was written by the sync kernel into the block header that importers check.
+    assert impl._block.header.generation == impl._generation
+    with from_input_buffer(buffer) as view:
+        assert (view.array.numpy() == 9).all()
+
+
+def test_output_handle_promotes_a_cpu_buffer_without_copying():
+    cpu = Buffer(np.arange(8, dtype=np.float32), dtype=np.float32)
+    with from_output_buffer(cpu) as out:
+        promoted = out.get_promoted_buffer()
+        assert promoted is out.buffer and promoted is not cpu
+        assert promoted.get_backend_type() == "warp" and len(promoted) == cpu.nbytes == 32
+        to_buffer(np.full(8, 2.5, np.float32), out)
+    assert cpu.get_backend_type() == "cpu" and cpu[0] == 0.0  # the original is untouched
+    np.testing.assert_array_equal(promoted.to_numpy().view(np.float32), np.full(8, 2.5))
+    native = allocate_buffer(8, "cpu")
+    with from_output_buffer(native) as out:
+        assert out.get_promoted_buffer() is None and out.buffer is native
+
+
+def test_input_handle_promotes_a_cpu_buffer_by_copying():
+    data = np.random.default_rng(2).integers(0, 256, 300, dtype=np.uint8)
+    cpu = Buffer(data)
+    with from_input_buffer(cpu) as view:
+        promoted = view.get_promoted_buffer()
+        assert promoted.get_backend_type() == "warp"
+        np.testing.assert_array_equal(view.array.numpy(), data)
+        assert view.ptr != cpu.numpy().ctypes.data
+    with pytest.raises(WriteHandleError):  # the promoted buffer was read
+        from_output_buffer(promoted)
+    for empty in (Buffer(), Buffer(b"")):
+        with pytest.raises(EmptyBufferError):
+            from_input_buffer(empty)
+        with pytest.raises(EmptyBufferError):
+            from_output_buffer(empty)
+
+
+def test_to_buffer_takes_dlpack_sources_and_checks_sizes():
+    values = np.linspace(-1, 1, 24, dtype=np.float32)
+    sources = {
+        "numpy": values,
+        "torch": torch.from_numpy(values.copy()),
+        "torch-strided": torch.from_numpy(np.repeat(values, 2))[::2],
+        "warp": wp.array(values.reshape(8, 3), dtype=wp.vec3, device="cpu"),
+        "bytes": values.tobytes(),
+        "buffer": Buffer(values, dtype=np.float32),
+    }
+    for name, source in sources.items():
+        buffer = allocate_buffer(values.nbytes, "cpu")
+        with from_output_buffer(buffer) as out:
+            to_buffer(source, out)
+        np.testing.assert_array_equal(buffer.to_numpy().view(np.float32), values, err_msg=name)
+    buffer = allocate_buffer(values.nbytes + 1, "cpu")
+    with from_output_buffer(buffer) as out:
+        with pytest.raises(SizeMismatchError):
+            to_buffer(values, out)
+        with pytest.raises(TypeError):
+            to_buffer(object(), out)
+    assert issubclass(SizeMismatchError, WarpBufferError) and issubclass(SizeMismatchError, ValueError)
+
+
+def test_size_classes_are_powers_of_two_from_a_page():
+    assert [size_class(n) for n in (1, 4096, 4097, 100_000)] == [4096, 4096, 8192, 131072]
+    with pytest.raises(EmptyBufferError):
+        size_class(0)
+
+
+def test_steady_state_publishing_reuses_one_block():
+    pool = get_pool(wp.get_device("cpu"))
+    before = pool.stats()
+    for i in range(50):
+        buffer = allocate_buffer(3000, "cpu")
+        with from_output_buffer(buffer) as out:
+            out.array.fill_(i)
+        received = ipc.import_export(ipc.export_buffer(buffer))  # the peer's import acknowledges
+        assert received.to_cpu().view()[0] == i
+        del buffer, out, received
+    after = pool.stats()
+    assert after["created"] - before["created"] == 1
+    assert after["reused"] - before["reused"] == 49
+
+
+def test_an_exported_block_is_not_reused_while_its_descriptor_may_be_in_flight(monkeypatch):
+    monkeypatch.setenv("WARP_BUFFER_INFLIGHT_GRACE_S", "60")
+    first = allocate_buffer(100, "cpu")
+    ipc.export_buffer(first)  # issued, never imported
+    first_block = first.get_impl()._block
+    del first
+    gc.collect()
+    second = allocate_buffer(100, "cpu")
+    assert second.get_impl()._block is not first_block
+    monkeypatch.setenv("WARP_BUFFER_INFLIGHT_GRACE_S", "0")
+    del second
+    gc.collect()
+    third = allocate_buffer(100, "cpu")
+    assert third.get_impl()._block is first_block  # the oldest free block, now reclaimable
+
+
+def test_idle_memory_goes_back_without_an_explicit_trim(monkeypatch):
+    monkeypatch.setenv("WARP_BUFFER_POOL_IDLE_S", "0.2")
+    buffer = allocate_buffer(10_000, "cpu")
+    path = buffer.get_impl()._block.path
+    assert os.path.exists(path)
+    del buffer
+    gc.collect()
+    deadline = time.monotonic() + 10
+    while os.path.exists(path) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not os.path.exists(path), "the janitor never gave the idle block back"
+
+
+def test_idle_bytes_beyond_the_cap_are_freed_at_once(monkeypatch):
+    monkeypatch.setenv("WARP_BUFFER_POOL_MAX_IDLE_BYTES", str(8192))
+    buffers = [allocate_buffer(8192, "cpu") for _ in range(4)]
+    paths = [b.get_impl()._block.path for b in buffers]
+    del buffers
+    gc.collect()
+    allocate_buffer(10, "cpu")  # any pool operation enforces the cap
+    assert sum(os.path.exists(p) for p in paths) == 1
+
+
+def test_disabled_ipc_uses_private_memory(monkeypatch):
+    monkeypatch.setenv("WARP_BUFFER_DISABLE_IPC", "1")
+    before = set(ipc.list_exports(os.getpid()))
+    buffer = allocate_buffer(5000, "cpu")
+    assert not buffer.get_impl().is_exportable
+    assert set(ipc.list_exports(os.getpid())) == before
+    with pytest.raises(warp_buffer.ExportUnavailableError):
+        ipc.export_buffer(buffer)
+    with from_output_buffer(allocate_buffer(8, "cpu")) as out:
+        to_buffer(b"12345678", out)
+        assert bytes(out.array.numpy()) == b"12345678"
+
+
+# --------------------------------------------------------------------------- CUDA paths
+@pytest.mark.cuda
+def test_cuda_write_read_on_other_streams_to_cpu_and_clone():  # pragma: no cover - needs a GPU
+    device = wp.get_cuda_devices()[0]
+    buffer = allocate_buffer(1 << 20, device.alias)
+    assert buffer.get_impl().device == device.alias
+    writer = wp.Stream(device)
+    with from_output_buffer(buffer, stream=writer) as out:
+        fill_pattern(out.array, 5)
+    reader = wp.Stream(device)
+    with from_input_buffer(buffer, stream=reader) as view:
+        assert view.stream is reader
+    np.testing.assert_array_equal(buffer.to_numpy(), expected_pattern(1 << 20, 5))
+    clone = buffer.copy()
+    assert clone.get_impl().device == device.alias and clone == buffer
+    host = allocate_buffer(64, "cpu")
+    with from_output_buffer(host) as out:
+        to_buffer(torch.arange(16, dtype=torch.float32, device="cuda"), out)
+    np.testing.assert_array_equal(host.to_numpy().view(np.float32), np.arange(16))

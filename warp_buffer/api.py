@@ -1,0 +1,367 @@
+"""The user API: allocate warp buffers, write and read them through handles, copy into them.
+
+A write looks like::
+
+    buffer = warp_buffer.allocate_buffer(nbytes)
+    with warp_buffer.from_output_buffer(buffer) as out:
+        wp.launch(my_kernel, dim=n, inputs=[out.view(wp.float32, (n,))], device=out.device)
+    msg.data = buffer  # publish
+
+and a read::
+
+    with warp_buffer.from_input_buffer(msg.data) as view:
+        wp.launch(consume, dim=n, inputs=[view.view(wp.float32, (n,))], device=view.device)
+
+Handles release on ``with`` exit, on :meth:`release` and on garbage collection. Releasing a write
+handle records the write's completion (a CUDA event on its stream, or a generation stamp on cpu);
+a read handle orders its stream after that record.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from rosidl_buffer import Buffer
+from rosidl_buffer.buffer_impl import CpuBufferImpl
+
+from . import kernels
+from .buffer_impl import WarpBufferImpl, wrap_bytes
+from .errors import (
+    EmptyBufferError,
+    HandleError,
+    HandleReleasedError,
+    SizeMismatchError,
+    WriteHandleError,
+)
+
+__all__ = [
+    "allocate_buffer",
+    "from_output_buffer",
+    "from_input_buffer",
+    "to_buffer",
+    "WriteHandle",
+    "ReadHandle",
+]
+
+
+def allocate_buffer(nbytes: int, device: Any = None) -> Buffer:
+    """A new warp-backed :class:`~rosidl_buffer.Buffer` of ``nbytes`` uninitialised bytes.
+
+    ``device`` is a Warp device name (``"cpu"``, ``"cuda:0"``) or ``wp.Device``; None follows
+    Warp's default device. Raises :class:`EmptyBufferError` for ``nbytes <= 0`` and
+    :class:`DeviceUnavailableError` for a device this machine does not have.
+    """
+    if isinstance(nbytes, bool) or not isinstance(nbytes, (int, np.integer)):
+        raise TypeError(f"nbytes must be an int, got {type(nbytes).__name__}")
+    return Buffer(WarpBufferImpl.allocate(int(nbytes), device))
+
+
+class _KeepAlive:
+    """Deleter of a reinterpreting view: holds the base array until the view is collected."""
+
+    __slots__ = ("base",)
+
+    def __init__(self, base: wp.array) -> None:
+        self.base = base
+
+    def __call__(self, ptr: int, size: int) -> None:
+        self.base = None
+
+
+def _warp_dtype(dtype: Any) -> Any:
+    if dtype is float:
+        return wp.float32
+    if dtype is int:
+        return wp.int32
+    if isinstance(dtype, type) and (wp.types.type_is_value(dtype) or hasattr(dtype, "_wp_scalar_type_")):
+        return dtype
+    try:
+        return wp.dtype_from_numpy(np.dtype(dtype))
+    except Exception:
+        raise TypeError(f"{dtype!r} is neither a Warp nor a NumPy data type") from None
+
+
+def _check_stream(device: Any, stream: Any) -> Any:
+    if device.is_cpu:
+        if stream is not None:
+            raise HandleError("the cpu device has no streams: pass stream=None")
+        return None
+    if stream is None:
+        return wp.get_stream(device)
+    if not isinstance(stream, wp.Stream):
+        raise TypeError(f"stream must be a wp.Stream, got {type(stream).__name__}")
+    if stream.device != device:
+        raise HandleError(f"stream of {stream.device} cannot access a buffer on {device}")
+    return stream
+
+
+class _Handle:
+    """What both handles share: the storage as ``wp.array``, views, pointer and lifetime."""
+
+    _kind = "handle"
+
+    def __init__(self, buffer: Buffer, impl: WarpBufferImpl, stream: Any,
+                 promoted: Buffer | None) -> None:
+        self._buffer = buffer
+        self._impl = impl
+        self._stream = stream
+        self._promoted = promoted
+        self._released = False
+
+    def _usable(self) -> WarpBufferImpl:
+        if self._released:
+            raise HandleReleasedError(f"this {self._kind} handle was released")
+        return self._impl
+
+    @property
+    def array(self) -> wp.array:
+        """The buffer's bytes: a 1-D ``wp.array`` of uint8 on :attr:`device` (no copy)."""
+        return self._usable()._array
+
+    def view(self, dtype: Any, shape: int | Sequence[int] | None = None) -> wp.array:
+        """The bytes reinterpreted as a ``wp.array`` of ``dtype`` and ``shape`` (no copy).
+
+        ``dtype`` is a Warp type (``wp.float32``, ``wp.vec3``) or a NumPy dtype; ``shape``
+        defaults to as many elements as the buffer holds. The view may cover less than the
+        buffer, never more. It keeps the storage alive for as long as it exists.
+        """
+        base = self.array
+        dtype = _warp_dtype(dtype)
+        itemsize = wp.types.type_size_in_bytes(dtype)
+        nbytes = base.shape[0]
+        if shape is None:
+            if nbytes % itemsize:
+                raise SizeMismatchError(
+                    f"{nbytes} bytes are not a whole number of {itemsize}-byte elements"
+                )
+            shape = (nbytes // itemsize,)
+        elif isinstance(shape, (int, np.integer)):
+            shape = (int(shape),)
+        else:
+            shape = tuple(int(s) for s in shape)
+        if any(s < 0 for s in shape):
+            raise ValueError(f"negative dimension in shape {shape}")
+        need = math.prod(shape) * itemsize
+        if need > nbytes:
+            raise SizeMismatchError(
+                f"a {shape} view of {itemsize}-byte elements needs {need} bytes; "
+                f"the buffer has {nbytes}"
+            )
+        scalar = getattr(dtype, "_wp_scalar_type_", dtype)
+        if base.ptr % wp.types.type_size_in_bytes(scalar):
+            raise HandleError(f"the buffer's address is not aligned for {dtype}")
+        return wp.array(ptr=base.ptr, dtype=dtype, shape=shape, device=base.device,
+                        deleter=_KeepAlive(base))
+
+    @property
+    def ptr(self) -> int:
+        """Address of the first byte (device address on CUDA)."""
+        return self.array.ptr
+
+    @property
+    def device(self) -> str:
+        """Warp device name of the storage, e.g. ``"cpu"`` or ``"cuda:0"``."""
+        return self._impl.device
+
+    @property
+    def stream(self) -> Any:
+        """The CUDA stream the handle orders its work on (None on cpu)."""
+        return self._stream
+
+    @property
+    def buffer(self) -> Buffer:
+        """The warp buffer this handle accesses (the promoted one, if promotion happened)."""
+        return self._buffer
+
+    def get_promoted_buffer(self) -> Buffer | None:
+        """The warp buffer allocated because a non-warp buffer was passed, else None."""
+        return self._promoted
+
+    def release(self) -> None:
+        """End access (idempotent). Also runs on ``with`` exit and garbage collection."""
+        if not self._released:
+            self._released = True
+            self._on_release()
+
+    def _on_release(self) -> None:
+        pass
+
+    def __enter__(self) -> Any:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+    def __del__(self) -> None:
+        if sys.is_finalizing():
+            return
+        try:
+            self.release()
+        except Exception:  # pragma: no cover - interpreter shutdown
+            pass
+
+    def __repr__(self) -> str:
+        state = "released" if self._released else "open"
+        return f"{type(self).__name__}({self._impl!r}, {state})"
+
+
+class WriteHandle(_Handle):
+    """Write access to a warp buffer (one per buffer, ever). See :func:`from_output_buffer`."""
+
+    _kind = "write"
+
+    def __init__(self, buffer: Buffer, impl: WarpBufferImpl, stream: Any,
+                 promoted: Buffer | None) -> None:
+        self._released = True  # a refused handle has nothing to release
+        self._state = impl._open_writer(stream)
+        super().__init__(buffer, impl, stream, promoted)
+
+    def _usable(self) -> WarpBufferImpl:
+        impl = super()._usable()
+        if self._state.sealed is not None:
+            raise WriteHandleError(
+                f"the buffer was {self._state.sealed} while this write handle was open; "
+                "writes after that are not allowed"
+            )
+        return impl
+
+    def _on_release(self) -> None:
+        self._impl._close_writer(self._state)
+
+
+class ReadHandle(_Handle):
+    """Read access to a warp buffer, ordered after its writer. See :func:`from_input_buffer`."""
+
+    _kind = "read"
+
+
+def _require_buffer(buffer: Any) -> Buffer:
+    if not isinstance(buffer, Buffer):
+        raise TypeError(f"expected a rosidl_buffer.Buffer, got {type(buffer).__name__}")
+    return buffer
+
+
+def from_output_buffer(buffer: Buffer, stream: Any = None) -> WriteHandle:
+    """A write handle on ``buffer``; use it as a context manager.
+
+    A warp buffer takes one write handle in its life, and none once published or read (each
+    raises :class:`WriteHandleError`). A buffer of another backend (CPU) is promoted: a new
+    warp buffer of the same byte size is allocated, without copying, on the device of
+    ``stream`` or Warp's default device, and is returned by :meth:`get_promoted_buffer`.
+    Writes are ordered on ``stream`` (CUDA; default: the device's current stream).
+    """
+    buffer = _require_buffer(buffer)
+    impl = buffer.get_impl()
+    promoted = None
+    if not isinstance(impl, WarpBufferImpl):
+        if buffer.nbytes <= 0:
+            raise EmptyBufferError("cannot write into an empty buffer: warp buffers hold >= 1 byte")
+        device = stream.device if stream is not None else None
+        promoted = allocate_buffer(buffer.nbytes, device)
+        buffer, impl = promoted, promoted.get_impl()
+    stream = _check_stream(impl._device, stream)
+    return WriteHandle(buffer, impl, stream, promoted)
+
+
+def from_input_buffer(buffer: Buffer, stream: Any = None) -> ReadHandle:
+    """A read handle on ``buffer``, ordered after the buffer's write.
+
+    On CUDA the handle's ``stream`` waits on the writer's event (an interprocess event for an
+    import); on cpu the writer's generation stamp is checked. Reading ends the buffer's
+    writable life (an open write handle is sealed). A buffer of another backend is promoted by
+    copying it into a new warp buffer (kept by :meth:`get_promoted_buffer`).
+    """
+    buffer = _require_buffer(buffer)
+    impl = buffer.get_impl()
+    promoted = None
+    if not isinstance(impl, WarpBufferImpl):
+        if buffer.nbytes <= 0:
+            raise EmptyBufferError("cannot read an empty buffer as a warp buffer")
+        host = impl.view() if isinstance(impl, CpuBufferImpl) else buffer.to_numpy()
+        device = stream.device if stream is not None else None
+        promoted = allocate_buffer(buffer.nbytes, device)
+        new_impl = promoted.get_impl()
+        _copy_into(new_impl, _as_bytes(host), _check_stream(new_impl._device, stream))
+        buffer, impl = promoted, new_impl
+    stream = _check_stream(impl._device, stream)
+    impl._mark_read()
+    impl._wait_for_writer(stream)
+    return ReadHandle(buffer, impl, stream, promoted)
+
+
+def _as_bytes(src: Any) -> np.ndarray | wp.array:
+    """``src`` as contiguous bytes without copying when possible: a 1-D uint8 NumPy array (host)
+    or a 1-D uint8 ``wp.array`` (any device; keeps ``src`` alive)."""
+    if isinstance(src, Buffer):
+        impl = src.get_impl()
+        if isinstance(impl, WarpBufferImpl):
+            return impl._array
+        return np.ascontiguousarray(impl.view() if isinstance(impl, CpuBufferImpl)
+                                    else src.to_numpy()).view(np.uint8).reshape(-1)
+    if isinstance(src, (bytes, bytearray, memoryview)):
+        return np.frombuffer(src, dtype=np.uint8)
+    if isinstance(src, np.ndarray):
+        return np.ascontiguousarray(src).reshape(-1).view(np.uint8)
+    if isinstance(src, wp.array):
+        array = src
+    elif hasattr(src, "__dlpack__"):
+        if hasattr(src, "is_contiguous") and hasattr(src, "contiguous") and not src.is_contiguous():
+            src = src.contiguous()  # torch and friends: a strided view becomes one copy
+        try:
+            array = wp.from_dlpack(src)
+        except Exception:
+            try:
+                return np.ascontiguousarray(np.from_dlpack(src)).reshape(-1).view(np.uint8)
+            except Exception as exc:
+                raise TypeError(f"cannot read {type(src).__name__} through DLPack: {exc}") from None
+    else:
+        raise TypeError(
+            f"to_buffer takes a wp.array, a DLPack-capable tensor, a NumPy array, bytes or a "
+            f"Buffer, not {type(src).__name__}"
+        )
+    if not array.is_contiguous:
+        array = array.contiguous()
+    nbytes = array.size * wp.types.type_size_in_bytes(array.dtype)
+    if array.dtype == wp.uint8 and array.ndim == 1:
+        return array
+    return wrap_bytes(array.ptr, nbytes, array.device, _KeepAlive(array))
+
+
+def _copy_into(impl: WarpBufferImpl, src: np.ndarray | wp.array, stream: Any) -> None:
+    dst = impl._array
+    nbytes = src.shape[0] if isinstance(src, np.ndarray) else src.shape[0]
+    if nbytes != dst.shape[0]:
+        raise SizeMismatchError(
+            f"source has {nbytes} bytes, the destination buffer {dst.shape[0]}"
+        )
+    if isinstance(src, np.ndarray):
+        src = wp.array(ptr=src.ctypes.data, dtype=wp.uint8, shape=(nbytes,), device="cpu",
+                       deleter=_KeepAlive(src))  # type: ignore[arg-type]
+    if src.device == dst.device:
+        kernels.copy_bytes(dst, src, stream)
+    else:
+        wp.copy(dst, src, stream=stream)
+        if dst.device.is_cpu:
+            wp.synchronize_stream(src.device)  # a device-to-host copy is done when we return
+    impl._complete_write(stream)
+
+
+def to_buffer(src: Any, write_handle: WriteHandle, stream: Any = None) -> None:
+    """Copy ``src`` (a ``wp.array``, a torch tensor or anything with ``__dlpack__``, a NumPy
+    array, bytes, or a Buffer) into the storage of ``write_handle``.
+
+    The byte sizes must match exactly (:class:`SizeMismatchError` otherwise). A same-device copy
+    runs the copy kernel; a cross-device one (host to GPU) is a Warp copy on ``stream`` (default:
+    the handle's stream).
+    """
+    if not isinstance(write_handle, WriteHandle):
+        raise TypeError(f"to_buffer needs a WriteHandle, got {type(write_handle).__name__}")
+    impl = write_handle._usable()
+    stream = _check_stream(impl._device, stream) if stream is not None else write_handle._stream
+    _copy_into(impl, _as_bytes(src), stream)

@@ -1,0 +1,252 @@
+"""``WarpBufferImpl``: a ``rosidl_buffer`` storage impl whose bytes are a Warp array.
+
+The storage is a 1-D ``wp.array`` of uint8 on a Warp device, over a block leased from the
+device's pool (:mod:`warp_buffer.pool`) or over memory imported from another process
+(:mod:`warp_buffer.ipc`). The array's ``deleter`` owns the lease (or the import's hold), so the
+memory is recycled, or the hold dropped, exactly when the last array over it, views and DLPack
+consumers included, is collected.
+
+Write ordering lives here too. A buffer takes one write handle, ever; when the write ends (the
+handle is released, or the buffer is published or read while the handle is still open) the impl
+records the completion: on CUDA an event on the writer's stream, on the cpu device a generation
+stamp that a Warp kernel writes into the block header after the writer's work.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from rosidl_buffer.buffer_impl import BufferImplBase, CpuBufferImpl
+
+from . import kernels
+from .errors import DeviceUnavailableError, EmptyBufferError, SyncTimeoutError, WriteHandleError
+from .pool import get_pool, size_class
+
+__all__ = ["WARP_BACKEND", "WarpBufferImpl", "WriteState", "resolve_device"]
+
+WARP_BACKEND = "warp"
+
+_generations = itertools.count(1)
+
+
+def resolve_device(device: Any = None) -> Any:
+    """The ``wp.Device`` for ``device`` (a name, a ``wp.Device``, or None for Warp's default)."""
+    try:
+        return wp.get_device(device)
+    except (ValueError, RuntimeError, TypeError) as exc:
+        raise DeviceUnavailableError(
+            f"Warp device {device!r} is not available here: {exc} "
+            f"(available: {[d.alias for d in wp.get_devices()]})"
+        ) from None
+
+
+def wrap_bytes(ptr: int, nbytes: int, device: Any, owner: Any) -> wp.array:
+    """A 1-D uint8 ``wp.array`` over ``nbytes`` at ``ptr``; ``owner(ptr, size)`` runs when the
+    array (and every view of it) is collected, and keeps ``owner`` alive until then."""
+    return wp.array(ptr=ptr, dtype=wp.uint8, shape=(nbytes,), device=device, deleter=owner)
+
+
+class WriteState:
+    """The state of one buffer's (only) write, shared by the impl and its write handle."""
+
+    __slots__ = ("stream", "sealed")
+
+    def __init__(self, stream: Any) -> None:
+        self.stream = stream  # CUDA stream the writes are ordered on (None on cpu)
+        self.sealed: str | None = None  # why writes ended early: "published" or "read"
+
+
+class WarpBufferImpl(BufferImplBase):
+    """Warp-backed storage of a :class:`rosidl_buffer.Buffer` (backend type ``"warp"``).
+
+    Build one with :func:`warp_buffer.allocate_buffer`; importing an export also yields one.
+    ``array`` is the raw storage, without synchronisation: use the handles of :mod:`warp_buffer`
+    (``from_output_buffer`` / ``from_input_buffer``) to write and read it in order.
+    """
+
+    def __init__(self, array: wp.array, device: Any, *, block: Any = None,
+                 imported: Any = None) -> None:
+        self._array = array
+        self._device = device
+        self._block = block  # the leased pool block, None for imports
+        self._import = imported  # the ExportRecord this buffer was imported from
+        self._lock = threading.RLock()
+        self._generation = 0  # stamp value written when the last write completed (cpu)
+        self._event: Any = None  # CUDA event recorded when the last write completed
+        self._writer: WriteState | None = None  # the open write, if any
+        self._write_opened = False
+        self._published = False
+        self._read = False
+        self._staging: Any = None  # (host array, block) staging copy for CUDA exports
+        self._reexport: WarpBufferImpl | None = None  # local copy of an import, to re-publish
+
+    @classmethod
+    def allocate(cls, nbytes: int, device: Any = None) -> WarpBufferImpl:
+        """A new impl of ``nbytes`` (uninitialised) from the pool of ``device``."""
+        if nbytes <= 0:
+            raise EmptyBufferError(f"a warp buffer holds at least one byte, not {nbytes}")
+        device = resolve_device(device)
+        size_class(nbytes)  # validates the size before touching the pool
+        lease = get_pool(device).acquire(nbytes)
+        array = wrap_bytes(lease.block.data_ptr, nbytes, device, lease)
+        return cls(array, device, block=lease.block)
+
+    # -- BufferImplBase ------------------------------------------------------------------------
+    def get_backend_type(self) -> str:
+        return WARP_BACKEND
+
+    def size(self) -> int:
+        return self._array.shape[0]
+
+    def to_cpu(self) -> CpuBufferImpl:
+        """A CPU copy, made by the copy kernel (cpu) or a device-to-host copy (CUDA), after the
+        writer's pending work."""
+        n = self.size()
+        out = np.empty(n, dtype=np.uint8)
+        host = wp.array(ptr=out.ctypes.data, dtype=wp.uint8, shape=(n,), device="cpu")
+        if self._device.is_cpu:
+            self._wait_for_writer(None)
+            kernels.copy_bytes(host, self._array)
+        else:
+            stream = wp.get_stream(self._device)
+            self._wait_for_writer(stream)
+            wp.copy(host, self._array, stream=stream)
+            wp.synchronize_stream(stream)
+        return CpuBufferImpl.wrap(out)
+
+    def clone(self) -> WarpBufferImpl:
+        """A deep copy on the same device, by the copy kernel; the copy is a fresh buffer (one
+        write handle allowed, not published)."""
+        other = WarpBufferImpl.allocate(self.size(), self._device)
+        stream = None if self._device.is_cpu else wp.get_stream(self._device)
+        self._wait_for_writer(stream)
+        kernels.copy_bytes(other._array, self._array, stream)
+        other._complete_write(stream)
+        return other
+
+    # -- public properties ---------------------------------------------------------------------
+    @property
+    def array(self) -> wp.array:
+        """The storage: a 1-D ``wp.array`` of uint8, ``size()`` long (no synchronisation)."""
+        return self._array
+
+    @property
+    def device(self) -> str:
+        """The Warp device of the storage, e.g. ``"cpu"`` or ``"cuda:0"``."""
+        return self._device.alias
+
+    @property
+    def is_imported(self) -> bool:
+        """True for a buffer imported from another process's export (read-only)."""
+        return self._import is not None
+
+    @property
+    def is_published(self) -> bool:
+        return self._published
+
+    @property
+    def is_read(self) -> bool:
+        return self._read
+
+    @property
+    def is_exportable(self) -> bool:
+        """Can this buffer be shared with a same-host process without a CPU copy?"""
+        if self._import is not None:
+            return True  # through a local copy
+        if self._device.is_cpu:
+            return bool(self._block is not None and self._block.shared)
+        return True  # CUDA: an IPC handle or a host staging block
+
+    def __repr__(self) -> str:
+        origin = "imported" if self._import is not None else "local"
+        return f"WarpBufferImpl(size={self.size()}, device={self.device!r}, {origin})"
+
+    # -- write / read ordering (used by the handles and the IPC layer) --------------------------
+    def _open_writer(self, stream: Any) -> WriteState:
+        with self._lock:
+            if self._import is not None:
+                raise WriteHandleError(
+                    "this buffer was imported from another process and is read-only; "
+                    "clone() it for a writable copy"
+                )
+            if self._published:
+                raise WriteHandleError("this buffer was published; it can no longer be written")
+            if self._read:
+                raise WriteHandleError("this buffer was read; it can no longer be written")
+            if self._write_opened:
+                raise WriteHandleError("a buffer accepts one write handle, ever")
+            self._write_opened = True
+            self._writer = WriteState(stream)
+            return self._writer
+
+    def _close_writer(self, state: WriteState) -> None:
+        with self._lock:
+            if self._writer is state:
+                self._writer = None
+                self._complete_write(state.stream)
+
+    def _seal(self, reason: str) -> None:
+        """End an open write now (publish or read): record its completion; later accesses
+        through the write handle raise."""
+        with self._lock:
+            writer, self._writer = self._writer, None
+            if writer is not None:
+                writer.sealed = reason
+                self._complete_write(writer.stream)
+
+    def _mark_published(self) -> None:
+        with self._lock:
+            self._seal("published")
+            self._published = True
+
+    def _mark_read(self) -> None:
+        with self._lock:
+            self._seal("read")
+            self._read = True
+
+    def _complete_write(self, stream: Any) -> None:
+        """Record that every write enqueued so far has completed (event or stamp)."""
+        if self._device.is_cpu:
+            generation = next(_generations)
+            block = self._block
+            if block is not None:
+                kernels.stamp_generation(block.stamp_array, generation)
+            self._generation = generation
+        else:
+            stream = stream if stream is not None else wp.get_stream(self._device)
+            event = self._block.event if self._block is not None else wp.Event(self._device)
+            stream.record_event(event)
+            self._event = event
+
+    def _wait_for_writer(self, stream: Any) -> None:
+        """Order work on ``stream`` (CUDA) after the writer's; check the stamp on cpu."""
+        with self._lock:
+            writer = self._writer
+            if self._device.is_cpu:
+                if writer is None:
+                    self._check_stamp()
+                return  # cpu work is synchronous: an open writer's work is already done
+            if writer is not None:
+                if writer.stream is not stream:
+                    stream.wait_stream(writer.stream)
+            elif self._event is not None:
+                stream.wait_event(self._event)
+
+    def _check_stamp(self, timeout: float = 2.0) -> None:
+        block = self._block
+        if block is None or self._generation == 0:
+            return
+        deadline = time.monotonic() + timeout
+        while block.header.generation != self._generation:
+            if time.monotonic() > deadline:  # pragma: no cover - a stamp kernel never ran
+                raise SyncTimeoutError(
+                    f"the writer's stamp {self._generation} did not arrive "
+                    f"(header has {block.header.generation})"
+                )
+            time.sleep(0.0005)

@@ -1,0 +1,111 @@
+"""Typed errors of warp_buffer and the warp backend.
+
+Every error derives from :class:`WarpBufferError`, itself a
+:class:`rosidl_buffer.RosidlBufferError`, so a transport can catch one family, count the failure
+and keep running. Errors that also describe a standard condition inherit the matching built-in
+(``ValueError``, ``PermissionError``, ...) so generic handlers work too.
+
+::
+
+    WarpBufferError
+    ├── DeviceUnavailableError      the requested Warp device does not exist here
+    ├── InvalidSizeError            a buffer size that cannot be allocated
+    │   └── EmptyBufferError        zero-byte buffers are rejected (as the backend guide says)
+    ├── SizeMismatchError           to_buffer source and destination sizes differ
+    ├── SyncTimeoutError            a writer's completion stamp never arrived
+    ├── HandleError                 misuse of a read or write handle
+    │   ├── WriteHandleError        a second write handle, a write after publish or read, or a
+    │   │                           write into an imported (read-only) buffer
+    │   └── HandleReleasedError     a released handle was used
+    └── ExportError                 shared-memory / CUDA IPC export and import failures
+        ├── ExportUnavailableError  this buffer cannot be exported (private memory, no IPC)
+        ├── DescriptorError         a malformed export record or descriptor
+        ├── ForeignExportError      the export belongs to another host, user or owner
+        ├── ExportBoundsError       size or offset beyond the block (an oversize export)
+        └── StaleBufferError        the export was recycled, removed or truncated
+"""
+
+from __future__ import annotations
+
+from rosidl_buffer.errors import RosidlBufferError
+
+__all__ = [
+    "WarpBufferError",
+    "DeviceUnavailableError",
+    "InvalidSizeError",
+    "EmptyBufferError",
+    "SizeMismatchError",
+    "SyncTimeoutError",
+    "HandleError",
+    "WriteHandleError",
+    "HandleReleasedError",
+    "ExportError",
+    "ExportUnavailableError",
+    "DescriptorError",
+    "ForeignExportError",
+    "ExportBoundsError",
+    "StaleBufferError",
+]
+
+
+class WarpBufferError(RosidlBufferError):
+    """Base class of every error raised by warp_buffer and warp_buffer_backend."""
+
+
+class DeviceUnavailableError(WarpBufferError, RuntimeError):
+    """The requested Warp device is not present (e.g. ``"cuda:0"`` on a machine without a GPU)."""
+
+
+class InvalidSizeError(WarpBufferError, ValueError):
+    """A buffer size that cannot be allocated (too large for a block)."""
+
+
+class EmptyBufferError(InvalidSizeError):
+    """A zero-byte (or negative) buffer size: warp buffers are never empty."""
+
+
+class SizeMismatchError(WarpBufferError, ValueError):
+    """A copy whose source and destination byte counts differ."""
+
+
+class SyncTimeoutError(WarpBufferError, TimeoutError):
+    """A reader waited for the writer's completion stamp and it did not arrive in time."""
+
+
+class HandleError(WarpBufferError, RuntimeError):
+    """A read or write handle was used against the rules."""
+
+
+class WriteHandleError(HandleError):
+    """A write the buffer does not allow: a buffer takes one write handle, ever, and no write once
+    it was published, read, or when it was imported from another process."""
+
+
+class HandleReleasedError(HandleError):
+    """The handle was released; its storage may no longer be accessed through it."""
+
+
+class ExportError(WarpBufferError):
+    """Exporting a buffer to another process, or importing one, failed."""
+
+
+class ExportUnavailableError(ExportError):
+    """This buffer cannot be exported (it lives in private memory, or IPC is not possible)."""
+
+
+class DescriptorError(ExportError, ValueError):
+    """An export record or descriptor is malformed (unknown version or kind, bad field)."""
+
+
+class ForeignExportError(ExportError, PermissionError):
+    """The export belongs to another host or user, or its file is not owned by this user."""
+
+
+class ExportBoundsError(ExportError, ValueError):
+    """The export's size or offset reaches beyond its block, or the block is not the size the
+    descriptor claims (an oversize export)."""
+
+
+class StaleBufferError(ExportError):
+    """The export no longer holds the published bytes: its block was recycled for a later publish,
+    removed (the owner exited), truncated, or is being recycled right now."""
