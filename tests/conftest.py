@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import re
 
 import pytest
 
@@ -38,11 +39,32 @@ SHM_DIR = pathlib.Path("/dev/shm")
 _ALLOWED_CHILDREN = ("resource_tracker", "forkserver", "semaphore_tracker")
 
 
+_EXPORT_OWNER = re.compile(r"^warp_buffer\.\d+\.(\d+)-")
+
+
 def _our_shm_files() -> set[str]:
     try:
         return {p.name for p in SHM_DIR.iterdir() if p.name.startswith("warp_buffer")}
     except OSError:
         return set()
+
+
+def _is_leak(name: str) -> bool:
+    """An export is leaked if this process owns it or its owner is dead; the files of other live
+    processes (a concurrent test run, a running demo) are theirs to clean up."""
+    match = _EXPORT_OWNER.match(name)
+    if match is None:
+        return True
+    pid = int(match.group(1))
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        pass
+    return False
 
 
 def _child_processes() -> dict[int, str]:
@@ -89,7 +111,7 @@ def no_leaks(request: pytest.FixtureRequest):
     _release_idle_pool_blocks()
     deadline = time.monotonic() + 3.0
     while True:  # exports and children may take a moment to go after a clean shutdown
-        leaked_shm = _our_shm_files() - shm_before
+        leaked_shm = {name for name in _our_shm_files() - shm_before if _is_leak(name)}
         leaked_children = {p: c for p, c in _child_processes().items() if p not in children_before}
         if (not leaked_shm and not leaked_children) or time.monotonic() > deadline:
             break
@@ -123,7 +145,7 @@ def pytest_sessionstart(session: pytest.Session) -> None:
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     """Catch leaks of module- and session-scoped fixtures, which the per-test guard cannot see."""
-    leaked = _our_shm_files() - _session_shm_before
+    leaked = {name for name in _our_shm_files() - _session_shm_before if _is_leak(name)}
     children = _child_processes()
     if leaked or children:
         session.exitstatus = pytest.ExitCode.TESTS_FAILED

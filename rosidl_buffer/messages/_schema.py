@@ -113,11 +113,17 @@ _lock = threading.RLock()
 _store: Typestore | None = None
 
 
+_scanned_packages: set[tuple[str, str]] = set()
+
+
 def _shipped_definitions() -> dict[str, tuple[list, list]]:
-    """Parse every ``.msg`` file announced through the interfaces entry point group."""
+    """Parse the ``.msg`` files of interface packages announced since the last scan."""
     types: dict[str, tuple[list, list]] = {}
     for entry_point in metadata.entry_points(group=INTERFACES_ENTRY_POINT_GROUP):
         package = entry_point.name
+        if (package, entry_point.value) in _scanned_packages:
+            continue
+        _scanned_packages.add((package, entry_point.value))
         try:
             folder = resources.files(entry_point.value)
             for item in sorted(folder.iterdir(), key=lambda p: p.name):
@@ -140,6 +146,15 @@ def get_typestore() -> Typestore:
                 store.register(shipped)
             _store = store
         return _store
+
+
+def _register_new_packages() -> None:
+    """Pick up interface packages installed (or put on sys.path) after the first scan."""
+    with _lock:
+        store = get_typestore()
+        shipped = _shipped_definitions()
+        if shipped:
+            store.register(shipped)
 
 
 def register_message_definitions(definitions: dict[str, str]) -> None:
@@ -180,6 +195,8 @@ def get_schema(type_name: str) -> MessageSchema:
     """The schema of a message type, raising :class:`UnknownMessageTypeError` if unknown."""
     name = normalize_type_name(type_name)
     store = get_typestore()
+    if name not in store.fielddefs:
+        _register_new_packages()
     try:
         constants, fields = store.fielddefs[name]
     except KeyError:
