@@ -114,6 +114,12 @@ def _release_output(msg: Any) -> None:
 def _subscriber(args: argparse.Namespace, accept: str) -> int:
     from buffer_pubsub import Node
 
+    # Import the conversion stack before matching: a first import inside the callback (torch
+    # takes about a second) would delay every queued frame and skew the latency figures.
+    import torch
+    from tensor_conversions import numpy as tcn
+    from tensor_conversions import torch as tct
+
     stats: dict[str, Any] = {"received": 0, "bad": 0, "backends": [], "routes": [],
                              "latency_ms": [], "errors": []}
 
@@ -126,18 +132,12 @@ def _subscriber(args: argparse.Namespace, accept: str) -> int:
             stats["routes"].append(info.route)
         try:
             if accept == "warp":
-                from tensor_conversions import torch as tct
-
                 view = tct.from_input_tensor_msg(msg, clone=False)  # DLPack, zero copy
                 frame = int(view[0, 0].item()) // 1000
-                import torch
-
                 good = tuple(view.shape) == (args.height, args.width) and bool(torch.equal(
                     view, torch.from_numpy(_expected(frame, args.height, args.width))))
                 del view
             else:
-                from tensor_conversions import numpy as tcn
-
                 view = tcn.from_input_tensor_msg(msg, clone=False)
                 frame = int(view[0, 0]) // 1000
                 good = bool(np.array_equal(view, _expected(frame, args.height, args.width)))
