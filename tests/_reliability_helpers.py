@@ -62,8 +62,8 @@ def run_hold(args: argparse.Namespace) -> int:
         def on_msg(msg) -> None:
             if check_frame(msg)["ok"] and msg.data.get_backend_type() == "warp":
                 held.append(msg)
-            if len(held) % args.hold == 0:
-                _emit(f"HELD {len(held)}")
+                if len(held) % args.hold == 0:
+                    _emit(f"HELD {len(held)}")
 
         node.create_subscription(TENSOR, args.topic, on_msg, depth=args.depth,
                                  acceptable_buffer_backends="warp")
@@ -86,6 +86,8 @@ def run_soak(args: argparse.Namespace) -> int:
         stats["received"] += 1
         stats["bad"] += not record["ok"]
         stats["backends"][record["backend"]] = stats["backends"].get(record["backend"], 0) + 1
+        if stats["received"] % args.progress == 0:
+            _emit(f"GOT {stats['received']}")  # the publisher's flow-control window
 
     with Node(f"soak_{os.getpid()}", domain_id=args.domain) as node:
         _emit("READY")
@@ -140,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--count", type=int, default=2, help="export: buffers to export")
     parser.add_argument("--turn", type=float, default=2.0, help="soak: seconds subscribed")
     parser.add_argument("--gap", type=float, default=0.3, help="soak: seconds unsubscribed")
+    parser.add_argument("--progress", type=int, default=250, help="soak: GOT line every N")
     args = parser.parse_args(argv)
     roles = {"hold": run_hold, "soak": run_soak, "export": run_export, "sweep": run_sweep}
     return roles[args.role](args)
@@ -169,6 +172,21 @@ class Child(pubsub.Child):
         line = self._expect("RESULT ", timeout)
         self.proc.wait(timeout=timeout)
         return json.loads(line[len("RESULT "):])
+
+    def progress(self) -> int:
+        """The latest ``GOT <n>`` count the child printed (0 if none yet); never blocks."""
+        latest = getattr(self, "_progress", 0)
+        while True:
+            try:
+                line = self._lines.get_nowait()
+            except queue.Empty:
+                break
+            if line is None:
+                raise RuntimeError(f"child exited ({self.proc.wait()})")
+            if line.startswith("GOT "):
+                latest = int(line[4:])
+        self._progress = latest
+        return latest
 
     def kill(self) -> None:
         """SIGKILL and reap (no clean shutdown: the kernel drops its locks and mappings)."""
@@ -212,6 +230,24 @@ class ForgedPublisher:
             self._liveliness.undeclare()
         finally:
             self.session.close()
+
+
+def release_pool_memory(timeout: float = 5.0) -> dict[str, Any]:
+    """Give every free pool block of this process back (its /dev/shm file is removed); returns
+    the pool stats, in which a test expects no leased block left."""
+    import gc
+
+    import warp_buffer
+
+    deadline = time.monotonic() + timeout
+    while True:
+        gc.collect()
+        warp_buffer.trim_pools(0.0, inflight_grace=0.0)
+        stats = warp_buffer.pool_stats()
+        idle = all(s["leased"] == 0 and s["free_blocks"] == 0 for s in stats.values())
+        if idle or time.monotonic() > deadline:
+            return stats
+        time.sleep(0.02)
 
 
 def wait_until(predicate, timeout: float = 10.0, interval: float = 0.005) -> bool:

@@ -1,0 +1,264 @@
+"""Faults and permissions with real processes on loopback: SIGKILLed publishers and subscribers,
+the orphan sweep, owner-only exports and sockets, and CPU fallback for another user.
+
+Every child is reaped in ``finally``; pool blocks of this process are given back after each test
+(the suite's leak guard then finds no /dev/shm file left).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import socket
+import stat
+import uuid
+import zlib
+
+import pytest
+
+from buffer_pubsub import Node
+from tests._pubsub_helpers import TENSOR, check_frame, make_frame
+from tests._reliability_helpers import (
+    Child,
+    publisher_child,
+    release_pool_memory,
+    wait_until,
+)
+from warp_buffer import ipc
+
+pytestmark = pytest.mark.multiprocess
+
+SIZE = 2048  # one 4 KiB size class: pool growth is counted in blocks
+HOLD = 12
+_domains = itertools.count(4000 + os.getpid() % 50 * 40)
+
+
+@pytest.fixture
+def domain() -> int:
+    return next(_domains)
+
+
+@pytest.fixture
+def topic() -> str:
+    return f"/reliability/t_{uuid.uuid4().hex[:10]}"
+
+
+@pytest.fixture(autouse=True)
+def _pool_memory_back():
+    yield
+    stats = release_pool_memory()
+    assert all(s["leased"] == 0 for s in stats.values()), f"buffers left alive: {stats}"
+
+
+def _close(*children: Child | None) -> None:
+    for child in children:
+        if child is not None:
+            child.close()
+
+
+def _crc(msg) -> int:
+    return zlib.crc32(msg.data.to_numpy().tobytes())
+
+
+def _frames_from(got, pub_id: int) -> list:
+    return [m for m, _ in got if check_frame(m)["pub"] == pub_id]
+
+
+# --------------------------------------------------------------------------- publisher crash
+def test_sigkilled_publisher_leaves_held_buffers_intact_and_a_new_publisher_delivers(
+        domain, topic):
+    got: list = []  # (message, crc at receipt)
+    first = publisher_child(domain=domain, topic=topic, count=100_000, interval=0.004,
+                            size=SIZE, pub_id=1)
+    second = None
+    try:
+        with Node("survivor", domain_id=domain) as node:
+            sub = node.create_subscription(TENSOR, topic, lambda m: got.append((m, _crc(m))),
+                                           depth=100, acceptable_buffer_backends="warp")
+            first.wait_ready()
+            assert wait_until(lambda: len(got) >= 30), "the first publisher delivered nothing"
+            dead_pid = first.proc.pid
+            first.kill()  # mid-stream: it was publishing every 4 ms
+            assert wait_until(lambda: sub.get_publisher_count() == 0), "dead publisher not seen"
+            held = list(got)
+            assert ipc.list_exports(pid=dead_pid), "the killed publisher left no export to sweep"
+
+            # Any process of the library that starts sweeps the dead publisher's exports...
+            sweeper = Child("sweep")
+            try:
+                left = sweeper.result()["exports"]
+            finally:
+                _close(sweeper)
+            assert not [p for p in left if f".{dead_pid}-" in p]
+            assert not ipc.list_exports(pid=dead_pid)
+
+            # ...while the buffers we hold stay mapped, valid and unchanged.
+            for msg, crc in held:
+                assert msg.data.get_backend_type() == "warp"
+                assert check_frame(msg)["ok"] and _crc(msg) == crc
+
+            # The subscription goes on: a new publisher on the topic is matched and delivers.
+            second = publisher_child(domain=domain, topic=topic, count=10, interval=0.01,
+                                     size=SIZE, pub_id=2)
+            second.wait_ready()
+            assert wait_until(lambda: len(_frames_from(got, 2)) == 10), "new publisher not heard"
+            second.stop()
+            assert sub.counters.callback_errors == 0
+    finally:
+        _close(first, second)
+    fresh = [check_frame(m) for m in _frames_from(got, 2)]
+    assert sorted(r["index"] for r in fresh) == list(range(10))
+    assert all(r["ok"] and r["backend"] == "warp" for r in fresh)
+    assert all(check_frame(m)["ok"] and _crc(m) == crc for m, crc in held)
+
+
+# --------------------------------------------------------------------------- subscriber crash
+def _publish_until_held(pub, holder: Child, count: int, first_index: int) -> None:
+    for index in range(first_index, first_index + count):
+        pub.publish(make_frame(0, index, SIZE, "warp"))
+    holder.expect(f"HELD {count}", timeout=15)
+
+
+def _created() -> int:
+    return ipc.pool_stats()["cpu"]["created"]
+
+
+def test_sigkilled_holding_subscriber_frees_its_blocks_without_pool_growth(domain, topic):
+    holders: list[Child] = []
+    try:
+        with Node("reclaimer", domain_id=domain) as node:
+            pub = node.create_publisher(TENSOR, topic, depth=100)
+            holders.append(Child("hold", domain=domain, topic=topic, hold=HOLD))
+            holders[0].wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            _publish_until_held(pub, holders[0], HOLD, 0)
+            pinned = _created()
+            assert pinned >= HOLD, "the holder's blocks were recycled under it"
+
+            holders[0].kill()
+            for index in range(HOLD, HOLD + 5):  # publishing right after the crash is fine
+                pub.publish(make_frame(0, index, SIZE, "warp"))
+            assert wait_until(lambda: pub.get_subscription_count() == 0)
+
+            holders.append(Child("hold", domain=domain, topic=topic, hold=HOLD))
+            holders[1].wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            _publish_until_held(pub, holders[1], HOLD, 100)
+            # A second holder pins as many blocks again: without reclaiming the dead holder's
+            # blocks the pool would have to create HOLD more.
+            assert _created() <= pinned + 2, ipc.pool_stats()
+    finally:
+        _close(*holders)
+    assert not [f for f in ipc.list_exports() if f.owner_pid != os.getpid()]
+
+
+def test_orphan_exports_of_a_sigkilled_process_are_swept_by_the_next_library_process():
+    exporter = Child("export", count=3)
+    sweeper = None
+    try:
+        exporter.wait_ready()
+        pid = exporter.proc.pid
+        files = ipc.list_exports(pid=pid)
+        assert len([f for f in files if not f.is_lock]) == 3 and any(f.is_lock for f in files)
+        exporter.kill()
+        assert ipc.list_exports(pid=pid), "SIGKILL cannot have removed the files"
+        sweeper = Child("sweep")
+        assert not [p for p in sweeper.result()["exports"] if f".{pid}-" in p]
+    finally:
+        _close(exporter, sweeper)
+    assert not ipc.list_exports(pid=pid)
+
+
+# --------------------------------------------------------------------------- permissions
+def _unix_socket_paths() -> list[str]:
+    """Filesystem paths of the unix sockets this process holds open."""
+    inodes = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    paths = []
+    with open("/proc/net/unix") as table:
+        next(table)
+        for line in table:
+            parts = line.split()
+            if len(parts) >= 8 and parts[6] in inodes and not parts[7].startswith("@"):
+                paths.append(parts[7])
+    return paths
+
+
+def _tcp_sockets() -> list[tuple[str, int]]:
+    """Local (address, port) of this process's TCP sockets."""
+    inodes = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    found = []
+    for table, family in (("/proc/net/tcp", socket.AF_INET), ("/proc/net/tcp6", socket.AF_INET6)):
+        with open(table) as rows:
+            next(rows)
+            for row in rows:
+                parts = row.split()
+                if parts[9] not in inodes:
+                    continue
+                address, port = parts[1].split(":")
+                raw = bytes.fromhex(address)
+                raw = b"".join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4))
+                found.append((socket.inet_ntop(family, raw), int(port, 16)))
+    return found
+
+
+def test_exports_and_sockets_are_owner_only_and_traffic_stays_on_loopback(domain, topic):
+    got: list = []
+    with Node("perm_pub", domain_id=domain) as pub_node, \
+            Node("perm_sub", domain_id=domain) as sub_node:
+        sub_node.create_subscription(TENSOR, topic, got.append, acceptable_buffer_backends="warp")
+        pub = pub_node.create_publisher(TENSOR, topic)
+        assert pub.wait_for_subscriptions(1, timeout=10)
+        frames = [make_frame(0, i, SIZE, "warp") for i in range(3)]
+        records = [ipc.export_buffer(frame.data) for frame in frames]
+        files = ipc.list_exports(pid=os.getpid())
+        assert {r.path for r in records} <= {f.path for f in files}
+        assert any(f.is_lock for f in files)
+        for f in files:
+            st = os.lstat(f.path)
+            assert stat.S_ISREG(st.st_mode) and st.st_uid == os.getuid(), f.path
+            assert stat.S_IMODE(st.st_mode) == 0o600, f"{f.path}: {stat.S_IMODE(st.st_mode):o}"
+            assert f.path.startswith(ipc.shm_prefix())
+        for path in _unix_socket_paths():
+            assert stat.S_IMODE(os.stat(path).st_mode) & 0o077 == 0, path
+        sockets = _tcp_sockets()
+        assert sockets, "no Zenoh TCP socket found: the probe is broken"
+        assert all(addr in ("127.0.0.1", "::1", "::ffff:127.0.0.1") for addr, _ in sockets), sockets
+        del frames, records
+
+
+def test_a_subscriber_under_another_uid_is_served_by_cpu_fallback(domain, topic):
+    other = Child("sub", module="tests._pubsub_helpers", domain=domain, topic=topic,
+                  accept="warp", expect=5, env={"WARP_BUFFER_TEST_USER_ID": str(os.getuid() + 1)})
+    same = Child("sub", module="tests._pubsub_helpers", domain=domain, topic=topic,
+                 accept="warp", expect=5)
+    try:
+        with Node("uid_pub", domain_id=domain) as node:
+            pub = node.create_publisher(TENSOR, topic, depth=100)
+            assert pub.wait_for_subscriptions(2, timeout=10)
+            other.wait_ready()
+            same.wait_ready()
+            for index in range(5):
+                pub.publish(make_frame(0, index, SIZE, "warp"))
+            results = [other.stop(), same.stop()]
+    finally:
+        _close(other, same)
+    foreign, local = ([r for r in res["records"]] for res in results)
+    assert len(foreign) == 5 and len(local) == 5
+    assert all(r["ok"] for r in foreign + local)
+    assert {r["backend"] for r in foreign} == {"cpu"}
+    assert {r["backend"] for r in local} == {"warp"}
+    assert results[0]["counters"]["errors"] == 0
