@@ -10,7 +10,19 @@ __all__ = ["endpoint_info"]
 
 
 def endpoint_info(token: wire.EndpointToken) -> EndpointInfo:
-    """What backends are told about an endpoint, from its liveliness token."""
+    """What backends are told about an endpoint, from its liveliness token.
+
+    Cached on the (frozen) token: subscriptions need the publisher's info for every message, and
+    EndpointInfo is immutable, so one instance per token serves them all.
+    """
+    info = token.__dict__.get("_endpoint_info")
+    if info is None:
+        info = _build(token)
+        object.__setattr__(token, "_endpoint_info", info)
+    return info
+
+
+def _build(token: wire.EndpointToken) -> EndpointInfo:
     return EndpointInfo(
         gid=token.gid,
         node_name=token.node_name,

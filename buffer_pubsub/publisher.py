@@ -67,6 +67,17 @@ class _Peer:
     info: EndpointInfo
     served: set[str] = field(default_factory=set)  # backends that agreed to serve this peer
     channel: Any = None  # zenoh.Publisher on <key>/_buf/<gid>, declared on first use
+    gone: bool = False  # vanished: its channel is (being) undeclared, puts are skipped
+    # Serializes put and undeclare of the channel: a peer may vanish (discovery thread) while
+    # publish() is putting to it, and a zenoh.Publisher must not be used from both at once.
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def close(self) -> None:
+        with self.lock:
+            self.gone = True
+            channel, self.channel = self.channel, None
+        if channel is not None:
+            _undeclare(channel)
 
     @property
     def individual(self) -> bool:
@@ -114,8 +125,8 @@ class Publisher:
         if not appeared:
             with self._lock:
                 peer = self._peers.pop(gid, None)
-            if peer is not None and peer.channel is not None:
-                _undeclare(peer.channel)
+            if peer is not None:
+                peer.close()
             return
         info = endpoint_info(token)
         peer = _Peer(token, info)
@@ -212,10 +223,13 @@ class Publisher:
         return serialize_message(msg, route=route)
 
     def _put_individual(self, peer: _Peer, payload: bytearray, attachment: bytes) -> None:
-        if peer.channel is None:
-            peer.channel = self._declare_channel(
-                wire.buffer_channel_key(self.base_key, peer.token.gid))
-        peer.channel.put(payload, attachment=attachment)
+        with peer.lock:
+            if peer.gone:
+                return  # the subscription vanished while we were publishing: nobody to send to
+            if peer.channel is None:
+                peer.channel = self._declare_channel(
+                    wire.buffer_channel_key(self.base_key, peer.token.gid))
+            peer.channel.put(payload, attachment=attachment)
 
     def _declare_channel(self, key: str) -> zenoh.Publisher:
         # Reliable QoS: block rather than drop when Zenoh's queues are full (Zenoh's default
@@ -239,8 +253,9 @@ class Publisher:
             peers = list(self._peers.values())
             self._peers.clear()
         _process.remove_publisher(self.gid)
-        for entity in (self._liveliness, self._base, self._cpu,
-                       *(p.channel for p in peers if p.channel is not None)):
+        for peer in peers:
+            peer.close()
+        for entity in (self._liveliness, self._base, self._cpu):
             _undeclare(entity)
 
 

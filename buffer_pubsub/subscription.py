@@ -8,8 +8,8 @@ where it accepts samples only from discovered publishers that know nothing of bu
 without a valid 33-byte attachment are dropped (``rejected``); a jump in a publisher's sequence
 number counts as ``lost``; a keep-last queue of ``depth`` messages drops the oldest when the
 callback falls behind (``dropped``); a message that cannot be deserialized (a typed
-``RosidlBufferError``, e.g. a stale backend buffer) counts in ``errors`` and the subscription goes
-on.
+``RosidlBufferError``, e.g. a stale backend buffer, or any other exception a backend raises)
+counts in ``errors`` and the subscription goes on.
 """
 
 from __future__ import annotations
@@ -189,12 +189,13 @@ class Subscription:
         else:
             try:
                 msg = self._deserialize(payload, attachment, route)
-            except RosidlBufferError as exc:
+            except Exception as exc:  # typed errors expected; a backend bug is counted too
                 with self._lock:
                     self.counters.errors += 1
                 self.last_error = exc
                 _log.warning("%r: dropped a message from %s: %s", self,
-                             attachment.publisher_gid.hex(), exc)
+                             attachment.publisher_gid.hex(), exc,
+                             exc_info=not isinstance(exc, RosidlBufferError))
                 return
         with self._lock:
             self.counters.received += 1

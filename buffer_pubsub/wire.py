@@ -273,7 +273,14 @@ class EndpointToken:
 
     @property
     def gid(self) -> bytes:
-        return gid_from_key(self.key())
+        # Cached: publish() and every received message look the gid up, and building the key
+        # (percent-encoding) plus XXH3 cost tens of us each time. The token is frozen; the
+        # cache lives in the instance __dict__ and takes no part in eq/hash.
+        gid = self.__dict__.get("_gid")
+        if gid is None:
+            gid = gid_from_key(self.key())
+            object.__setattr__(self, "_gid", gid)
+        return gid
 
     @property
     def is_publisher(self) -> bool:

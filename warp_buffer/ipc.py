@@ -42,6 +42,7 @@ from . import shm
 from .buffer_impl import WarpBufferImpl, wrap_bytes
 from .errors import (
     DescriptorError,
+    ExportError,
     ExportBoundsError,
     ExportUnavailableError,
     ForeignExportError,
@@ -152,27 +153,29 @@ class ExportRecord:
     def validate(self) -> None:
         """Check every field on its own (no file is touched). Raises :class:`DescriptorError`
         for malformed fields and :class:`ExportBoundsError` for impossible sizes."""
-        def need(ok: bool, what: str, error: type[Exception] = DescriptorError) -> None:
+        # Runs for every imported message: the messages are built only on failure (lambdas),
+        # eager f-strings for all ~25 checks cost tens of us per import.
+        def need(ok: bool, what: Any, error: type[Exception] = DescriptorError) -> None:
             if not ok:
-                raise error(f"invalid export record: {what}")
+                raise error(f"invalid export record: {what() if callable(what) else what}")
 
-        ints = ("size", "offset", "capacity", "block_id", "uid", "generation", "ack_slot",
-                "owner_pid", "session", "user_id", "version")
-        for name in ints:
+        for name in _RECORD_INTS:
             value = getattr(self, name)
-            need(isinstance(value, int) and not isinstance(value, bool), f"{name} is not an int")
-        need(self.version == RECORD_VERSION, f"version {self.version} (this reader knows "
-             f"{RECORD_VERSION})")
-        need(self.kind in tuple(ExportKind), f"unknown kind {self.kind!r}")
-        need(0 < self.owner_pid < _PID_MAX, f"owner pid {self.owner_pid}")
-        need(0 < self.session < 1 << 64, f"session {self.session}")
-        need(0 < self.block_id < 1 << 32, f"block id {self.block_id}")
-        need(0 < self.uid < 1 << 64, f"uid {self.uid}")
-        need(0 <= self.generation < 1 << 64, f"generation {self.generation}")
-        need(0 <= self.user_id < 1 << 32, f"user id {self.user_id}")
+            if type(value) is not int:  # fast path; bool and int subclasses checked below
+                need(isinstance(value, int) and not isinstance(value, bool),
+                     lambda: f"{name} is not an int")
+        need(self.version == RECORD_VERSION, lambda: f"version {self.version} (this reader "
+             f"knows {RECORD_VERSION})")
+        need(self.kind in _EXPORT_KINDS, lambda: f"unknown kind {self.kind!r}")
+        need(0 < self.owner_pid < _PID_MAX, lambda: f"owner pid {self.owner_pid}")
+        need(0 < self.session < 1 << 64, lambda: f"session {self.session}")
+        need(0 < self.block_id < 1 << 32, lambda: f"block id {self.block_id}")
+        need(0 < self.uid < 1 << 64, lambda: f"uid {self.uid}")
+        need(0 <= self.generation < 1 << 64, lambda: f"generation {self.generation}")
+        need(0 <= self.user_id < 1 << 32, lambda: f"user id {self.user_id}")
         need(self.ack_slot < shm.ACK_SLOTS or self.ack_slot == shm.NO_ACK_SLOT,
-             f"ack slot {self.ack_slot}")
-        need(self.ack_slot >= 0, f"ack slot {self.ack_slot}")
+             lambda: f"ack slot {self.ack_slot}")
+        need(self.ack_slot >= 0, lambda: f"ack slot {self.ack_slot}")
         need(isinstance(self.host_id, str) and 0 < len(self.host_id.encode()) <= HOST_ID_MAX,
              "host id")
         need(isinstance(self.device, str) and 0 < len(self.device) <= DEVICE_MAX, "device")
@@ -180,14 +183,21 @@ class ExportRecord:
              "device PCI bus id")
         bounds = ExportBoundsError
         need(MIN_BLOCK <= self.capacity <= MAX_BLOCK and self.capacity & (self.capacity - 1) == 0,
-             f"capacity {self.capacity} is not a block size", bounds)
-        need(0 < self.size <= self.capacity, f"size {self.size} outside 1..{self.capacity}", bounds)
+             lambda: f"capacity {self.capacity} is not a block size", bounds)
+        need(0 < self.size <= self.capacity,
+             lambda: f"size {self.size} outside 1..{self.capacity}", bounds)
         need(0 <= self.offset <= self.capacity - self.size,
-             f"offset {self.offset} + size {self.size} beyond capacity {self.capacity}", bounds)
+             lambda: f"offset {self.offset} + size {self.size} beyond capacity {self.capacity}",
+             bounds)
         if self.kind is ExportKind.CUDA_IPC:
             need(len(self.cuda_ipc_mem_handle) == CUDA_HANDLE_SIZE, "CUDA IPC memory handle")
             need(len(self.cuda_ipc_event_handle) == CUDA_HANDLE_SIZE, "CUDA IPC event handle")
             need(bool(self.device_pci_bus_id), "CUDA export without a PCI bus id")
+
+
+_RECORD_INTS = ("size", "offset", "capacity", "block_id", "uid", "generation", "ack_slot",
+                "owner_pid", "session", "user_id", "version")
+_EXPORT_KINDS = tuple(ExportKind)
 
 
 # ------------------------------------------------------------------------------------ export
@@ -332,7 +342,12 @@ def import_export(record: ExportRecord) -> WarpBufferImpl:
             hold = _ImportHold(fd, None, (base, event))
             array = wrap_bytes(base.ptr + record.offset, record.size, device, hold)
         else:
-            addr = shm.map_fd(fd, record.capacity, shm.HEADER_SIZE, writable=True, private=True)
+            try:
+                addr = shm.map_fd(fd, record.capacity, shm.HEADER_SIZE, writable=True,
+                                  private=True)
+            except OSError as exc:  # e.g. ENOMEM for a forged huge block: a typed error
+                raise ExportError(f"cannot map export {record.block_id} of process "
+                                  f"{record.owner_pid} ({record.capacity} bytes): {exc}") from None
             hold = _ImportHold(fd, (addr, record.capacity))
             array = wrap_bytes(addr + record.offset, record.size, device, hold)
             event = None
