@@ -1,4 +1,4 @@
-"""Entry point of the ``warp-buffer`` console script."""
+"""warp-buffer: move Warp (GPU or cpu) buffers between processes over Zenoh, ROS 2 style."""
 
 from __future__ import annotations
 

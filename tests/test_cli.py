@@ -1,0 +1,36 @@
+"""The ``warp-buffer`` command: ``info`` reports backends, metadata, devices and IPC support."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from warp_buffer_cli.main import main
+
+
+def test_info_json_lists_every_backend_with_metadata_and_the_cpu_device() -> None:
+    completed = subprocess.run(
+        [sys.executable, "-m", "warp_buffer_cli.main", "info", "--json"],
+        capture_output=True, text=True, timeout=120, check=True)
+    report = json.loads(completed.stdout)
+    backends = {entry["name"]: entry for entry in report["backends"]}
+    assert list(backends)[0] == "cpu" and backends["cpu"]["status"] == "built in"
+    assert backends["warp"]["status"] == "loaded"
+    assert "ipc=" in backends["warp"]["metadata"]
+    devices = {device["name"]: device for device in report["warp_devices"]}
+    assert devices["cpu"]["ipc"] == "shared memory (mmap)"
+
+
+def test_info_table_names_the_backends(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["info"]) == 0
+    out = capsys.readouterr().out
+    assert "Buffer backends:" in out and "warp" in out and "Warp devices:" in out
+
+
+def test_unknown_subcommand_is_a_usage_error() -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["frobnicate"])
+    assert exit_info.value.code == 2
