@@ -154,3 +154,27 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
             reporter.write_line(
                 f"LEAK after the session: shm={sorted(leaked)} children={children}", red=True
             )
+
+
+@pytest.fixture
+def warp_pool_drained():
+    """Fail a test that leaves a warp buffer alive: after it, every pooled block must go back.
+
+    Modules that allocate warp buffers use it for every test (``pytest.mark.usefixtures``), which
+    also keeps the /dev/shm leak guard exact."""
+    import gc
+    import time
+
+    import warp_buffer
+
+    yield
+    deadline = time.monotonic() + 3.0
+    while True:  # a block leaves the pool once its buffer is collected (may take a GC pass)
+        gc.collect()
+        warp_buffer.trim_pools(0.0, inflight_grace=0.0)
+        stats = list(warp_buffer.pool_stats().values())
+        if all(s["leased"] == 0 and s["free_blocks"] == 0 for s in stats):
+            return
+        if time.monotonic() > deadline:
+            pytest.fail(f"warp buffers still alive after the test: {stats}")
+        time.sleep(0.02)

@@ -4,13 +4,11 @@ CUDA where a GPU exists: round trips, the one-write-handle rule, view lifetimes,
 from __future__ import annotations
 
 import gc
-import time
 
 import numpy as np
 import pytest
 import torch
 import warp as wp
-import warp_buffer
 
 import tensor_conversions as tc
 from tensor_conversions.storage import live_write_lease
@@ -23,25 +21,11 @@ from tensor_conversions.testing import (
     to_raw,
 )
 
+pytestmark = pytest.mark.usefixtures("warp_pool_drained")
+
 
 DEVICE = "cpu"  # Warp's cpu device: warp storage without a GPU
 
-
-@pytest.fixture(autouse=True)
-def _return_pool_memory():
-    """Give the warp_buffer pool's idle blocks back after each test (the suite's leak guard
-    counts pooled shared-memory blocks)."""
-    yield
-    deadline = time.monotonic() + 3.0
-    while True:  # a block leaves the pool once its buffer is collected (may take a GC pass)
-        gc.collect()
-        warp_buffer.trim_pools(0.0)
-        stats = warp_buffer.pool_stats().values()
-        if all(s["leased"] == 0 and s["free_blocks"] == 0 for s in stats):
-            break
-        if time.monotonic() > deadline:
-            pytest.fail(f"warp buffers still alive after the test: {list(stats)}")
-        time.sleep(0.02)
 
 
 def _warp_msg(framework, name, raw, device=DEVICE):

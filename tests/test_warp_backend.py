@@ -7,7 +7,6 @@ from __future__ import annotations
 import gc
 import itertools
 import os
-import time
 
 import numpy as np
 import pytest
@@ -46,20 +45,8 @@ from warp_buffer_backend import (
 IMAGE = "sensor_msgs/msg/Image"
 _gids = itertools.count(1)
 
+pytestmark = pytest.mark.usefixtures("warp_pool_drained")
 
-@pytest.fixture(autouse=True)
-def _give_pool_memory_back():
-    yield
-    deadline = time.monotonic() + 3.0
-    while True:
-        gc.collect()
-        warp_buffer.trim_pools(0.0, inflight_grace=0.0)
-        stats = warp_buffer.pool_stats().values()
-        if all(s["leased"] == 0 and s["free_blocks"] == 0 for s in stats):
-            return
-        if time.monotonic() > deadline:
-            pytest.fail(f"warp buffers still alive after the test: {list(stats)}")
-        time.sleep(0.02)
 
 
 @pytest.fixture

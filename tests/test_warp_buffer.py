@@ -32,21 +32,8 @@ from warp_buffer import (
 )
 from warp_buffer.pool import get_pool, size_class
 
+pytestmark = pytest.mark.usefixtures("warp_pool_drained")
 
-@pytest.fixture(autouse=True)
-def _give_pool_memory_back():
-    """Return every pooled block after each test, so the suite's /dev/shm leak guard is exact."""
-    yield
-    deadline = time.monotonic() + 3.0
-    while True:
-        gc.collect()
-        warp_buffer.trim_pools(0.0, inflight_grace=0.0)
-        stats = warp_buffer.pool_stats().values()
-        if all(s["leased"] == 0 and s["free_blocks"] == 0 for s in stats):
-            return
-        if time.monotonic() > deadline:
-            pytest.fail(f"warp buffers still alive after the test: {list(stats)}")
-        time.sleep(0.02)
 
 
 def _written(nbytes: int, seed: int = 3) -> Buffer:

@@ -8,7 +8,6 @@ import gc
 import os
 import signal
 import stat
-import time
 
 import numpy as np
 import pytest
@@ -29,22 +28,8 @@ from warp_buffer import (
     ipc,
 )
 
-pytestmark = pytest.mark.multiprocess
+pytestmark = [pytest.mark.multiprocess, pytest.mark.usefixtures("warp_pool_drained")]
 
-
-@pytest.fixture(autouse=True)
-def _give_pool_memory_back():
-    yield
-    deadline = time.monotonic() + 3.0
-    while True:
-        gc.collect()
-        warp_buffer.trim_pools(0.0, inflight_grace=0.0)
-        stats = warp_buffer.pool_stats().values()
-        if all(s["leased"] == 0 and s["free_blocks"] == 0 for s in stats):
-            return
-        if time.monotonic() > deadline:
-            pytest.fail(f"warp buffers still alive after the test: {list(stats)}")
-        time.sleep(0.02)
 
 
 def _published(nbytes: int = 8192, seed: int = 7):
