@@ -170,8 +170,8 @@ def test_orphan_exports_of_a_sigkilled_process_are_swept_by_the_next_library_pro
 
 
 # --------------------------------------------------------------------------- permissions
-def _unix_socket_paths() -> list[str]:
-    """Filesystem paths of the unix sockets this process holds open."""
+def _socket_inodes() -> set[str]:
+    """Inode numbers of the sockets this process holds open."""
     inodes = set()
     for fd in os.listdir("/proc/self/fd"):
         try:
@@ -180,6 +180,12 @@ def _unix_socket_paths() -> list[str]:
             continue
         if target.startswith("socket:["):
             inodes.add(target[8:-1])
+    return inodes
+
+
+def _unix_socket_paths() -> list[str]:
+    """Filesystem paths of the unix sockets this process holds open."""
+    inodes = _socket_inodes()
     paths = []
     with open("/proc/net/unix") as table:
         next(table)
@@ -192,14 +198,7 @@ def _unix_socket_paths() -> list[str]:
 
 def _tcp_sockets() -> list[tuple[str, int]]:
     """Local (address, port) of this process's TCP sockets."""
-    inodes = set()
-    for fd in os.listdir("/proc/self/fd"):
-        try:
-            target = os.readlink(f"/proc/self/fd/{fd}")
-        except OSError:
-            continue
-        if target.startswith("socket:["):
-            inodes.add(target[8:-1])
+    inodes = _socket_inodes()
     found = []
     for table, family in (("/proc/net/tcp", socket.AF_INET), ("/proc/net/tcp6", socket.AF_INET6)):
         with open(table) as rows:
