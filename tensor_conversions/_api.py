@@ -16,7 +16,14 @@ import numpy as np
 from .dlpack import TensorView, input_view, output_view, view_of_bytes, warp_dtype
 from .dtypes import DType
 from .errors import TensorSizeError, UnsupportedBackendError
-from .metadata import TensorLayout, layout_of, normalize_shape, tensor_msg_type, write_metadata
+from .metadata import (
+    TensorLayout,
+    contiguous_strides,
+    layout_of,
+    normalize_shape,
+    tensor_msg_type,
+    write_metadata,
+)
 from .storage import (
     allocate_data,
     backend_of,
@@ -72,7 +79,9 @@ def allocate_tensor_msg(adapter: Adapter[Any], shape: Sequence[int] | int, dtype
                         backend: str = "cpu", device: Any = None) -> Any:
     dt = adapter.to_dtype(dtype)
     adapter.check_dtype(dt)
-    layout = TensorLayout.contiguous(dt, normalize_shape(shape))
+    dims = normalize_shape(shape)
+    # perf: dims is already normalized; TensorLayout.contiguous would normalize it again
+    layout = TensorLayout(dt, dims, contiguous_strides(dims), 0)
     return _new_msg(layout, backend, device)
 
 
@@ -80,25 +89,31 @@ def _new_msg(layout: TensorLayout, backend: str, device: Any) -> Any:
     if backend == "warp":
         warp_dtype(layout.dtype)  # complex has no Warp type: refused before allocating
     data = allocate_data(layout.required_nbytes, backend, device)
-    msg = tensor_msg_type()(
-        dtype_code=0, dtype_bits=0, dtype_lanes=1, shape=np.empty(0, np.int64),
-        strides=np.empty(0, np.int64), byte_offset=0, data=data)
-    write_metadata(msg, layout)
-    return msg
+    # perf: the metadata fields are built once with their final values (what write_metadata
+    # stores: contiguous layouts get empty strides) instead of placeholders then overwritten.
+    dt = layout.dtype
+    strides = () if layout.is_contiguous else layout.strides
+    return tensor_msg_type()(
+        dtype_code=dt.code, dtype_bits=dt.bits, dtype_lanes=dt.lanes,
+        shape=np.asarray(layout.shape, dtype=np.int64).reshape(-1),
+        strides=np.asarray(strides, dtype=np.int64).reshape(-1),
+        byte_offset=layout.byte_offset, data=data)
 
 
 def from_output_tensor_msg(adapter: Adapter[T], msg: Any) -> T:
-    adapter.check_dtype(layout_of(msg).dtype)
+    layout = layout_of(msg)  # perf: validated once and handed to output_view (was twice)
+    adapter.check_dtype(layout.dtype)
     adapter.check_view_device(storage_device(msg.data))
-    view = output_view(msg)
+    view = output_view(msg, layout)
     return adapter.from_view(view)
 
 
 def from_input_tensor_msg(adapter: Adapter[T], msg: Any, clone: bool = True) -> T:
-    adapter.check_dtype(layout_of(msg).dtype)
+    layout = layout_of(msg)  # perf: validated once and handed to input_view (was twice)
+    adapter.check_dtype(layout.dtype)
     if not clone:
         adapter.check_view_device(storage_device(msg.data))
-    view = input_view(msg)
+    view = input_view(msg, layout)
     if clone:
         try:
             return adapter.clone(view)

@@ -29,12 +29,22 @@ from .storage import HandleLease, backend_of, cpu_bytes, open_read, open_write
 __all__ = ["TensorView", "import_warp", "input_view", "output_view", "view_of_bytes", "warp_dtype"]
 
 
+_WARP: Any = None  # perf: the initialised warp module, so the hot path skips import + wp.init()
+
+
 def import_warp() -> Any:
     """The ``warp`` module with its runtime initialised (``wp.from_dlpack`` needs it)."""
+    global _WARP
+    if _WARP is not None:
+        return _WARP
     import warp as wp
 
     wp.init()
+    _WARP = wp
     return wp
+
+
+_WARP_DTYPES: dict[DType, Any] = {}  # perf: DType -> Warp scalar type, successful lookups only
 
 
 def warp_dtype(dtype: DType) -> Any:
@@ -43,12 +53,16 @@ def warp_dtype(dtype: DType) -> Any:
     Also the rule for warp storage: a dtype without a Warp type (complex) cannot live there, on
     any Warp device, so code that works on Warp's cpu device also works on CUDA.
     """
+    found = _WARP_DTYPES.get(dtype)
+    if found is not None:
+        return found
     wp = import_warp()
     if dtype.code == DLDataTypeCode.COMPLEX:
         raise UnsupportedDTypeError(f"Warp has no complex dtype ({dtype.name})")
     found = getattr(wp, dtype.name, None)
     if found is None:
         raise UnsupportedDTypeError(f"Warp has no dtype {dtype.name}")
+    _WARP_DTYPES[dtype] = found
     return found
 
 
@@ -182,26 +196,28 @@ def view_of_bytes(storage: Any, layout: TensorLayout, *, backend: str, writable:
     return TensorView(storage, layout, backend=backend, writable=writable, lease=lease)
 
 
-def output_view(msg: Any) -> TensorView:
+def output_view(msg: Any, layout: TensorLayout | None = None) -> TensorView:
     """A writable view of ``msg``'s tensor, for filling the message in place.
 
     CPU storage: a view of the field's host memory (a borrowed, read-only ``data`` is copied once
     first, copy-on-write). warp storage: opens (or shares) the buffer's single write handle; the
     view's carriers keep it alive, see :mod:`tensor_conversions.storage`.
     """
-    layout = layout_of(msg)
+    if layout is None:  # perf: callers that already validated the layout pass it in
+        layout = layout_of(msg)
     if backend_of(msg.data) == "cpu":
         return TensorView(cpu_bytes(msg.data, writable=True), layout, backend="cpu", writable=True)
     lease = open_write(msg)
     return TensorView(lease.array, layout, backend="warp", writable=True, lease=lease)
 
 
-def input_view(msg: Any) -> TensorView:
+def input_view(msg: Any, layout: TensorLayout | None = None) -> TensorView:
     """A view of ``msg``'s tensor for reading (aliases the storage: treat it as read-only).
 
     warp storage: takes a read handle (synchronised with the writer) held by the view's carriers.
     """
-    layout = layout_of(msg)
+    if layout is None:  # perf: callers that already validated the layout pass it in
+        layout = layout_of(msg)
     if backend_of(msg.data) == "cpu":
         host = cpu_bytes(msg.data, writable=False)
         return TensorView(host, layout, backend="cpu", writable=False)

@@ -118,9 +118,17 @@ _NUMPY: dict[DType, np.dtype] = {
 _BY_VALUE = {dt: dt for dt in SUPPORTED_DTYPES.values()}
 
 
+# perf: (code, bits, lanes) tuple -> supported DType; a tuple lookup skips building and hashing
+# a DType dataclass per message (misses fall through to the validating path below).
+_BY_TRIPLE = {(dt.code, dt.bits, dt.lanes): dt for dt in SUPPORTED_DTYPES.values()}
+
+
 def dtype_from_metadata(code: int, bits: int, lanes: int) -> DType:
     """Validate message metadata ``(dtype_code, dtype_bits, dtype_lanes)`` into a :class:`DType`."""
     code, bits, lanes = int(code), int(bits), int(lanes)
+    found = _BY_TRIPLE.get((code, bits, lanes))
+    if found is not None:
+        return found
     wanted = DType(code, bits, lanes)
     if lanes != 1:
         raise UnsupportedDTypeError(
@@ -146,8 +154,26 @@ def dtype_from_name(name: str) -> DType:
         ) from None
 
 
+# perf: memo of successful dtype_from_numpy lookups, keyed by the caller's (hashable) dtype spec
+# (np.uint8, "float32", np.dtype(...)); the mapping is fixed, errors are never cached.
+_FROM_NUMPY: dict[object, DType] = {}
+
+
 def dtype_from_numpy(dtype: object) -> DType:
     """The :class:`DType` of a NumPy dtype (or anything ``np.dtype`` accepts)."""
+    try:
+        return _FROM_NUMPY[dtype]
+    except (KeyError, TypeError):  # not seen yet, or unhashable
+        pass
+    found = _dtype_from_numpy(dtype)
+    try:
+        _FROM_NUMPY[dtype] = found
+    except TypeError:
+        pass
+    return found
+
+
+def _dtype_from_numpy(dtype: object) -> DType:
     try:
         np_dtype = np.dtype(dtype)  # type: ignore[call-overload]
     except TypeError:

@@ -61,6 +61,26 @@ def normalize_shape(shape: Sequence[int] | int) -> tuple[int, ...]:
     return dims
 
 
+class _cached:
+    """perf: a lock-free ``functools.cached_property`` (3.11's takes a lock on every miss).
+
+    A non-data descriptor: the first access stores the value in the instance ``__dict__``
+    (bypassing the frozen ``__setattr__``), later accesses never reach the descriptor.
+    """
+
+    def __init__(self, func: Any) -> None:
+        self.func = func
+        self.name = func.__name__
+        self.__doc__ = func.__doc__
+
+    def __get__(self, instance: Any, owner: Any = None) -> Any:
+        if instance is None:
+            return self
+        value = self.func(instance)
+        instance.__dict__[self.name] = value
+        return value
+
+
 @dataclass(frozen=True)
 class TensorLayout:
     """A validated layout: dtype, shape, element strides (always explicit) and byte offset."""
@@ -74,22 +94,22 @@ class TensorLayout:
     def ndim(self) -> int:
         return len(self.shape)
 
-    @property
+    @_cached  # perf: layouts are immutable; computed once, not per access
     def numel(self) -> int:
         return math.prod(self.shape)
 
-    @property
+    @_cached  # perf: layouts are immutable; computed once, not per access
     def byte_strides(self) -> tuple[int, ...]:
         return tuple(s * self.dtype.itemsize for s in self.strides)
 
-    @property
+    @_cached  # perf: layouts are immutable; computed once, not per access
     def is_contiguous(self) -> bool:
         """Row-major contiguous (strides of size-1 dimensions do not matter)."""
         expected = contiguous_strides(self.shape)
         return self.numel == 0 or all(
             d == 1 or s == e for d, s, e in zip(self.shape, self.strides, expected))
 
-    @property
+    @_cached  # perf: layouts are immutable; computed once, not per access
     def span_bytes(self) -> int:
         """Bytes from the first element to the end of the last one (0 for an empty tensor)."""
         if self.numel == 0:
@@ -97,7 +117,7 @@ class TensorLayout:
         last = sum((d - 1) * s for d, s in zip(self.shape, self.strides))
         return (last + 1) * self.dtype.itemsize
 
-    @property
+    @_cached  # perf: layouts are immutable; computed once, not per access
     def required_nbytes(self) -> int:
         """Smallest ``len(data)`` that holds this layout."""
         return self.byte_offset + self.span_bytes
@@ -117,6 +137,10 @@ class TensorLayout:
 
 
 def _int_list(value: Any, field: str) -> list[int]:
+    # perf: the fields are 1-D int64 arrays in practice; tolist() is one C call instead of a
+    # Python loop of int() (same values; anything else takes the generic path below).
+    if type(value) is np.ndarray and value.dtype.kind in "iu":
+        return value.reshape(-1).tolist()
     try:
         return [int(v) for v in np.asarray(value).reshape(-1)]
     except (TypeError, ValueError):
