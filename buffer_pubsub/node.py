@@ -23,6 +23,7 @@ from rosidl_buffer import BufferBackend, local_host_id
 from rosidl_buffer.messages import Message, get_message_type, get_type_hash
 
 from . import _process, wire
+from ._zenoh import undeclare_quietly
 from .config import make_config, resolve_domain_id
 from .errors import InvalidEndpointError, NodeClosedError, PubSubError
 from .publisher import Publisher
@@ -116,11 +117,7 @@ class Node:
             self._graph_cond.notify_all()
         for endpoint in endpoints:
             endpoint._undeclare()
-        for entity in (self._graph_subscriber, self._node_token):
-            try:
-                entity.undeclare()
-            except zenoh.ZError:
-                pass
+        undeclare_quietly(self._graph_subscriber, self._node_token)
         self._tasks.put(None)
         if threading.current_thread() is not self._executor:
             self._executor.join(timeout=10)

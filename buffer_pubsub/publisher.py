@@ -28,6 +28,7 @@ from rosidl_buffer import Buffer, EndpointInfo
 from rosidl_buffer.messages import Message, deserialize_message, serialize_message
 
 from . import _process, wire
+from ._zenoh import undeclare_quietly
 from ._info import endpoint_info
 from .errors import InvalidEndpointError, NodeClosedError
 
@@ -77,7 +78,7 @@ class _Peer:
             self.gone = True
             channel, self.channel = self.channel, None
         if channel is not None:
-            _undeclare(channel)
+            undeclare_quietly(channel)
 
     @property
     def individual(self) -> bool:
@@ -255,12 +256,4 @@ class Publisher:
         _process.remove_publisher(self.gid)
         for peer in peers:
             peer.close()
-        for entity in (self._liveliness, self._base, self._cpu):
-            _undeclare(entity)
-
-
-def _undeclare(entity: Any) -> None:
-    try:
-        entity.undeclare()
-    except zenoh.ZError:
-        pass
+        undeclare_quietly(self._liveliness, self._base, self._cpu)

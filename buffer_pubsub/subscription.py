@@ -28,6 +28,7 @@ from rosidl_buffer import RosidlBufferError
 from rosidl_buffer.messages import Message, deserialize_message
 
 from . import _process, wire
+from ._zenoh import undeclare_quietly
 from ._info import endpoint_info
 from .errors import PubSubError
 
@@ -236,8 +237,4 @@ class Subscription:
             self._closed = True
             self._queue.clear()
         _process.remove_subscription(self.base_key, self)
-        for entity in (self._liveliness, *self._subscribers):
-            try:
-                entity.undeclare()
-            except zenoh.ZError:
-                pass
+        undeclare_quietly(self._liveliness, *self._subscribers)

@@ -220,16 +220,20 @@ class HostBlock(Block):
         if self._map is not None:
             shm.unmap(*self._map)
             self._map = None
-        if self.fd is not None:
-            os.close(self.fd)
-            self.fd = None
-        if self.path is not None:
-            with shm._session_lock:
-                session = shm._session
-                if session is not None and self.path in session.files:
-                    session.remove_file(self.path)
-            self.path = None
+        _close_block_file(self.fd, self.path)
+        self.fd = self.path = None
         self._private = None
+
+
+def _close_block_file(fd: int | None, path: str | None) -> None:
+    """Close a block's fd and remove its /dev/shm file from this process's session."""
+    if fd is not None:
+        os.close(fd)
+    if path is not None:
+        with shm._session_lock:
+            session = shm._session
+            if session is not None and path in session.files:
+                session.remove_file(path)
 
 
 _mempool_lock = threading.Lock()
@@ -297,15 +301,8 @@ class CudaBlock(Block):
             shm.unmap(*self._header_map)
             self._header_map = None
         self.header = None
-        if self.fd is not None:
-            os.close(self.fd)
-            self.fd = None
-        if self.path is not None:
-            with shm._session_lock:
-                session = shm._session
-                if session is not None and self.path in session.files:
-                    session.remove_file(self.path)
-            self.path = None
+        _close_block_file(self.fd, self.path)
+        self.fd = self.path = None
         self.storage = None
         self._event = None
 
