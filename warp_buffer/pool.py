@@ -193,15 +193,7 @@ class HostBlock(Block):
 
     def _create_shared(self) -> None:
         total = shm.HEADER_SIZE + self.capacity
-        session, block_id, path, fd = shm.create_block_file(total)
-        try:
-            addr = shm.map_fd(fd, total)
-        except BaseException:
-            os.close(fd)
-            session.remove_file(path)
-            raise
-        self.block_id = block_id
-        self.path, self.fd = path, fd
+        session, self.block_id, self.path, self.fd, addr = _create_mapped_block_file(total)
         self._map = (addr, total)
         self.header = shm.BlockHeader.from_address(addr)
         self._init_header(self.header, session, shm.KIND_HOST_DATA)
@@ -223,6 +215,19 @@ class HostBlock(Block):
         _close_block_file(self.fd, self.path)
         self.fd = self.path = None
         self._private = None
+
+
+def _create_mapped_block_file(nbytes: int) -> tuple[Any, int, str, int, int]:
+    """Create a block file of ``nbytes`` and map it: ``(session, block_id, path, fd, address)``.
+    On failure the file is closed and removed again."""
+    session, block_id, path, fd = shm.create_block_file(nbytes)
+    try:
+        addr = shm.map_fd(fd, nbytes)
+    except BaseException:
+        os.close(fd)
+        session.remove_file(path)
+        raise
+    return session, block_id, path, fd, addr
 
 
 def _close_block_file(fd: int | None, path: str | None) -> None:
@@ -266,15 +271,8 @@ class CudaBlock(Block):
 
     def ensure_header(self) -> shm.BlockHeader:
         if self.header is None:
-            session, block_id, path, fd = shm.create_block_file(shm.HEADER_SIZE)
-            try:
-                addr = shm.map_fd(fd, shm.HEADER_SIZE)
-            except BaseException:
-                os.close(fd)
-                session.remove_file(path)
-                raise
-            self.block_id = block_id
-            self.path, self.fd = path, fd
+            session, self.block_id, self.path, self.fd, addr = _create_mapped_block_file(
+                shm.HEADER_SIZE)
             self._header_map = (addr, shm.HEADER_SIZE)
             header = shm.BlockHeader.from_address(addr)
             self._init_header(header, session, shm.KIND_HEADER_ONLY)
