@@ -124,6 +124,22 @@ class Buffer(Generic[T]):
         """Deep clone in the same backend (``rosidl::Buffer``'s copy constructor)."""
         return Buffer(self._impl.clone())
 
+    # -- lifetime ------------------------------------------------------------------------------
+    def seal(self) -> None:
+        """End write access (see :meth:`BufferImplBase.seal`); the transport calls it on publish."""
+        self._impl.seal()
+
+    def release(self) -> None:
+        """Give back the backend's resources now (a received zero-copy buffer releases its hold
+        on the publisher's memory), as dropping an iceoryx2 sample does. Idempotent."""
+        self._impl.release()
+
+    def __enter__(self) -> Buffer[T]:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.release()
+
     def __repr__(self) -> str:
         backend = self.get_backend_type()
         if isinstance(self._impl, CpuBufferImpl):

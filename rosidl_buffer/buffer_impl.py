@@ -42,6 +42,19 @@ class BufferImplBase(abc.ABC):
     def nbytes(self) -> int:
         return self.size() * self.dtype.itemsize
 
+    # -- lifetime hooks the transport calls (defaults: nothing to do) --------------------------
+    def seal(self) -> None:
+        """The publisher is done writing: end write access before the bytes leave.
+
+        Every publish route calls it (intra-process, CPU serialization and descriptor alike), so
+        a backend that orders writes (an event, a write handle) closes them here. Idempotent.
+        """
+
+    def release(self) -> None:
+        """Give back what this impl holds (shared-memory holds, device memory) now, rather than
+        when it is garbage collected. Idempotent; data access afterwards raises a backend error.
+        """
+
 
 class CpuBufferImpl(BufferImplBase):
     """Host storage in a NumPy array that grows like ``std::vector`` (amortised appends).

@@ -317,3 +317,50 @@ def test_buffer_over_bytes_copies_on_first_write():
     assert np.shares_memory(np.asarray(buffer), np.frombuffer(source, np.uint8))
     buffer[0] = 0
     assert source == bytes(CONTENT) and buffer[0] == 0
+
+
+# --------------------------------------------------------------------------- lifetime hooks
+class _CountingImpl(CpuBufferImpl):
+    __slots__ = ("sealed", "released")
+
+    def __init__(self, data):
+        super().__init__(data)
+        self.sealed = 0
+        self.released = 0
+
+    def seal(self) -> None:
+        self.sealed += 1
+
+    def release(self) -> None:
+        self.released += 1
+
+
+def test_seal_and_release_reach_the_impl_and_the_context_manager_releases():
+    impl = _CountingImpl(b"abc")
+    buf = Buffer(impl)
+    buf.seal()
+    with buf as same:
+        assert same is buf
+    assert (impl.sealed, impl.released) == (1, 1)
+
+
+def test_cpu_impl_seal_and_release_are_harmless():
+    buf = Buffer(b"xyz")
+    buf.seal()
+    buf.release()
+    assert buf.tobytes() == b"xyz"
+
+
+def test_message_buffer_walk_reaches_nested_and_sequence_fields():
+    from rosidl_buffer.messages import get_message_type, iter_buffers, release_buffers, seal_buffers
+
+    Image = get_message_type("sensor_msgs/msg/Image")
+    Pair = get_message_type("stereo_msgs/msg/DisparityImage")  # nests an Image
+    impls = [_CountingImpl(b"a"), _CountingImpl(b"b")]
+    image = Image(data=Buffer(impls[0]))
+    pair = Pair(image=Image(data=Buffer(impls[1])))
+    assert [b.get_impl() for b in iter_buffers(image)] == [impls[0]]
+    assert [b.get_impl() for b in iter_buffers(pair)] == [impls[1]]
+    seal_buffers(image)
+    release_buffers(pair)
+    assert (impls[0].sealed, impls[0].released, impls[1].sealed, impls[1].released) == (1, 0, 0, 1)

@@ -13,7 +13,7 @@ from ._cdr import (
     serialize_message,
     serialized_size,
 )
-from ._classes import Message, get_message_type
+from ._classes import Message, get_message_type, iter_buffers, release_buffers, seal_buffers
 from ._schema import (
     INTERFACES_ENTRY_POINT_GROUP,
     FieldSpec,
@@ -35,8 +35,11 @@ __all__ = [
     "get_schema",
     "get_type_hash",
     "get_typestore",
+    "iter_buffers",
     "normalize_type_name",
     "register_message_definitions",
+    "release_buffers",
+    "seal_buffers",
     "serialize_message",
     "serialized_size",
 ]

@@ -8,6 +8,7 @@ assigning bytes, a list or an array wraps it in a CPU buffer; assigning a Buffer
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
 from typing import Any, ClassVar
 
 import numpy as np
@@ -15,7 +16,8 @@ import numpy as np
 from ..buffer import Buffer
 from ._schema import FieldKind, FieldSpec, MessageSchema, get_schema, normalize_type_name
 
-__all__ = ["Message", "get_message_type", "numpy_dtype"]
+__all__ = ["Message", "get_message_type", "iter_buffers", "numpy_dtype", "release_buffers",
+           "seal_buffers"]
 
 _NUMPY_DTYPES = {
     "bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np.int8, "uint8": np.uint8,
@@ -147,3 +149,28 @@ def get_message_type(name: str) -> type[Message]:
             cls = type(class_name, (Message,), namespace)
             _classes[type_name] = cls
         return cls
+
+
+def iter_buffers(msg: Message) -> Iterator[Buffer]:
+    """Every :class:`Buffer` of ``msg``, nested messages and sequences of messages included."""
+    cls = type(msg)
+    for name in cls._buffer_fields:
+        yield getattr(msg, name)
+    for spec in cls._schema.fields:
+        if spec.kind is FieldKind.MESSAGE:
+            value = getattr(msg, spec.name)
+            for item in (value if isinstance(value, list) else (value,)):
+                if isinstance(item, Message):
+                    yield from iter_buffers(item)
+
+
+def seal_buffers(msg: Message) -> None:
+    """Seal every buffer of ``msg`` (the transport calls it once per publish, on every route)."""
+    for buffer in iter_buffers(msg):
+        buffer.seal()
+
+
+def release_buffers(msg: Message) -> None:
+    """Release every buffer of ``msg`` now (a message dropped before delivery, or done with)."""
+    for buffer in iter_buffers(msg):
+        buffer.release()
