@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .buffer_impl import CPU_BACKEND, BufferImplBase, CpuBufferImpl
-from .errors import CpuBackendRequiredError
+from .errors import CpuBackendRequiredError, InvalidBufferDataError
 
 __all__ = ["Buffer"]
 
@@ -40,7 +40,7 @@ class Buffer(Generic[T]):
         dtype: npt.DTypeLike | None = None,
     ) -> None:
         if data is None:
-            raise TypeError(
+            raise InvalidBufferDataError(
                 "Buffer(None) is not allowed: pass a BufferImplBase, an array-like, or nothing"
             )
         if isinstance(data, BufferImplBase):
@@ -48,7 +48,13 @@ class Buffer(Generic[T]):
                 raise TypeError(f"impl stores {data.dtype}, not {np.dtype(dtype)}")
             self._impl: BufferImplBase = data
         else:
-            self._impl = CpuBufferImpl(data, np.uint8 if dtype is None else dtype)
+            try:
+                self._impl = CpuBufferImpl(data, np.uint8 if dtype is None else dtype)
+            except TypeError as exc:  # e.g. float values for a uint8 buffer: never cast silently
+                raise InvalidBufferDataError(
+                    f"cannot store {type(data).__name__} "
+                    f"{getattr(data, 'dtype', '')} data in a "
+                    f"{np.dtype(np.uint8 if dtype is None else dtype)} buffer: {exc}") from None
 
     # -- every backend -------------------------------------------------------------------------
     def get_impl(self) -> BufferImplBase:
@@ -153,9 +159,20 @@ class Buffer(Generic[T]):
             raise CpuBackendRequiredError(operation, impl.get_backend_type())
         return impl
 
-    def numpy(self) -> np.ndarray:
-        """A writable zero-copy NumPy view of CPU storage (invalidated by a later resize)."""
-        return self._cpu("numpy").writable_view()
+    def numpy(self, *, writable: bool = True) -> np.ndarray:
+        """A NumPy view of CPU storage (invalidated by a later resize).
+
+        ``writable=True`` (default): a writable view. It is zero-copy, except for storage
+        borrowed read-only from received bytes: that is copied once first (copy-on-write), and
+        the view is of the copy. ``writable=False``: always zero-copy, ``flags.writeable`` is
+        False (what a subscriber that only reads should use).
+        """
+        impl = self._cpu("numpy")
+        if writable:
+            return impl.writable_view()
+        view = impl.view().view()  # a new array object, so the flag does not leak to others
+        view.flags.writeable = False
+        return view
 
     data = numpy
 

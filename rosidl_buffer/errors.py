@@ -16,6 +16,8 @@ __all__ = [
     "DeserializationError",
     "DescriptorTooLargeError",
     "UnknownMessageTypeError",
+    "InvalidBufferDataError",
+    "UnknownFieldError",
 ]
 
 
@@ -61,3 +63,14 @@ class DescriptorTooLargeError(SerializationError):
 
 class UnknownMessageTypeError(RosidlBufferError, LookupError):
     """No message definition of that name ships with the project or is known to rosbags."""
+
+
+class InvalidBufferDataError(RosidlBufferError, TypeError):
+    """Data that a ``uint8[]`` buffer cannot hold as given: ``None``, or values of another kind
+    (a float array into a uint8 field); never silently truncated or cast."""
+
+
+class UnknownFieldError(RosidlBufferError, AttributeError, TypeError):
+    """A message has no field of that name (a misspelt keyword or attribute); the message
+    names the closest field. Also an ``AttributeError`` (attributes) and a ``TypeError``
+    (keywords), as Python raises for each."""

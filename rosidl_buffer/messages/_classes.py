@@ -7,6 +7,7 @@ assigning bytes, a list or an array wraps it in a CPU buffer; assigning a Buffer
 
 from __future__ import annotations
 
+import difflib
 import threading
 from collections.abc import Iterator
 from typing import Any, ClassVar
@@ -14,6 +15,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from ..buffer import Buffer
+from ..errors import InvalidBufferDataError, UnknownFieldError
 from ._schema import FieldKind, FieldSpec, MessageSchema, get_schema, normalize_type_name
 
 __all__ = ["Message", "get_message_type", "iter_buffers", "numpy_dtype", "release_buffers",
@@ -31,9 +33,14 @@ def numpy_dtype(primitive: str) -> np.dtype:
 
 
 class Message:
-    """Base of every generated message class."""
+    """Base of every generated message class.
 
-    __slots__ = ()
+    ``_native`` is not a field: it is a per-message cache that conversions packages own (a
+    validated layout, a shared write handle, native views reused by loans). It is never
+    serialized, compared or printed; its value decides what copy/pickle keep of it.
+    """
+
+    __slots__ = ("_native",)
     __msgtype__: ClassVar[str]
     _schema: ClassVar[MessageSchema]
     _buffer_fields: ClassVar[frozenset[str]]
@@ -41,16 +48,21 @@ class Message:
     def __init__(self, **fields: Any) -> None:
         unknown = set(fields) - set(self.__slots__)
         if unknown:
-            raise TypeError(f"{self.__msgtype__} has no field(s) {sorted(unknown)}; "
-                            f"fields are {list(self.__slots__)}")
+            raise _unknown_field(self, sorted(unknown)[0])
         for spec in self._schema.fields:
             value = fields[spec.name] if spec.name in fields else _default(spec)
             setattr(self, spec.name, value)
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name in self._buffer_fields and not isinstance(value, Buffer):
-            value = Buffer(value)
-        object.__setattr__(self, name, value)
+            try:
+                value = Buffer(value)
+            except InvalidBufferDataError as exc:
+                raise InvalidBufferDataError(f"{self.__msgtype__}.{name} (uint8[]): {exc}") from None
+        try:
+            object.__setattr__(self, name, value)
+        except AttributeError:
+            raise _unknown_field(self, name) from None
 
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):
@@ -68,6 +80,14 @@ class Message:
     def get_fields_and_field_types(cls) -> dict[str, str]:
         """Field name -> ROS type string, as rclpy's generated classes offer."""
         return {spec.name: _type_string(spec) for spec in cls._schema.fields}
+
+
+def _unknown_field(msg: Message, name: str) -> UnknownFieldError:
+    fields = list(type(msg).__slots__)
+    close = difflib.get_close_matches(name, fields, n=1)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    return UnknownFieldError(f"{msg.__msgtype__} has no field {name!r}{hint} "
+                             f"(fields: {', '.join(fields)})", name=name, obj=msg)
 
 
 def _type_string(spec: FieldSpec) -> str:
