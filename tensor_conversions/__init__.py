@@ -31,6 +31,9 @@ from .errors import (
     TensorSizeError,
     UnsupportedBackendError,
     UnsupportedDTypeError,
+    UnsupportedEncodingError,
+    UnsupportedValueError,
+    WrongMessageTypeError,
 )
 from .metadata import (
     TENSOR_MSG_TYPE,
@@ -54,6 +57,9 @@ __all__ = [
     "TensorView",
     "UnsupportedBackendError",
     "UnsupportedDTypeError",
+    "UnsupportedEncodingError",
+    "UnsupportedValueError",
+    "WrongMessageTypeError",
     "contiguous_strides",
     "dtype_from_metadata",
     "dtype_from_name",

@@ -1,96 +1,87 @@
 """The four conversion operations, written once over a small per-framework adapter.
 
-A framework module (``tensor_conversions.torch`` / ``.numpy`` / ``.warp``) supplies an
-:class:`Adapter`: how to name its dtypes, consume a :class:`TensorView` (its own DLPack import),
-copy, and describe a value. All metadata handling lives here and in the core modules.
+A framework module (``tensor_conversions.torch``, ``.numpy``, ``.warp``, ``.jax``, ``.cupy``)
+supplies an :class:`Adapter`: its dtypes, its stream, its DLPack import (zero-copy view), its copy
+and how to describe a value. The image functions (:mod:`.image`) reuse the same adapters.
 """
 
 from __future__ import annotations
 
-import abc
 from collections.abc import Sequence
 from typing import Any, Generic, TypeVar
 
 import numpy as np
 
-from .dlpack import TensorView, input_view, output_view, view_of_bytes, warp_dtype
+from .dlpack import TensorView, view_of, warp_dtype
 from .dtypes import DType
 from .errors import TensorSizeError, UnsupportedBackendError
 from .metadata import (
     TensorLayout,
+    check_tensor_msg,
     contiguous_strides,
     layout_of,
     normalize_shape,
     tensor_msg_type,
     write_metadata,
 )
-from .storage import (
-    allocate_data,
-    backend_of,
-    cpu_bytes,
-    live_write_lease,
-    open_write,
-    release_read_lease,
-    storage_device,
-)
+from .storage import allocate_data, backend_of, live_write_lease, storage_device
 
 T = TypeVar("T")
 
 
-class Adapter(abc.ABC, Generic[T]):
-    """What the generic operations need to know about one framework."""
+class Adapter(Generic[T]):
+    """What the generic operations need to know about one framework (subclassed per module)."""
 
-    name: str
+    name: str = "?"
 
-    @abc.abstractmethod
     def to_dtype(self, dtype: Any) -> DType:
         """Framework dtype (or canonical name) -> :class:`DType`; unsupported raises."""
+        raise NotImplementedError
 
-    @abc.abstractmethod
     def check_dtype(self, dtype: DType) -> None:
         """Raise :class:`UnsupportedDTypeError` if the framework cannot represent ``dtype``."""
 
-    @abc.abstractmethod
+    def check_view_device(self, device: str) -> None:
+        """Raise if the framework cannot view memory on ``device`` (checked before a handle is
+        opened, so a refused request consumes nothing)."""
+
+    def stream(self, device: str) -> Any:
+        """The ``wp.Stream`` the framework runs on for a CUDA ``device`` (None: Warp's current
+        one); never called for cpu storage."""
+        return None
+
     def from_view(self, view: TensorView) -> T:
         """Consume ``view`` zero-copy (the framework's ``from_dlpack``), with the view's shape."""
+        raise NotImplementedError
 
-    @abc.abstractmethod
     def clone(self, view: TensorView) -> T:
-        """An independent, contiguous copy of ``view``'s tensor."""
-
-    def check_view_device(self, device: str) -> None:
-        """Raise if the framework cannot view memory on ``device`` (checked before any handle
-        is opened, so a refused request consumes nothing)."""
+        """An independent, contiguous copy of ``view``'s tensor, ordered on the view's stream."""
+        raise NotImplementedError
 
     def readonly(self, tensor: T) -> T:
         """Mark a read-only alias where the framework can express it."""
         return tensor
 
-    @abc.abstractmethod
     def describe(self, value: Any) -> tuple[tuple[int, ...], DType, str, str | None]:
-        """``(shape, dtype, default backend, default device)`` of a value to send."""
+        """``(shape, dtype, default backend, default device)`` of a value to send; a value of
+        another kind raises :class:`UnsupportedValueError`."""
+        raise NotImplementedError
 
-    @abc.abstractmethod
     def copy_into(self, view: TensorView, value: Any) -> None:
-        """Copy ``value`` (same shape and dtype) into the writable ``view``."""
+        """Copy ``value`` (same shape and dtype) into the writable ``view``, on its stream."""
+        raise NotImplementedError
 
 
-def allocate_tensor_msg(adapter: Adapter[Any], shape: Sequence[int] | int, dtype: Any,
-                        backend: str = "cpu", device: Any = None) -> Any:
-    dt = adapter.to_dtype(dtype)
-    adapter.check_dtype(dt)
-    dims = normalize_shape(shape)
-    # perf: dims is already normalized; TensorLayout.contiguous would normalize it again
-    layout = TensorLayout(dt, dims, contiguous_strides(dims), 0)
-    return _new_msg(layout, backend, device)
+def _stream(adapter: Adapter[Any], msg: Any) -> Any:
+    device = storage_device(msg.data)
+    return None if device == "cpu" else adapter.stream(device)
 
 
-def _new_msg(layout: TensorLayout, backend: str, device: Any) -> Any:
+def new_msg(layout: TensorLayout, backend: str, device: Any) -> Any:
+    """A new ExperimentalTensor with ``layout``'s metadata and storage for it."""
     if backend == "warp":
         warp_dtype(layout.dtype)  # complex has no Warp type: refused before allocating
     data = allocate_data(layout.required_nbytes, backend, device)
-    # perf: the metadata fields are built once with their final values (what write_metadata
-    # stores: contiguous layouts get empty strides) instead of placeholders then overwritten.
     dt = layout.dtype
     strides = () if layout.is_contiguous else layout.strides
     return tensor_msg_type()(
@@ -100,42 +91,55 @@ def _new_msg(layout: TensorLayout, backend: str, device: Any) -> Any:
         byte_offset=layout.byte_offset, data=data)
 
 
-def from_output_tensor_msg(adapter: Adapter[T], msg: Any) -> T:
-    layout = layout_of(msg)  # perf: validated once and handed to output_view (was twice)
+def allocate_tensor_msg(adapter: Adapter[Any], shape: Sequence[int] | int, dtype: Any,
+                        backend: str = "cpu", device: Any = None) -> Any:
+    dt = adapter.to_dtype(dtype)
+    adapter.check_dtype(dt)
+    dims = normalize_shape(shape)
+    return new_msg(TensorLayout(dt, dims, contiguous_strides(dims), 0), backend, device)
+
+
+def output_native(adapter: Adapter[T], msg: Any, layout: TensorLayout) -> T:
+    """A writable native view of ``layout`` over ``msg.data`` (tensor and image functions)."""
     adapter.check_dtype(layout.dtype)
     adapter.check_view_device(storage_device(msg.data))
-    view = output_view(msg, layout)
-    return adapter.from_view(view)
+    return adapter.from_view(view_of(msg, layout, writable=True, stream=_stream(adapter, msg)))
 
 
-def from_input_tensor_msg(adapter: Adapter[T], msg: Any, clone: bool = True) -> T:
-    layout = layout_of(msg)  # perf: validated once and handed to input_view (was twice)
+def input_native(adapter: Adapter[T], msg: Any, layout: TensorLayout, clone: bool) -> T:
+    """A native copy (``clone``) or read-only alias of ``layout`` over ``msg.data``."""
     adapter.check_dtype(layout.dtype)
     if not clone:
         adapter.check_view_device(storage_device(msg.data))
-    view = input_view(msg, layout)
-    if clone:
-        try:
-            return adapter.clone(view)
-        finally:
-            if view.device != "cpu":  # the copy may still be queued on the device
-                import warp as wp
+    view = view_of(msg, layout, writable=False, stream=_stream(adapter, msg))
+    if not clone:
+        return adapter.readonly(adapter.from_view(view))
+    try:
+        return adapter.clone(view)
+    finally:
+        # The copy is queued on the handle's stream: releasing records the read's end there
+        # (stream-ordered), so nothing waits here. Our own write lease is left to its views.
+        lease = view.lease
+        if lease is not None and not lease.writable:
+            lease.release()
 
-                wp.synchronize_device(view.device)
-            release_read_lease(view._lease)
-    return adapter.readonly(adapter.from_view(view))
+
+def from_output_tensor_msg(adapter: Adapter[T], msg: Any) -> T:
+    return output_native(adapter, msg, layout_of(msg))
+
+
+def from_input_tensor_msg(adapter: Adapter[T], msg: Any, clone: bool = True) -> T:
+    return input_native(adapter, msg, layout_of(msg), clone)
 
 
 def to_tensor_msg(adapter: Adapter[Any], msg_or_value: Any, value: Any = None, *,
                   backend: str | None = None, device: Any = None) -> Any:
-    msg_cls = tensor_msg_type()
-    if isinstance(msg_or_value, msg_cls):
+    if value is not None:
+        check_tensor_msg(msg_or_value)
         if backend is not None or device is not None:
             raise UnsupportedBackendError(
                 "backend/device apply to a new message only; the storage of an existing message "
                 "is kept")
-        if value is None:
-            raise TypeError("to_tensor_msg(msg, value): value is missing")
         msg = msg_or_value
         shape, dt, _, _ = adapter.describe(value)
         layout = TensorLayout.contiguous(dt, shape)
@@ -146,39 +150,35 @@ def to_tensor_msg(adapter: Adapter[Any], msg_or_value: Any, value: Any = None, *
                 f"holds {capacity}; allocate a larger message")
         backend_of(msg.data)
     else:
-        if value is not None:
-            raise TypeError("to_tensor_msg takes (msg, value) or (value)")
+        if getattr(msg_or_value, "__msgtype__", None) is not None:
+            raise TypeError("to_tensor_msg(msg, value): value is missing")
         value = msg_or_value
         shape, dt, value_backend, value_device = adapter.describe(value)
         layout = TensorLayout.contiguous(dt, shape)
         if backend is None:
             backend, device = value_backend, value_device if device is None else device
-        msg = _new_msg(layout, backend, device)
-    _copy_to_msg(adapter, msg, layout, value)
+        msg = new_msg(layout, backend, device)
+    write_value(adapter, msg, layout, value)
     write_metadata(msg, layout)
     return msg
 
 
-def _copy_to_msg(adapter: Adapter[Any], msg: Any, layout: TensorLayout, value: Any) -> None:
+def write_value(adapter: Adapter[Any], msg: Any, layout: TensorLayout, value: Any) -> None:
+    """Copy ``value`` into ``msg.data`` as ``layout`` and end the write if we opened it.
+
+    The copy runs on the adapter's stream and the write handle is opened on that same stream, so
+    releasing it records completion where the copy really runs (no device synchronisation).
+    """
     if layout.numel == 0:
         return
-    if backend_of(msg.data) == "cpu":
-        view = view_of_bytes(cpu_bytes(msg.data, writable=True), layout, backend="cpu",
-                             writable=True)
-        adapter.copy_into(view, value)
+    data = msg.data
+    if backend_of(data) == "cpu":
+        adapter.copy_into(view_of(msg, layout, writable=True), value)
         return
-    shared = live_write_lease(msg.data.get_impl())
-    lease = shared or open_write(msg, replace_if_spent=True)
-    try:
-        view = view_of_bytes(lease.array, layout, backend="warp", writable=True, lease=lease)
-        adapter.copy_into(view, value)
-        del view
-    finally:
-        if shared is None:
-            # We opened the handle: release it so the message is complete and publishable. The
-            # framework may have queued the copy on its own stream: finish it first.
-            if str(lease.handle.device) != "cpu":
-                import warp as wp
-
-                wp.synchronize_device(str(lease.handle.device))
-            lease.release()
+    shared = live_write_lease(msg)
+    view = view_of(msg, layout, writable=True, stream=_stream(adapter, msg),
+                   replace_if_spent=True)
+    lease = view.lease
+    adapter.copy_into(view, value)
+    if shared is None and lease is not None:
+        lease.release()  # ours: the message is complete and publishable

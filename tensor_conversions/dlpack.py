@@ -1,17 +1,21 @@
-"""The framework-neutral DLPack producer: a typed, strided, zero-copy view of a message's bytes.
+"""The framework-neutral core: a zero-copy DLPack view of a tensor in a message's bytes.
 
-:class:`TensorView` exposes ``__dlpack__`` / ``__dlpack_device__``, so ``torch.from_dlpack``,
-``np.from_dlpack`` and ``wp.from_dlpack`` consume the message storage without a copy. It does not
-build DLPack structs itself: it derives a typed "carrier" array from a 1-D uint8 array over the
-storage and lets the carrier's own, well-tested DLPack export do the work.
+:class:`TensorView` does not build DLPack structs. It lays a typed "carrier" array over the
+storage and forwards ``__dlpack__`` to it, so NumPy's and Warp's own, well-tested exports carry
+dtype, shape, strides, device and ownership:
 
-- CPU storage: a NumPy ``ndarray`` over the bytes (``byte_offset`` folded into the data pointer);
-  bfloat16, which NumPy lacks, uses a Warp array on Warp's ``cpu`` device over the same memory.
-- warp storage: a ``wp.array(ptr=..., copy=False)`` over the handle's memory.
+- host memory (CPU storage, or warp storage on Warp's ``cpu`` device): a NumPy ``ndarray``
+  (``byte_offset`` folded into the data pointer; read-only bytes stay read-only, which DLPack 1.x
+  signals); bfloat16, which NumPy lacks, uses a Warp array over the same memory;
+- device memory: a ``wp.array(ptr=..., copy=False)`` over the handle's memory.
 
-Lifetime: the carrier references the storage (NumPy base chain) or the handle lease (attribute on
-the Warp array); every DLPack capsule references its carrier, so shape/stride arrays, handles and
-memory live as long as the consumer's tensor, independent of the message object.
+What DLPack cannot say is the stream. The handle behind a device view is opened on the stream
+the framework module will use; a consumer that passes another stream to ``__dlpack__`` has that
+stream wait for the handle's stream (an event, never a device synchronisation).
+
+Lifetime: the carrier references the storage (NumPy base chain) or the handle lease (attribute
+on the Warp array); every DLPack capsule references its carrier, so memory and handles live as
+long as the consumer's tensor, independent of the message object.
 """
 
 from __future__ import annotations
@@ -24,27 +28,26 @@ import numpy as np
 from .dtypes import DLDataTypeCode, DType
 from .errors import InvalidTensorMetadataError, UnsupportedDTypeError
 from .metadata import TensorLayout, layout_of
-from .storage import HandleLease, backend_of, cpu_bytes, open_read, open_write
+from .storage import Lease, backend_of, host_bytes, open_read, open_write
 
-__all__ = ["TensorView", "import_warp", "input_view", "output_view", "view_of_bytes", "warp_dtype"]
+__all__ = ["TensorView", "import_warp", "input_view", "output_view", "view_of", "warp_dtype"]
 
 
-_WARP: Any = None  # perf: the initialised warp module, so the hot path skips import + wp.init()
+_WARP: Any = None  # the initialised warp module, so the hot path skips import + wp.init()
 
 
 def import_warp() -> Any:
-    """The ``warp`` module with its runtime initialised (``wp.from_dlpack`` needs it)."""
+    """The ``warp`` module with its runtime initialised."""
     global _WARP
-    if _WARP is not None:
-        return _WARP
-    import warp as wp
+    if _WARP is None:
+        import warp as wp
 
-    wp.init()
-    _WARP = wp
-    return wp
+        wp.init()
+        _WARP = wp
+    return _WARP
 
 
-_WARP_DTYPES: dict[DType, Any] = {}  # perf: DType -> Warp scalar type, successful lookups only
+_WARP_DTYPES: dict[DType, Any] = {}
 
 
 def warp_dtype(dtype: DType) -> Any:
@@ -54,102 +57,114 @@ def warp_dtype(dtype: DType) -> Any:
     any Warp device, so code that works on Warp's cpu device also works on CUDA.
     """
     found = _WARP_DTYPES.get(dtype)
-    if found is not None:
-        return found
-    wp = import_warp()
-    if dtype.code == DLDataTypeCode.COMPLEX:
-        raise UnsupportedDTypeError(f"Warp has no complex dtype ({dtype.name})")
-    found = getattr(wp, dtype.name, None)
     if found is None:
-        raise UnsupportedDTypeError(f"Warp has no dtype {dtype.name}")
-    _WARP_DTYPES[dtype] = found
+        wp = import_warp()
+        found = None if dtype.code == DLDataTypeCode.COMPLEX else getattr(wp, dtype.name, None)
+        if found is None:
+            raise UnsupportedDTypeError(f"Warp has no dtype {dtype.name}")
+        _WARP_DTYPES[dtype] = found
     return found
 
 
 class TensorView:
-    """A zero-copy, DLPack-exporting view of a tensor stored in a message's ``data`` bytes.
+    """A zero-copy, DLPack-exporting view of a tensor stored in a message's bytes.
 
-    Attributes: ``dtype`` (:class:`DType`), ``shape``, ``strides`` (elements), ``device``
-    (``"cpu"`` or a Warp device such as ``"cuda:0"``), ``backend`` (``"cpu"`` or ``"warp"``) and
-    ``writable`` (whether the view was opened for writing). Warp has no 0-d arrays: where the
-    carrier is a Warp array a scalar is exported with shape ``(1,)``; :meth:`reshape_result`
-    restores the true shape on the consumer's tensor.
+    Attributes: ``layout`` (:class:`TensorLayout`), ``device`` (``"cpu"`` or a Warp device such
+    as ``"cuda:0"``), ``writable``, ``carrier`` (the NumPy or Warp array forwarded to DLPack) and
+    ``lease`` (the warp_buffer handle it holds, or None). A Warp carrier cannot be 0-d: a scalar
+    is carried with shape ``(1,)`` and :meth:`reshape_result` restores ``()``.
     """
 
-    __slots__ = ("dtype", "shape", "strides", "device", "backend", "writable", "_carrier", "_lease",
-                 "_storage", "_layout")
+    __slots__ = ("layout", "device", "writable", "carrier", "lease")
 
-    def __init__(self, storage: Any, layout: TensorLayout, *, backend: str, writable: bool,
-                 lease: HandleLease | None = None) -> None:
-        self.dtype = layout.dtype
-        self.shape = layout.shape
-        self.strides = layout.strides
-        self.backend = backend
+    def __init__(self, storage: Any, layout: TensorLayout, *, writable: bool,
+                 lease: Lease | None = None) -> None:
+        self.layout = layout
         self.writable = writable
-        self._lease = lease
-        self._storage = storage
-        self._layout = layout
-        if isinstance(storage, np.ndarray):
+        self.lease = lease
+        if type(storage) is np.ndarray:  # CPU storage: host bytes
             self.device = "cpu"
-            self._carrier = _numpy_carrier(storage, layout)
-        elif warp_dtype(layout.dtype) and str(storage.device) == "cpu" and \
-                layout.dtype.code != DLDataTypeCode.BFLOAT:
-            # Warp's cpu device is host memory: a NumPy carrier exports versioned, writable
-            # DLPack (NumPy imports Warp's legacy capsules read-only).
+            self.carrier = _host_carrier(storage, layout, storage)
+        elif storage.device.is_cpu:  # warp storage on Warp's cpu device: also host memory
             self.device = "cpu"
-            self._carrier = _numpy_carrier(_host_bytes(storage.ptr, storage.size,
-                                                       owner=(storage, lease)), layout)
+            host = _host_bytes(storage.ptr, storage.size, owner=(storage, lease))
+            self.carrier = _host_carrier(host, layout, (storage, lease))
         else:
             self.device = str(storage.device)
-            self._carrier = _warp_carrier(storage.ptr, storage.size, str(storage.device), layout,
-                                          owner=(storage, lease))
+            self.carrier = _warp_carrier(storage.ptr, storage.size, self.device, layout,
+                                         owner=(storage, lease))
 
     @property
-    def carrier(self) -> Any:
-        """The array whose DLPack export this view forwards (NumPy or Warp)."""
-        return self._carrier
+    def dtype(self) -> DType:
+        return self.layout.dtype
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.layout.shape
 
     def __dlpack_device__(self) -> tuple[int, int]:
-        return self._carrier.__dlpack_device__()
+        return self.carrier.__dlpack_device__()
 
     def __dlpack__(self, *, stream: Any = None, max_version: tuple[int, int] | None = None,
                    dl_device: tuple[int, int] | None = None, copy: bool | None = None) -> Any:
-        if isinstance(self._carrier, np.ndarray):
+        carrier = self.carrier
+        if type(carrier) is np.ndarray:
             kwargs: dict[str, Any] = {}
-            if stream is not None:
-                kwargs["stream"] = stream
             if max_version is not None:
                 kwargs["max_version"] = max_version
             if dl_device is not None:
                 kwargs["dl_device"] = dl_device
             if copy is not None:
                 kwargs["copy"] = copy
-            return self._carrier.__dlpack__(**kwargs)
+            return carrier.__dlpack__(**kwargs)
         # Warp's __dlpack__ takes only `stream` and always exports a legacy capsule.
-        if dl_device is not None and tuple(dl_device) != tuple(self.__dlpack_device__()):
+        if dl_device is not None and tuple(dl_device) != tuple(carrier.__dlpack_device__()):
             raise BufferError(f"cannot export {self.device} memory to DLPack device {dl_device}")
         if copy:
             raise BufferError("this view only exports zero-copy")
-        return self._carrier.__dlpack__(stream=stream)
-
-    def atleast_1d(self) -> TensorView:
-        """This view, or for a scalar the same element as shape ``(1,)`` (for Warp consumers)."""
-        if self.shape:
-            return self
-        layout = TensorLayout(self.dtype, (1,), (1,), self._layout.byte_offset)
-        return TensorView(self._storage, layout, backend=self.backend, writable=self.writable,
-                          lease=self._lease)
+        if self.device != "cpu" and stream is not None and stream != -1:
+            order_consumer(self.lease, self.device, stream)
+            stream = -1  # ordered above; Warp would otherwise order after its own current stream
+        return carrier.__dlpack__(stream=stream)
 
     def reshape_result(self, tensor: Any) -> Any:
         """Give a consumer's tensor this view's shape (only differs for scalars behind Warp)."""
-        if tuple(tensor.shape) != self.shape:
-            return tensor.reshape(self.shape)
+        if len(tensor.shape) != len(self.layout.shape):
+            return tensor.reshape(self.layout.shape)
         return tensor
 
     def __repr__(self) -> str:
+        layout = self.layout
         mode = "writable" if self.writable else "read-only"
-        return (f"TensorView({self.dtype.name}, shape={self.shape}, strides={self.strides}, "
-                f"device={self.device!r}, backend={self.backend!r}, {mode})")
+        return (f"TensorView({layout.dtype.name}, shape={layout.shape}, strides={layout.strides}, "
+                f"device={self.device!r}, {mode})")
+
+
+_STREAMS: dict[tuple[str, int], Any] = {}  # (device, cudaStream_t) -> external wp.Stream
+
+
+def external_stream(device: str, cuda_stream: int) -> Any:
+    """A ``wp.Stream`` wrapping a framework's raw CUDA stream (DLPack numbering: 1 = legacy
+    default, 2 = per-thread default), cached by its value."""
+    key = (device, cuda_stream)
+    found = _STREAMS.get(key)
+    if found is None:
+        wp = import_warp()
+        raw = 0 if cuda_stream == 1 else cuda_stream
+        found = wp.Stream(device, cuda_stream=raw)
+        _STREAMS[key] = found
+    return found
+
+
+def order_consumer(lease: Lease | None, device: str, stream: int) -> None:
+    """Make the consumer's CUDA ``stream`` (a DLPack stream number) wait for the work ordered
+    on the lease's stream (which itself waits for the writer)."""
+    ours = lease.stream if lease is not None else None
+    if ours is None:
+        return
+    if (ours.cuda_stream or 1) == stream:
+        return
+    external_stream(device, stream).wait_stream(ours)
 
 
 def _host_bytes(ptr: int | None, nbytes: int, owner: Any) -> np.ndarray:
@@ -161,10 +176,10 @@ def _host_bytes(ptr: int | None, nbytes: int, owner: Any) -> np.ndarray:
     return np.frombuffer(raw, dtype=np.uint8)
 
 
-def _numpy_carrier(storage: np.ndarray, layout: TensorLayout) -> Any:
-    if layout.dtype.code == DLDataTypeCode.BFLOAT:
+def _host_carrier(storage: np.ndarray, layout: TensorLayout, owner: Any) -> Any:
+    if layout.dtype.code == DLDataTypeCode.BFLOAT:  # NumPy has no bfloat16
         base = storage.ctypes.data if storage.size else 0
-        return _warp_carrier(base, storage.size, "cpu", layout, owner=storage)
+        return _warp_carrier(base, storage.size, "cpu", layout, owner=owner)
     if layout.numel == 0:
         return np.empty(layout.shape, dtype=layout.dtype.numpy_dtype())
     return np.ndarray(layout.shape, dtype=layout.dtype.numpy_dtype(), buffer=storage,
@@ -174,8 +189,7 @@ def _numpy_carrier(storage: np.ndarray, layout: TensorLayout) -> Any:
 def _warp_carrier(base_ptr: int, nbytes: int, device: str, layout: TensorLayout, owner: Any) -> Any:
     wp = import_warp()
     itemsize = layout.dtype.itemsize
-    if layout.required_nbytes > nbytes:  # re-checked against the real storage size
-        layout.check_fits(nbytes)
+    layout.check_fits(nbytes)  # against the real storage size
     ptr = base_ptr + layout.byte_offset
     if device != "cpu" and ptr % itemsize:
         raise InvalidTensorMetadataError(
@@ -190,36 +204,30 @@ def _warp_carrier(base_ptr: int, nbytes: int, device: str, layout: TensorLayout,
     return carrier
 
 
-def view_of_bytes(storage: Any, layout: TensorLayout, *, backend: str, writable: bool,
-                  lease: HandleLease | None = None) -> TensorView:
-    """A :class:`TensorView` of ``layout`` over 1-D uint8 ``storage`` (NumPy or ``wp.array``)."""
-    return TensorView(storage, layout, backend=backend, writable=writable, lease=lease)
+def view_of(msg: Any, layout: TensorLayout, *, writable: bool, stream: Any = None,
+            replace_if_spent: bool = False) -> TensorView:
+    """A view of ``layout`` over ``msg.data``; warp storage opens (or shares) a handle on
+    ``stream`` (a ``wp.Stream`` or None for Warp's current one)."""
+    data = msg.data
+    if backend_of(data) == "cpu":
+        return TensorView(host_bytes(data, writable=writable), layout, writable=writable)
+    if writable:
+        lease = open_write(msg, stream, replace_if_spent=replace_if_spent)
+    else:
+        lease = open_read(msg, stream)
+    return TensorView(lease.array, layout, writable=writable, lease=lease)
 
 
-def output_view(msg: Any, layout: TensorLayout | None = None) -> TensorView:
+def output_view(msg: Any, stream: Any = None) -> TensorView:
     """A writable view of ``msg``'s tensor, for filling the message in place.
 
-    CPU storage: a view of the field's host memory (a borrowed, read-only ``data`` is copied once
-    first, copy-on-write). warp storage: opens (or shares) the buffer's single write handle; the
-    view's carriers keep it alive, see :mod:`tensor_conversions.storage`.
+    CPU storage: the field's host memory (borrowed read-only bytes are copied once first,
+    copy-on-write). warp storage: the buffer's single write handle, opened on ``stream``.
     """
-    if layout is None:  # perf: callers that already validated the layout pass it in
-        layout = layout_of(msg)
-    if backend_of(msg.data) == "cpu":
-        return TensorView(cpu_bytes(msg.data, writable=True), layout, backend="cpu", writable=True)
-    lease = open_write(msg)
-    return TensorView(lease.array, layout, backend="warp", writable=True, lease=lease)
+    return view_of(msg, layout_of(msg), writable=True, stream=stream)
 
 
-def input_view(msg: Any, layout: TensorLayout | None = None) -> TensorView:
-    """A view of ``msg``'s tensor for reading (aliases the storage: treat it as read-only).
-
-    warp storage: takes a read handle (synchronised with the writer) held by the view's carriers.
-    """
-    if layout is None:  # perf: callers that already validated the layout pass it in
-        layout = layout_of(msg)
-    if backend_of(msg.data) == "cpu":
-        host = cpu_bytes(msg.data, writable=False)
-        return TensorView(host, layout, backend="cpu", writable=False)
-    lease = open_read(msg)
-    return TensorView(lease.array, layout, backend="warp", writable=False, lease=lease)
+def input_view(msg: Any, stream: Any = None) -> TensorView:
+    """A read-only view of ``msg``'s tensor (aliases the storage); warp storage takes a read
+    handle whose ``stream`` is ordered after the writer."""
+    return view_of(msg, layout_of(msg), writable=False, stream=stream)

@@ -10,6 +10,9 @@ __all__ = [
     "InvalidTensorMetadataError",
     "UnsupportedBackendError",
     "TensorSizeError",
+    "UnsupportedValueError",
+    "WrongMessageTypeError",
+    "UnsupportedEncodingError",
 ]
 
 
@@ -31,3 +34,16 @@ class UnsupportedBackendError(TensorConversionError, ValueError):
 
 class TensorSizeError(TensorConversionError, ValueError):
     """A value does not fit the preallocated ``data`` of a message."""
+
+
+class UnsupportedValueError(TensorConversionError, TypeError):
+    """A value the framework module cannot send (``to_tensor_msg`` of a list, another
+    framework's tensor, ...)."""
+
+
+class WrongMessageTypeError(TensorConversionError, TypeError):
+    """A message of another type (an ``Image`` given to a tensor function, or the reverse)."""
+
+
+class UnsupportedEncodingError(TensorConversionError, ValueError):
+    """An image encoding this package cannot view (compressed, YUV, 16-bit Bayer, ...)."""

@@ -17,11 +17,12 @@ import numpy as np
 from rosidl_buffer.messages import get_message_type
 
 from .dtypes import DType, dtype_from_metadata
-from .errors import InvalidTensorMetadataError
+from .errors import InvalidTensorMetadataError, WrongMessageTypeError
 
 __all__ = [
     "TENSOR_MSG_TYPE",
     "TensorLayout",
+    "check_tensor_msg",
     "contiguous_strides",
     "layout_of",
     "normalize_shape",
@@ -136,41 +137,72 @@ class TensorLayout:
             )
 
 
-def _int_list(value: Any, field: str) -> list[int]:
-    # perf: the fields are 1-D int64 arrays in practice; tolist() is one C call instead of a
-    # Python loop of int() (same values; anything else takes the generic path below).
+def _ints(value: Any, field: str) -> tuple[int, ...]:
     if type(value) is np.ndarray and value.dtype.kind in "iu":
-        return value.reshape(-1).tolist()
+        return tuple(value.reshape(-1).tolist())  # one C call for the usual int64 field
     try:
-        return [int(v) for v in np.asarray(value).reshape(-1)]
+        return tuple(int(v) for v in np.asarray(value).reshape(-1))
     except (TypeError, ValueError):
         raise InvalidTensorMetadataError(
             f"{field} must be a sequence of ints, got {value!r}") from None
 
 
-def layout_of(msg: Any, nbytes: int | None = None) -> TensorLayout:
-    """Validate the metadata of ``msg`` against its ``data`` size and return its layout.
+_TENSOR_CLASS: list[type] = []
 
-    Raises :class:`UnsupportedDTypeError` for a dtype this package cannot handle and
+
+def check_tensor_msg(msg: Any) -> None:
+    """Raise :class:`WrongMessageTypeError` unless ``msg`` is an ExperimentalTensor."""
+    if not _TENSOR_CLASS:
+        _TENSOR_CLASS.append(tensor_msg_type())
+    if type(msg) is not _TENSOR_CLASS[0]:
+        name = getattr(msg, "__msgtype__", type(msg).__name__)
+        hint = " (use the *_image_msg functions)" if name == "sensor_msgs/msg/Image" else ""
+        raise WrongMessageTypeError(f"expected a {TENSOR_MSG_TYPE}, got {name}{hint}")
+
+
+# A layout is validated once per distinct metadata, not once per frame: the memo is keyed by the
+# metadata values and the data size (never by object identity) and bounded.
+_LAYOUTS: dict[tuple[Any, ...], TensorLayout] = {}
+_MAX_LAYOUTS = 256
+
+
+def layout_of(msg: Any) -> TensorLayout:
+    """The validated layout of an ExperimentalTensor ``msg``, checked against its ``data`` size.
+
+    Raises :class:`WrongMessageTypeError` for another message type,
+    :class:`UnsupportedDTypeError` for a dtype this package cannot handle and
     :class:`InvalidTensorMetadataError` for inconsistent shape/strides/byte_offset.
     """
-    dtype = dtype_from_metadata(msg.dtype_code, msg.dtype_bits, msg.dtype_lanes)
-    shape = _int_list(msg.shape, "shape")
+    check_tensor_msg(msg)
+    key = (msg.dtype_code, msg.dtype_bits, msg.dtype_lanes, _ints(msg.shape, "shape"),
+           _ints(msg.strides, "strides"), msg.byte_offset, len(msg.data))
+    found = _LAYOUTS.get(key)
+    if found is None:
+        found = _validate(*key)
+        if len(_LAYOUTS) >= _MAX_LAYOUTS:
+            _LAYOUTS.clear()
+        _LAYOUTS[key] = found
+    return found
+
+
+def _validate(code: Any, bits: Any, lanes: Any, shape: tuple[int, ...], strides: tuple[int, ...],
+              byte_offset: Any, nbytes: int) -> TensorLayout:
+    dtype = dtype_from_metadata(code, bits, lanes)
     if any(d < 0 for d in shape):
-        raise InvalidTensorMetadataError(f"shape {shape} has a negative dimension")
-    strides = _int_list(msg.strides, "strides")
+        raise InvalidTensorMetadataError(f"shape {list(shape)} has a negative dimension")
     if not strides:
-        strides = list(contiguous_strides(shape))
+        strides = contiguous_strides(shape)
     elif len(strides) != len(shape):
         raise InvalidTensorMetadataError(
-            f"strides {strides} must be empty or have one entry per dimension of shape {shape}")
+            f"strides {list(strides)} must be empty or have one entry per dimension of shape "
+            f"{list(shape)}")
     if any(s < 0 for s in strides):
-        raise InvalidTensorMetadataError(f"negative strides {strides} are not supported")
-    byte_offset = int(msg.byte_offset)
+        raise InvalidTensorMetadataError(f"negative strides {list(strides)} are not supported")
+    byte_offset = int(byte_offset)
     if byte_offset < 0:
         raise InvalidTensorMetadataError(f"byte_offset {byte_offset} is negative")
-    layout = TensorLayout(dtype, tuple(shape), tuple(strides), byte_offset)
-    layout.check_fits(len(msg.data) if nbytes is None else nbytes)
+    layout = TensorLayout(dtype, shape, strides, byte_offset)
+    layout.check_fits(nbytes)
     return layout
 
 

@@ -16,7 +16,7 @@ import numpy as np
 from . import _api
 from .dlpack import TensorView, import_warp, warp_dtype
 from .dtypes import DType, dtype_from_numpy
-from .errors import UnsupportedBackendError
+from .errors import UnsupportedBackendError, UnsupportedValueError
 
 __all__ = ["allocate_tensor_msg", "from_input_tensor_msg", "from_output_tensor_msg",
            "to_tensor_msg"]
@@ -46,34 +46,41 @@ class _NumpyAdapter(_api.Adapter[np.ndarray]):
 
     def from_view(self, view: TensorView) -> np.ndarray:
         _host_only(view, "zero-copy view")
-        return view.reshape_result(np.from_dlpack(view))
+        carrier = view.carrier
+        # a NumPy carrier is the view itself; a bfloat16 (Warp) carrier never gets here
+        return carrier if type(carrier) is np.ndarray else np.from_dlpack(view)
 
     def clone(self, view: TensorView) -> np.ndarray:
         if view.device == "cpu":
-            source = view.reshape_result(np.from_dlpack(view))
-        else:
-            wp = import_warp()
-            host = wp.from_dlpack(view.atleast_1d()).numpy()  # device -> host copy
-            source = view.reshape_result(host)
-        return np.array(source, order="C", copy=True)
+            return np.array(self.from_view(view), order="C", copy=True)
+        wp = import_warp()
+        source = view.carrier
+        host = wp.empty(source.shape, dtype=source.dtype, device="cpu")
+        stream = view.lease.stream if view.lease is not None else None
+        wp.copy(host, source if source.is_contiguous else source.contiguous(), stream=stream)
+        wp.synchronize_stream(stream)  # the host copy must be complete when we return
+        return view.reshape_result(host.numpy())
 
     def readonly(self, tensor: np.ndarray) -> np.ndarray:
-        tensor.flags.writeable = False
+        tensor.flags.writeable = False  # the carrier is this view's own array
         return tensor
 
     def describe(self, value: Any) -> tuple[tuple[int, ...], DType, str, str | None]:
-        array = np.asarray(value)
-        return tuple(array.shape), dtype_from_numpy(array.dtype), "cpu", None
+        if not isinstance(value, (np.ndarray, np.generic)):
+            raise UnsupportedValueError(
+                f"tensor_conversions.numpy sends NumPy arrays, not {type(value).__name__}")
+        return tuple(value.shape), dtype_from_numpy(value.dtype), "cpu", None
 
     def copy_into(self, view: TensorView, value: Any) -> None:
         array = np.asarray(value)
         if view.device == "cpu":
-            np.copyto(view.reshape_result(np.from_dlpack(view)), array, casting="no")
+            np.copyto(self.from_view(view), array, casting="no")
             return
         wp = import_warp()
         dtype = warp_dtype(view.dtype)
         source = wp.array(np.ascontiguousarray(array).reshape(-1), dtype=dtype, device="cpu")
-        wp.copy(wp.from_dlpack(view.atleast_1d()).flatten(), source)
+        stream = view.lease.stream if view.lease is not None else None
+        wp.copy(view.carrier.flatten(), source, stream=stream)  # host -> device on the handle's
 
 
 _ADAPTER = _NumpyAdapter()

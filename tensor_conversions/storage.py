@@ -1,18 +1,22 @@
-"""Where a tensor message's bytes live: allocating ``data`` and opening it for reading or writing.
+"""Where a message's bytes live: allocating a ``uint8[]`` field and opening it to read or write.
 
 Two backends: ``"cpu"`` (the ordinary host ``uint8[]``) and ``"warp"`` (Warp device memory from
 the ``warp_buffer`` package, on any Warp device, ``"cpu"`` included). A request that cannot be
 served raises :class:`UnsupportedBackendError`; storage is never silently put elsewhere.
 
-Warp buffers accept ONE write handle in their life. Writable views therefore share a
-:class:`HandleLease` per buffer: while any view over it lives, later views (and
-``to_tensor_msg``) reuse the same write handle; the handle is released (the write is complete)
-when the last such view is garbage-collected, or earlier through :func:`release_output`.
+A warp buffer takes ONE write handle in its life, so writable views of one message share a
+:class:`Lease`. The message remembers it weakly in its ``_native`` slot (no registry keyed by
+``id()``): while any view over the handle lives, later views (and ``to_tensor_msg``) reuse it; the
+handle is released (the write is complete) when the last view is collected, at publish (the
+transport seals the buffer), or earlier through :func:`release_output`.
+
+Streams: handles are opened on the stream the framework will run on (torch's current stream,
+Warp's, CuPy's), so the writer's completion is recorded on the stream that really wrote, and a
+reader's stream waits for it; nothing waits for the whole device.
 """
 
 from __future__ import annotations
 
-import ctypes
 import threading
 import weakref
 from typing import Any
@@ -25,15 +29,14 @@ from .errors import TensorConversionError, UnsupportedBackendError
 
 __all__ = [
     "BACKENDS",
-    "HandleLease",
+    "Lease",
     "allocate_data",
     "backend_of",
-    "cpu_bytes",
+    "host_bytes",
     "live_write_lease",
     "open_read",
     "open_write",
     "release_output",
-    "release_read_lease",
     "resolve_warp_device",
     "storage_device",
 ]
@@ -47,8 +50,6 @@ def _warp_buffer() -> Any:
     except ImportError as exc:  # pragma: no cover - warp_buffer ships with this project
         raise UnsupportedBackendError(
             f"the 'warp' backend needs the warp_buffer package: {exc}") from exc
-    if not hasattr(warp_buffer, "allocate_buffer"):  # pragma: no cover - incomplete install
-        raise UnsupportedBackendError("the installed warp_buffer package has no allocate_buffer")
     return warp_buffer
 
 
@@ -64,7 +65,7 @@ def resolve_warp_device(device: Any = None) -> str:
 
 
 def allocate_data(nbytes: int, backend: str = "cpu", device: Any = None) -> Buffer:
-    """A zero-filled ``data`` buffer of ``nbytes`` in ``backend`` (on ``device`` for warp)."""
+    """A ``data`` buffer of ``nbytes`` in ``backend`` (on ``device`` for warp); cpu is zeroed."""
     if backend == "cpu":
         if device is not None and str(device) != "cpu":
             raise UnsupportedBackendError(
@@ -98,28 +99,13 @@ def storage_device(buffer: Buffer) -> str:
     return str(buffer.get_impl().device)
 
 
-# --------------------------------------------------------------------------------------- CPU
-def _writable_alias(array: np.ndarray) -> np.ndarray:
-    """A writable alias of read-only bytes (borrowed from a received message), keeping them alive.
-
-    DLPack's legacy protocol cannot flag read-only memory, so a read-only view needs a writable
-    carrier; callers hand it out only as a read-only view (documented aliasing contract).
-    """
-    if array.flags.writeable or array.size == 0:
-        return array if array.flags.writeable else np.zeros(0, dtype=np.uint8)
-    raw = (ctypes.c_uint8 * array.nbytes).from_address(array.ctypes.data)
-    raw._owner = array  # type: ignore[attr-defined]  # keeps the borrowed bytes alive
-    return np.frombuffer(raw, dtype=np.uint8)
-
-
-def cpu_bytes(buffer: Buffer, *, writable: bool) -> np.ndarray:
-    """The host bytes of a CPU buffer as a 1-D uint8 array (no copy except copy-on-write)."""
+def host_bytes(buffer: Buffer, *, writable: bool) -> np.ndarray:
+    """The bytes of a CPU buffer as a 1-D uint8 array, no copy (except copy-on-write of borrowed
+    bytes when ``writable``). Read-only bytes stay read-only: DLPack 1.x carries the flag."""
     impl = buffer.get_impl()
     if not isinstance(impl, CpuBufferImpl):
         raise UnsupportedBackendError(f"expected CPU storage, got {buffer.get_backend_type()!r}")
-    if writable:
-        return impl.writable_view()
-    return _writable_alias(impl.view())
+    return impl.writable_view() if writable else impl.view()
 
 
 # -------------------------------------------------------------------------------------- warp
@@ -130,79 +116,122 @@ def _release_quietly(handle: Any) -> None:
         pass
 
 
-class HandleLease:
+class Lease:
     """Owns one warp_buffer read or write handle; releases it when the lease is collected.
 
-    Every carrier handed to a framework references the lease, so the handle lives exactly as long
-    as the last tensor that can touch the memory.
+    Every carrier handed to a framework references the lease, so the handle lives exactly as
+    long as the last tensor that can touch the memory.
     """
 
-    __slots__ = ("handle", "buffer", "_finalizer", "__weakref__")
+    __slots__ = ("handle", "buffer", "writable", "_finalizer", "__weakref__")
 
-    def __init__(self, handle: Any, buffer: Buffer) -> None:
+    def __init__(self, handle: Any, buffer: Buffer, writable: bool) -> None:
         self.handle = handle
         self.buffer = buffer
+        self.writable = writable
         self._finalizer = weakref.finalize(self, _release_quietly, handle)
 
     @property
     def array(self) -> Any:
+        """The handle's bytes (raises the backend's error once the handle was released/sealed)."""
         return self.handle.array
+
+    @property
+    def stream(self) -> Any:
+        """The CUDA stream the handle orders its work on (None on cpu)."""
+        return self.handle.stream
+
+    @property
+    def alive(self) -> bool:
+        return self._finalizer.alive
 
     def release(self) -> None:
         self._finalizer()
 
 
-_write_leases: weakref.WeakValueDictionary[int, HandleLease] = weakref.WeakValueDictionary()
+class _NativeState:
+    """What tensor_conversions keeps on a message (its ``_native`` slot): the write lease of
+    ``buffer``, weakly. Dropped by deepcopy and pickling (handles belong to one message)."""
+
+    __slots__ = ("buffer", "write")
+
+    def __init__(self) -> None:
+        self.buffer: Buffer | None = None
+        self.write: weakref.ref[Lease] | None = None
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> _NativeState:
+        return _NativeState()
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_NativeState, ())
+
+
 _lock = threading.Lock()
 
 
-def live_write_lease(impl: Any) -> HandleLease | None:
-    """The write lease currently held by views of the storage ``impl``, if any."""
-    lease = _write_leases.get(id(impl))
-    if lease is not None and lease.buffer.get_impl() is impl and lease._finalizer.alive:
-        return lease
-    return None
+def _state(msg: Any) -> _NativeState:
+    state = getattr(msg, "_native", None)
+    if type(state) is not _NativeState:
+        state = _NativeState()
+        object.__setattr__(msg, "_native", state)
+    return state
 
 
-def release_read_lease(lease: HandleLease | None) -> None:
-    """Release a lease taken by :func:`open_read`, unless it is a shared write lease."""
-    if lease is None:
-        return
-    with _lock:
-        shared = live_write_lease(lease.buffer.get_impl()) is lease
-    if not shared:
-        lease.release()
+def live_write_lease(msg: Any) -> Lease | None:
+    """The write lease that views of ``msg.data`` hold now, if any (and still usable)."""
+    state = getattr(msg, "_native", None)
+    if type(state) is not _NativeState or state.write is None or state.buffer is not msg.data:
+        return None
+    lease = state.write()
+    if lease is None or not lease.alive:
+        return None
+    try:
+        lease.array  # sealed (published or read) handles refuse access: the lease is spent
+    except Exception:
+        return None
+    return lease
 
 
-def open_write(msg: Any, *, replace_if_spent: bool = False) -> HandleLease:
-    """The write lease of ``msg.data`` (warp storage): the live one, or a new write handle.
+def open_write(msg: Any, stream: Any = None, *, replace_if_spent: bool = False) -> Lease:
+    """The write lease of ``msg.data`` (warp storage): the live one, or a new write handle on
+    ``stream`` (a ``wp.Stream``; None = Warp's current stream of the device).
 
-    ``replace_if_spent``: if the buffer has already used its one write handle (written and
-    released, read or published), give ``msg.data`` a fresh warp buffer of the same size on the
-    same device instead of failing (used by ``to_tensor_msg``, which rewrites all of it).
+    ``replace_if_spent``: if the buffer has used its one write handle (written, read or
+    published), give ``msg.data`` a fresh warp buffer of the same size and device instead of
+    failing (``to_tensor_msg`` rewrites all of it).
     """
-    buffer = msg.data
-    impl = buffer.get_impl()
     with _lock:
-        lease = live_write_lease(impl)
+        lease = live_write_lease(msg)
         if lease is not None:
             return lease
+        buffer = msg.data
         wb = _warp_buffer()
         try:
-            handle = wb.from_output_buffer(buffer)
+            handle = wb.from_output_buffer(buffer, stream)
         except wb.errors.WriteHandleError as exc:
             if not replace_if_spent:
                 raise TensorConversionError(
                     f"cannot write this warp-backed message: {exc}. A warp buffer takes one write "
                     "in its life; use to_tensor_msg (which gives the message a fresh buffer) or "
                     "allocate a new message") from exc
-            buffer = wb.allocate_buffer(buffer.size(), device=str(impl.device))
+            buffer = wb.allocate_buffer(buffer.size(), device=str(buffer.get_impl().device))
             msg.data = buffer
-            impl = buffer.get_impl()
-            handle = wb.from_output_buffer(buffer)
-        lease = HandleLease(handle, buffer)
-        _write_leases[id(impl)] = lease
+            handle = wb.from_output_buffer(buffer, stream)
+        lease = Lease(handle, buffer, writable=True)
+        state = _state(msg)
+        state.buffer, state.write = buffer, weakref.ref(lease)
         return lease
+
+
+def open_read(msg: Any, stream: Any = None) -> Lease:
+    """A read lease on ``msg.data`` (warp storage); ``stream`` (None = Warp's current stream)
+    is ordered after the writer by warp_buffer. Our own unpublished write is read through its
+    write lease."""
+    live = live_write_lease(msg)
+    if live is not None:
+        return live
+    buffer = msg.data
+    return Lease(_warp_buffer().from_input_buffer(buffer, stream), buffer, writable=False)
 
 
 def release_output(msg: Any) -> bool:
@@ -211,23 +240,9 @@ def release_output(msg: Any) -> bool:
     Returns True if a handle was released. Views created earlier must not be written afterwards.
     For CPU storage there is nothing to release (returns False).
     """
-    if msg.data.get_backend_type() != "warp":
-        return False
     with _lock:
-        lease = live_write_lease(msg.data.get_impl())
+        lease = live_write_lease(msg)
         if lease is None:
             return False
         lease.release()
         return True
-
-
-def open_read(msg: Any) -> HandleLease:
-    """A read lease on ``msg.data`` (warp storage), synchronised with the writer by warp_buffer."""
-    buffer = msg.data
-    with _lock:
-        live = live_write_lease(buffer.get_impl())
-    if live is not None:
-        # Reading our own unpublished write: the data is ours, reuse the write handle.
-        return live
-    handle = _warp_buffer().from_input_buffer(buffer)
-    return HandleLease(handle, buffer)

@@ -17,9 +17,9 @@ from typing import Any, overload
 import torch
 
 from . import _api
-from .dlpack import TensorView
+from .dlpack import TensorView, external_stream
 from .dtypes import DType, dtype_from_name
-from .errors import UnsupportedBackendError, UnsupportedDTypeError
+from .errors import UnsupportedBackendError, UnsupportedDTypeError, UnsupportedValueError
 
 __all__ = [
     "allocate_tensor_msg",
@@ -57,6 +57,11 @@ class _TorchAdapter(_api.Adapter[torch.Tensor]):
     def check_dtype(self, dtype: DType) -> None:
         dtype_to_torch(dtype)
 
+    def stream(self, device: str) -> Any:
+        # torch writes and reads on its current stream: handles are ordered on that one
+        stream = torch.cuda.current_stream(torch.device(device))
+        return external_stream(device, stream.cuda_stream or 1)
+
     def from_view(self, view: TensorView) -> torch.Tensor:
         return view.reshape_result(torch.from_dlpack(view))
 
@@ -66,7 +71,8 @@ class _TorchAdapter(_api.Adapter[torch.Tensor]):
 
     def describe(self, value: Any) -> tuple[tuple[int, ...], DType, str, str | None]:
         if not isinstance(value, torch.Tensor):
-            raise TypeError(f"expected a torch.Tensor, got {type(value).__name__}")
+            raise UnsupportedValueError(
+                f"tensor_conversions.torch sends torch.Tensor values, not {type(value).__name__}")
         device = value.device
         if device.type == "cpu":
             backend, wp_device = "cpu", None
