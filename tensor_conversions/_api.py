@@ -24,7 +24,7 @@ from .metadata import (
     tensor_msg_type,
     write_metadata,
 )
-from .storage import allocate_data, backend_of, live_write_lease, storage_device
+from .storage import allocate_data, backend_of, live_write_handle, storage_device
 
 T = TypeVar("T")
 
@@ -72,8 +72,7 @@ class Adapter(Generic[T]):
         raise NotImplementedError
 
 
-def _stream(adapter: Adapter[Any], msg: Any) -> Any:
-    device = storage_device(msg.data)
+def _stream(adapter: Adapter[Any], device: str) -> Any:
     return None if device == "cpu" else adapter.stream(device)
 
 
@@ -102,26 +101,28 @@ def allocate_tensor_msg(adapter: Adapter[Any], shape: Sequence[int] | int, dtype
 def output_native(adapter: Adapter[T], msg: Any, layout: TensorLayout) -> T:
     """A writable native view of ``layout`` over ``msg.data`` (tensor and image functions)."""
     adapter.check_dtype(layout.dtype)
-    adapter.check_view_device(storage_device(msg.data))
-    return adapter.from_view(view_of(msg, layout, writable=True, stream=_stream(adapter, msg)))
+    device = storage_device(msg.data)
+    adapter.check_view_device(device)
+    return adapter.from_view(view_of(msg, layout, writable=True, stream=_stream(adapter, device)))
 
 
 def input_native(adapter: Adapter[T], msg: Any, layout: TensorLayout, clone: bool) -> T:
     """A native copy (``clone``) or read-only alias of ``layout`` over ``msg.data``."""
     adapter.check_dtype(layout.dtype)
+    device = storage_device(msg.data)
     if not clone:
-        adapter.check_view_device(storage_device(msg.data))
-    view = view_of(msg, layout, writable=False, stream=_stream(adapter, msg))
+        adapter.check_view_device(device)
+    view = view_of(msg, layout, writable=False, stream=_stream(adapter, device))
     if not clone:
         return adapter.readonly(adapter.from_view(view))
     try:
         return adapter.clone(view)
     finally:
         # The copy is queued on the handle's stream: releasing records the read's end there
-        # (stream-ordered), so nothing waits here. Our own write lease is left to its views.
-        lease = view.lease
-        if lease is not None and not lease.writable:
-            lease.release()
+        # (stream-ordered), so nothing waits here. Our own write handle is left to its views.
+        handle = view.handle
+        if handle is not None and handle is not live_write_handle(msg):
+            handle.release()
 
 
 def from_output_tensor_msg(adapter: Adapter[T], msg: Any) -> T:
@@ -175,10 +176,10 @@ def write_value(adapter: Adapter[Any], msg: Any, layout: TensorLayout, value: An
     if backend_of(data) == "cpu":
         adapter.copy_into(view_of(msg, layout, writable=True), value)
         return
-    shared = live_write_lease(msg)
-    view = view_of(msg, layout, writable=True, stream=_stream(adapter, msg),
+    shared = live_write_handle(msg)
+    view = view_of(msg, layout, writable=True, stream=_stream(adapter, storage_device(data)),
                    replace_if_spent=True)
-    lease = view.lease
+    handle = view.handle
     adapter.copy_into(view, value)
-    if shared is None and lease is not None:
-        lease.release()  # ours: the message is complete and publishable
+    if shared is None and handle is not None:
+        handle.release()  # ours: the message is complete and publishable

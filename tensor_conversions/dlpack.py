@@ -13,7 +13,7 @@ What DLPack cannot say is the stream. The handle behind a device view is opened 
 the framework module will use; a consumer that passes another stream to ``__dlpack__`` has that
 stream wait for the handle's stream (an event, never a device synchronisation).
 
-Lifetime: the carrier references the storage (NumPy base chain) or the handle lease (attribute
+Lifetime: the carrier references the storage (NumPy base chain) or the warp_buffer handle (attribute
 on the Warp array); every DLPack capsule references its carrier, so memory and handles live as
 long as the consumer's tensor, independent of the message object.
 """
@@ -28,7 +28,7 @@ import numpy as np
 from .dtypes import DLDataTypeCode, DType
 from .errors import InvalidTensorMetadataError, UnsupportedDTypeError
 from .metadata import TensorLayout, layout_of
-from .storage import Lease, backend_of, host_bytes, open_read, open_write
+from .storage import backend_of, host_bytes, open_read, open_write
 
 __all__ = ["TensorView", "import_warp", "input_view", "output_view", "view_of", "warp_dtype"]
 
@@ -71,28 +71,28 @@ class TensorView:
 
     Attributes: ``layout`` (:class:`TensorLayout`), ``device`` (``"cpu"`` or a Warp device such
     as ``"cuda:0"``), ``writable``, ``carrier`` (the NumPy or Warp array forwarded to DLPack) and
-    ``lease`` (the warp_buffer handle it holds, or None). A Warp carrier cannot be 0-d: a scalar
+    ``handle`` (the warp_buffer read or write handle it holds, or None). A Warp carrier cannot be 0-d: a scalar
     is carried with shape ``(1,)`` and :meth:`reshape_result` restores ``()``.
     """
 
-    __slots__ = ("layout", "device", "writable", "carrier", "lease")
+    __slots__ = ("layout", "device", "writable", "carrier", "handle")
 
     def __init__(self, storage: Any, layout: TensorLayout, *, writable: bool,
-                 lease: Lease | None = None) -> None:
+                 handle: Any = None) -> None:
         self.layout = layout
         self.writable = writable
-        self.lease = lease
+        self.handle = handle
         if type(storage) is np.ndarray:  # CPU storage: host bytes
             self.device = "cpu"
             self.carrier = _host_carrier(storage, layout, storage)
         elif storage.device.is_cpu:  # warp storage on Warp's cpu device: also host memory
             self.device = "cpu"
-            host = _host_bytes(storage.ptr, storage.size, owner=(storage, lease))
-            self.carrier = _host_carrier(host, layout, (storage, lease))
+            host = _host_bytes(storage.ptr, storage.size, owner=(storage, handle))
+            self.carrier = _host_carrier(host, layout, (storage, handle))
         else:
             self.device = str(storage.device)
             self.carrier = _warp_carrier(storage.ptr, storage.size, self.device, layout,
-                                         owner=(storage, lease))
+                                         owner=(storage, handle))
 
     @property
     def dtype(self) -> DType:
@@ -123,7 +123,7 @@ class TensorView:
         if copy:
             raise BufferError("this view only exports zero-copy")
         if self.device != "cpu" and stream is not None and stream != -1:
-            order_consumer(self.lease, self.device, stream)
+            order_consumer(self.handle, self.device, stream)
             stream = -1  # ordered above; Warp would otherwise order after its own current stream
         return carrier.__dlpack__(stream=stream)
 
@@ -156,10 +156,10 @@ def external_stream(device: str, cuda_stream: int) -> Any:
     return found
 
 
-def order_consumer(lease: Lease | None, device: str, stream: int) -> None:
+def order_consumer(handle: Any, device: str, stream: int) -> None:
     """Make the consumer's CUDA ``stream`` (a DLPack stream number) wait for the work ordered
-    on the lease's stream (which itself waits for the writer)."""
-    ours = lease.stream if lease is not None else None
+    on the handle's stream (which itself waits for the writer)."""
+    ours = handle.stream if handle is not None else None
     if ours is None:
         return
     if (ours.cuda_stream or 1) == stream:
@@ -212,10 +212,10 @@ def view_of(msg: Any, layout: TensorLayout, *, writable: bool, stream: Any = Non
     if backend_of(data) == "cpu":
         return TensorView(host_bytes(data, writable=writable), layout, writable=writable)
     if writable:
-        lease = open_write(msg, stream, replace_if_spent=replace_if_spent)
+        handle = open_write(msg, stream, replace_if_spent=replace_if_spent)
     else:
-        lease = open_read(msg, stream)
-    return TensorView(lease.array, layout, writable=writable, lease=lease)
+        handle = open_read(msg, stream)
+    return TensorView(handle.array, layout, writable=writable, handle=handle)
 
 
 def output_view(msg: Any, stream: Any = None) -> TensorView:

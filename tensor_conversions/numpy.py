@@ -14,11 +14,19 @@ from typing import Any, overload
 import numpy as np
 
 from . import _api
+from . import image as _image
+from . import pointcloud as _pointcloud
 from .dlpack import TensorView, import_warp, warp_dtype
 from .dtypes import DType, dtype_from_numpy
 from .errors import UnsupportedBackendError, UnsupportedValueError
 
-__all__ = ["allocate_tensor_msg", "from_input_tensor_msg", "from_output_tensor_msg",
+__all__ = [
+    "allocate_image_msg",
+    "from_input_image_msg",
+    "from_input_pointcloud_msg",
+    "from_output_image_msg",
+    "to_image_msg",
+"allocate_tensor_msg", "from_input_tensor_msg", "from_output_tensor_msg",
            "to_tensor_msg"]
 
 
@@ -56,7 +64,7 @@ class _NumpyAdapter(_api.Adapter[np.ndarray]):
         wp = import_warp()
         source = view.carrier
         host = wp.empty(source.shape, dtype=source.dtype, device="cpu")
-        stream = view.lease.stream if view.lease is not None else None
+        stream = view.handle.stream if view.handle is not None else None
         wp.copy(host, source if source.is_contiguous else source.contiguous(), stream=stream)
         wp.synchronize_stream(stream)  # the host copy must be complete when we return
         return view.reshape_result(host.numpy())
@@ -79,7 +87,7 @@ class _NumpyAdapter(_api.Adapter[np.ndarray]):
         wp = import_warp()
         dtype = warp_dtype(view.dtype)
         source = wp.array(np.ascontiguousarray(array).reshape(-1), dtype=dtype, device="cpu")
-        stream = view.lease.stream if view.lease is not None else None
+        stream = view.handle.stream if view.handle is not None else None
         wp.copy(view.carrier.flatten(), source, stream=stream)  # host -> device on the handle's
 
 
@@ -125,3 +133,40 @@ def to_tensor_msg(msg_or_value: Any, value: Any = None, *, backend: str | None =
     ``backend``/``device`` say otherwise.
     """
     return _api.to_tensor_msg(_ADAPTER, msg_or_value, value, backend=backend, device=device)
+
+
+# ------------------------------------------------------------------ sensor_msgs/msg/Image
+def allocate_image_msg(height: int, width: int, encoding: str, backend: str = "cpu",
+                       device: Any = None, step: int | None = None) -> Any:
+    """A new ``sensor_msgs/msg/Image`` of ``encoding`` with ``step * height`` bytes of storage
+    (``step`` defaults to a packed row; a larger one pads each row). See
+    :mod:`tensor_conversions.image` for encodings and errors."""
+    return _image.allocate_image_msg(_ADAPTER, height, width, encoding, backend, device, step)
+
+
+def from_output_image_msg(msg: Any) -> np.ndarray:
+    """A writable zero-copy HWC view of the image (``(height, width)`` for one channel); the
+    row padding is the row stride."""
+    return _image.from_output_image_msg(_ADAPTER, msg)
+
+
+def from_input_image_msg(msg: Any, clone: bool = True) -> np.ndarray:
+    """The image as an HWC copy (default) or, with ``clone=False``, a zero-copy alias of the
+    storage (treat as read-only) whose row stride is ``step``."""
+    return _image.from_input_image_msg(_ADAPTER, msg, clone)
+
+
+def to_image_msg(value: np.ndarray, encoding: str, *, backend: str | None = None,
+                 device: Any = None) -> Any:
+    """A new Image of ``encoding`` holding a copy of ``value`` (shape ``(h, w)`` or
+    ``(h, w, channels)``, the encoding's dtype), rows packed."""
+    return _image.to_image_msg(_ADAPTER, value, encoding, backend=backend, device=device)
+
+
+# ------------------------------------------------------------ sensor_msgs/msg/PointCloud2
+def from_input_pointcloud_msg(msg: Any, fields: Sequence[str] = ("x", "y", "z"),
+                              clone: bool = True) -> np.ndarray:
+    """An ``(N, len(fields))`` tensor of the cloud's points: a zero-copy strided view where
+    the layout allows (then ``clone`` copies it), else one float32 host copy; see
+    :mod:`tensor_conversions.pointcloud`."""
+    return _pointcloud.from_input_pointcloud_msg(_ADAPTER, msg, fields, clone)

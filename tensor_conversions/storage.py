@@ -4,8 +4,8 @@ Two backends: ``"cpu"`` (the ordinary host ``uint8[]``) and ``"warp"`` (Warp dev
 the ``warp_buffer`` package, on any Warp device, ``"cpu"`` included). A request that cannot be
 served raises :class:`UnsupportedBackendError`; storage is never silently put elsewhere.
 
-A warp buffer takes ONE write handle in its life, so writable views of one message share a
-:class:`Lease`. The message remembers it weakly in its ``_native`` slot (no registry keyed by
+A warp buffer takes ONE write handle in its life, so writable views of one message share it.
+Views hold warp_buffer's handles directly (a handle releases itself when collected). The message remembers it weakly in its ``_native`` slot (no registry keyed by
 ``id()``): while any view over the handle lives, later views (and ``to_tensor_msg``) reuse it; the
 handle is released (the write is complete) when the last view is collected, at publish (the
 transport seals the buffer), or earlier through :func:`release_output`.
@@ -29,11 +29,10 @@ from .errors import TensorConversionError, UnsupportedBackendError
 
 __all__ = [
     "BACKENDS",
-    "Lease",
     "allocate_data",
     "backend_of",
     "host_bytes",
-    "live_write_lease",
+    "live_write_handle",
     "open_read",
     "open_write",
     "release_output",
@@ -109,55 +108,15 @@ def host_bytes(buffer: Buffer, *, writable: bool) -> np.ndarray:
 
 
 # -------------------------------------------------------------------------------------- warp
-def _release_quietly(handle: Any) -> None:
-    try:
-        handle.release()
-    except Exception:  # already released, or the interpreter is shutting down
-        pass
-
-
-class Lease:
-    """Owns one warp_buffer read or write handle; releases it when the lease is collected.
-
-    Every carrier handed to a framework references the lease, so the handle lives exactly as
-    long as the last tensor that can touch the memory.
-    """
-
-    __slots__ = ("handle", "buffer", "writable", "_finalizer", "__weakref__")
-
-    def __init__(self, handle: Any, buffer: Buffer, writable: bool) -> None:
-        self.handle = handle
-        self.buffer = buffer
-        self.writable = writable
-        self._finalizer = weakref.finalize(self, _release_quietly, handle)
-
-    @property
-    def array(self) -> Any:
-        """The handle's bytes (raises the backend's error once the handle was released/sealed)."""
-        return self.handle.array
-
-    @property
-    def stream(self) -> Any:
-        """The CUDA stream the handle orders its work on (None on cpu)."""
-        return self.handle.stream
-
-    @property
-    def alive(self) -> bool:
-        return self._finalizer.alive
-
-    def release(self) -> None:
-        self._finalizer()
-
-
 class _NativeState:
-    """What tensor_conversions keeps on a message (its ``_native`` slot): the write lease of
+    """What tensor_conversions keeps on a message (its ``_native`` slot): the write handle of
     ``buffer``, weakly. Dropped by deepcopy and pickling (handles belong to one message)."""
 
     __slots__ = ("buffer", "write")
 
     def __init__(self) -> None:
         self.buffer: Buffer | None = None
-        self.write: weakref.ref[Lease] | None = None
+        self.write: weakref.ref[Any] | None = None
 
     def __deepcopy__(self, memo: dict[int, Any]) -> _NativeState:
         return _NativeState()
@@ -177,23 +136,23 @@ def _state(msg: Any) -> _NativeState:
     return state
 
 
-def live_write_lease(msg: Any) -> Lease | None:
-    """The write lease that views of ``msg.data`` hold now, if any (and still usable)."""
+def live_write_handle(msg: Any) -> Any:
+    """The write handle that views of ``msg.data`` hold now, if any (and still usable)."""
     state = getattr(msg, "_native", None)
     if type(state) is not _NativeState or state.write is None or state.buffer is not msg.data:
         return None
-    lease = state.write()
-    if lease is None or not lease.alive:
+    handle = state.write()
+    if handle is None:
         return None
     try:
-        lease.array  # sealed (published or read) handles refuse access: the lease is spent
+        handle.array  # released or sealed (published, read) handles refuse access: spent
     except Exception:
         return None
-    return lease
+    return handle
 
 
-def open_write(msg: Any, stream: Any = None, *, replace_if_spent: bool = False) -> Lease:
-    """The write lease of ``msg.data`` (warp storage): the live one, or a new write handle on
+def open_write(msg: Any, stream: Any = None, *, replace_if_spent: bool = False) -> Any:
+    """The write handle of ``msg.data`` (warp storage): the live one, or a new write handle on
     ``stream`` (a ``wp.Stream``; None = Warp's current stream of the device).
 
     ``replace_if_spent``: if the buffer has used its one write handle (written, read or
@@ -201,9 +160,9 @@ def open_write(msg: Any, stream: Any = None, *, replace_if_spent: bool = False) 
     failing (``to_tensor_msg`` rewrites all of it).
     """
     with _lock:
-        lease = live_write_lease(msg)
-        if lease is not None:
-            return lease
+        handle = live_write_handle(msg)
+        if handle is not None:
+            return handle
         buffer = msg.data
         wb = _warp_buffer()
         try:
@@ -217,21 +176,19 @@ def open_write(msg: Any, stream: Any = None, *, replace_if_spent: bool = False) 
             buffer = wb.allocate_buffer(buffer.size(), device=str(buffer.get_impl().device))
             msg.data = buffer
             handle = wb.from_output_buffer(buffer, stream)
-        lease = Lease(handle, buffer, writable=True)
         state = _state(msg)
-        state.buffer, state.write = buffer, weakref.ref(lease)
-        return lease
+        state.buffer, state.write = buffer, weakref.ref(handle)
+        return handle
 
 
-def open_read(msg: Any, stream: Any = None) -> Lease:
-    """A read lease on ``msg.data`` (warp storage); ``stream`` (None = Warp's current stream)
+def open_read(msg: Any, stream: Any = None) -> Any:
+    """A read handle on ``msg.data`` (warp storage); ``stream`` (None = Warp's current stream)
     is ordered after the writer by warp_buffer. Our own unpublished write is read through its
-    write lease."""
-    live = live_write_lease(msg)
+    write handle."""
+    live = live_write_handle(msg)
     if live is not None:
         return live
-    buffer = msg.data
-    return Lease(_warp_buffer().from_input_buffer(buffer, stream), buffer, writable=False)
+    return _warp_buffer().from_input_buffer(msg.data, stream)
 
 
 def release_output(msg: Any) -> bool:
@@ -241,8 +198,8 @@ def release_output(msg: Any) -> bool:
     For CPU storage there is nothing to release (returns False).
     """
     with _lock:
-        lease = live_write_lease(msg)
-        if lease is None:
+        handle = live_write_handle(msg)
+        if handle is None:
             return False
-        lease.release()
+        handle.release()
         return True

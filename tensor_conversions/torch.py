@@ -17,11 +17,19 @@ from typing import Any, overload
 import torch
 
 from . import _api
+from . import image as _image
+from . import pointcloud as _pointcloud
 from .dlpack import TensorView, external_stream
 from .dtypes import DType, dtype_from_name
 from .errors import UnsupportedBackendError, UnsupportedDTypeError, UnsupportedValueError
 
 __all__ = [
+    "allocate_image_msg",
+    "from_input_image_msg",
+    "from_input_pointcloud_msg",
+    "from_output_image_msg",
+    "to_image_msg",
+
     "allocate_tensor_msg",
     "dtype_to_torch",
     "from_input_tensor_msg",
@@ -40,11 +48,17 @@ def torch_to_dtype(dtype: torch.dtype | str) -> DType:
     return dtype_from_name(str(dtype).removeprefix("torch."))
 
 
+_TORCH_DTYPES: dict[DType, torch.dtype] = {}
+
+
 def dtype_to_torch(dtype: DType) -> torch.dtype:
     """:class:`DType` -> ``torch.dtype``."""
-    found = getattr(torch, dtype.name, None)
-    if not isinstance(found, torch.dtype):
-        raise UnsupportedDTypeError(f"PyTorch has no dtype {dtype.name}")
+    found = _TORCH_DTYPES.get(dtype)
+    if found is None:
+        found = getattr(torch, dtype.name, None)
+        if not isinstance(found, torch.dtype):
+            raise UnsupportedDTypeError(f"PyTorch has no dtype {dtype.name}")
+        _TORCH_DTYPES[dtype] = found
     return found
 
 
@@ -131,3 +145,40 @@ def to_tensor_msg(msg_or_value: Any, value: Any = None, *, backend: str | None =
     ``backend``/``device`` say otherwise.
     """
     return _api.to_tensor_msg(_ADAPTER, msg_or_value, value, backend=backend, device=device)
+
+
+# ------------------------------------------------------------------ sensor_msgs/msg/Image
+def allocate_image_msg(height: int, width: int, encoding: str, backend: str = "cpu",
+                       device: Any = None, step: int | None = None) -> Any:
+    """A new ``sensor_msgs/msg/Image`` of ``encoding`` with ``step * height`` bytes of storage
+    (``step`` defaults to a packed row; a larger one pads each row). See
+    :mod:`tensor_conversions.image` for encodings and errors."""
+    return _image.allocate_image_msg(_ADAPTER, height, width, encoding, backend, device, step)
+
+
+def from_output_image_msg(msg: Any) -> torch.Tensor:
+    """A writable zero-copy HWC view of the image (``(height, width)`` for one channel); the
+    row padding is the row stride."""
+    return _image.from_output_image_msg(_ADAPTER, msg)
+
+
+def from_input_image_msg(msg: Any, clone: bool = True) -> torch.Tensor:
+    """The image as an HWC copy (default) or, with ``clone=False``, a zero-copy alias of the
+    storage (treat as read-only) whose row stride is ``step``."""
+    return _image.from_input_image_msg(_ADAPTER, msg, clone)
+
+
+def to_image_msg(value: torch.Tensor, encoding: str, *, backend: str | None = None,
+                 device: Any = None) -> Any:
+    """A new Image of ``encoding`` holding a copy of ``value`` (shape ``(h, w)`` or
+    ``(h, w, channels)``, the encoding's dtype), rows packed."""
+    return _image.to_image_msg(_ADAPTER, value, encoding, backend=backend, device=device)
+
+
+# ------------------------------------------------------------ sensor_msgs/msg/PointCloud2
+def from_input_pointcloud_msg(msg: Any, fields: Sequence[str] = ("x", "y", "z"),
+                              clone: bool = True) -> torch.Tensor:
+    """An ``(N, len(fields))`` tensor of the cloud's points: a zero-copy strided view where
+    the layout allows (then ``clone`` copies it), else one float32 host copy; see
+    :mod:`tensor_conversions.pointcloud`."""
+    return _pointcloud.from_input_pointcloud_msg(_ADAPTER, msg, fields, clone)

@@ -12,7 +12,7 @@ import torch
 import warp as wp
 
 import tensor_conversions as tc
-from tensor_conversions.storage import live_write_lease  # takes the message
+from tensor_conversions.storage import live_write_handle  
 from tensor_conversions.testing import (
     FRAMEWORK_DTYPES,
     MODULES,
@@ -71,7 +71,7 @@ def test_allocate_fill_publish_read(framework):
     assert msg.data.get_backend_type() == "warp" and len(msg.data) == 80
     out = module.from_output_tensor_msg(msg)
     second = module.from_output_tensor_msg(msg)  # shares the single write handle
-    assert live_write_lease(msg) is not None
+    assert live_write_handle(msg) is not None
     values = np.arange(20, dtype=np.int32).reshape(4, 5)
     if framework == "warp":
         wp.copy(out, wp.array(values, dtype=wp.int32, device=DEVICE))
@@ -81,7 +81,7 @@ def test_allocate_fill_publish_read(framework):
     np.testing.assert_array_equal(got, values)  # both views alias the same memory
     del out, second, got
     gc.collect()
-    assert live_write_lease(msg) is None  # handle released with the last view
+    assert live_write_handle(msg) is None  # handle released with the last view
     for reader in MODULES.values():
         got = reader.from_input_tensor_msg(msg)
         np.testing.assert_array_equal(got if isinstance(got, np.ndarray) else got.numpy(), values)
@@ -118,7 +118,7 @@ def test_to_tensor_msg_writes_through_live_output_view():
     MODULES["torch"].to_tensor_msg(msg, torch.tensor([1.0, 2.0, 3.0]))
     assert msg.data is data_before  # the live write handle was reused, not replaced
     assert out.tolist() == [1.0, 2.0, 3.0]
-    assert live_write_lease(msg) is not None  # still held by `out`
+    assert live_write_handle(msg) is not None  # still held by `out`
 
 
 @pytest.mark.parametrize("framework", list(MODULES))
@@ -138,16 +138,16 @@ def test_output_view_outlives_message_and_keeps_handle():
     msg = MODULES["warp"].allocate_tensor_msg((6,), wp.float64, backend="warp", device=DEVICE)
     impl = msg.data.get_impl()
     out = MODULES["warp"].from_output_tensor_msg(msg)
-    lease = weakref.ref(live_write_lease(msg))
+    handle = weakref.ref(live_write_handle(msg))
     del msg
     gc.collect()
-    assert lease() is not None and lease().alive  # the view holds the write handle
+    assert handle() is not None  # the view holds the write handle
     out.fill_(3.0)
     np.testing.assert_array_equal(out.numpy(), np.full(6, 3.0))
     np.testing.assert_array_equal(impl.to_cpu().view().view(np.float64), np.full(6, 3.0))
     del out
     gc.collect()
-    assert lease() is None  # released with the last view
+    assert handle() is None  # released with the last view
 
 
 @pytest.mark.parametrize("framework", list(MODULES))
