@@ -12,9 +12,14 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
-from .dlpack import TensorView, view_of, warp_dtype
-from .dtypes import DType
-from .errors import TensorSizeError, UnsupportedBackendError
+from .dlpack import TensorView, host_alias, import_warp, view_of, warp_dtype
+from .dtypes import DType, dtype_from_name
+from .errors import (
+    InvalidTensorMetadataError,
+    TensorSizeError,
+    UnsupportedBackendError,
+    UnsupportedValueError,
+)
 from .metadata import (
     TensorLayout,
     check_tensor_msg,
@@ -183,3 +188,86 @@ def write_value(adapter: Adapter[Any], msg: Any, layout: TensorLayout, value: An
     adapter.copy_into(view, value)
     if shared is None and handle is not None:
         handle.release()  # ours: the message is complete and publishable
+
+
+_KDL_CPU, _KDL_CUDA = 1, 2  # DLPack device types
+
+
+class DLPackAdapter(Adapter[T]):
+    """An adapter for a framework reached only through DLPack (JAX, CuPy, ONNX Runtime).
+
+    Subclasses name the framework's import (``consume``), its value type and which devices it
+    addresses. Frameworks that import only compact (C-contiguous) tensors get a zero-copy view of
+    contiguous layouts; a strided layout needs ``clone=True`` (one copy). Read-only host bytes are
+    handed over through a writable alias (legacy DLPack cannot flag them): the aliasing contract
+    of ``clone=False`` applies.
+    """
+
+    value_type: Any = object
+    contiguous_only = True
+    host = True  # can the framework address host memory?
+
+    def reshape(self, view: TensorView, tensor: T) -> T:
+        """Restore a scalar's ``()`` shape behind a Warp carrier."""
+        return view.reshape_result(tensor)
+
+    def consume(self, producer: Any) -> T:
+        """The framework's ``from_dlpack``."""
+        raise NotImplementedError
+
+    def to_dtype(self, dtype: Any) -> DType:
+        if isinstance(dtype, DType):
+            return dtype
+        try:
+            name = np.dtype(dtype).name
+        except TypeError:
+            name = str(dtype)
+        return dtype_from_name(name)
+
+    def check_view_device(self, device: str) -> None:
+        if device == "cpu" and not self.host:
+            raise UnsupportedBackendError(
+                f"{self.name} cannot address host memory; use clone=True for a device copy")
+
+    def from_view(self, view: TensorView) -> T:
+        if self.contiguous_only and not view.layout.is_contiguous:
+            raise InvalidTensorMetadataError(
+                f"{self.name} imports only contiguous tensors; strides {list(view.layout.strides)} "
+                "need clone=True (one copy)")
+        carrier = view.carrier
+        if type(carrier) is np.ndarray and not carrier.flags.writeable:
+            return self.consume(host_alias(carrier))
+        return self.reshape(view, self.consume(view))
+
+    def clone(self, view: TensorView) -> T:
+        carrier = view.carrier
+        if type(carrier) is np.ndarray:
+            return self.consume(np.array(carrier, order="C", copy=True))
+        wp = import_warp()
+        copy = carrier.contiguous() if not carrier.is_contiguous else wp.clone(carrier)
+        return self.reshape(view, self.consume(copy))
+
+    def describe(self, value: Any) -> tuple[tuple[int, ...], DType, str, str | None]:
+        if not isinstance(value, self.value_type):
+            raise UnsupportedValueError(
+                f"tensor_conversions.{self.name} sends {self.value_type.__name__} values, not "
+                f"{type(value).__name__}")
+        kind, index = value.__dlpack_device__()
+        shape, dtype = self.shape_dtype(value)
+        if int(kind) == _KDL_CUDA:
+            return shape, dtype, "warp", f"cuda:{index}"
+        return shape, dtype, "cpu", None
+
+    def shape_dtype(self, value: Any) -> tuple[tuple[int, ...], DType]:
+        return tuple(value.shape), self.to_dtype(value.dtype)
+
+    def copy_into(self, view: TensorView, value: Any) -> None:
+        carrier = view.carrier
+        if type(carrier) is np.ndarray:
+            np.copyto(carrier, np.from_dlpack(value).reshape(carrier.shape), casting="no")
+            return
+        wp = import_warp()
+        source = wp.from_dlpack(value)
+        stream = view.handle.stream if view.handle is not None else None
+        wp.copy(carrier, source.reshape(carrier.shape) if source.shape != carrier.shape
+                else source, stream=stream)

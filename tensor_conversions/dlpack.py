@@ -30,7 +30,7 @@ from .errors import InvalidTensorMetadataError, UnsupportedDTypeError
 from .metadata import TensorLayout, layout_of
 from .storage import backend_of, host_bytes, open_read, open_write
 
-__all__ = ["TensorView", "import_warp", "input_view", "output_view", "view_of", "warp_dtype"]
+__all__ = ["TensorView", "external_stream", "host_alias", "import_warp", "input_view", "output_view", "view_of", "warp_dtype"]
 
 
 _WARP: Any = None  # the initialised warp module, so the hot path skips import + wp.init()
@@ -174,6 +174,15 @@ def _host_bytes(ptr: int | None, nbytes: int, owner: Any) -> np.ndarray:
     raw = (ctypes.c_uint8 * nbytes).from_address(ptr)
     raw._owner = owner  # type: ignore[attr-defined]
     return np.frombuffer(raw, dtype=np.uint8)
+
+
+def host_alias(array: np.ndarray) -> np.ndarray:
+    """A writable alias of a read-only contiguous host array (same memory, keeps it alive), for
+    consumers that import only legacy DLPack, which cannot flag read-only memory. Hand it out under
+    the read-only contract of ``clone=False``."""
+    raw = _host_bytes(array.ctypes.data, array.nbytes, owner=array) if array.nbytes else \
+        np.zeros(0, np.uint8)
+    return np.ndarray(array.shape, array.dtype, buffer=raw, strides=array.strides)
 
 
 def _host_carrier(storage: np.ndarray, layout: TensorLayout, owner: Any) -> Any:

@@ -70,7 +70,7 @@ def allocate_data(nbytes: int, backend: str = "cpu", device: Any = None) -> Buff
             raise UnsupportedBackendError(
                 f"backend 'cpu' stores host memory; device {device!r} cannot be served "
                 "(use backend='warp' for device memory)")
-        return Buffer(np.zeros(nbytes, dtype=np.uint8))
+        return Buffer(_aligned_zeros(nbytes))
     if backend == "warp":
         resolved = resolve_warp_device(device)
         if nbytes <= 0:
@@ -79,6 +79,15 @@ def allocate_data(nbytes: int, backend: str = "cpu", device: Any = None) -> Buff
                 "use backend='cpu' for zero-size tensors")
         return _warp_buffer().allocate_buffer(nbytes, device=resolved)
     raise UnsupportedBackendError(f"unknown backend {backend!r}; supported: {', '.join(BACKENDS)}")
+
+
+_ALIGN = 64  # cache line; what JAX and SIMD kernels want to import host memory without a copy
+
+
+def _aligned_zeros(nbytes: int) -> np.ndarray:
+    raw = np.zeros(nbytes + _ALIGN, dtype=np.uint8)
+    start = -raw.ctypes.data % _ALIGN
+    return raw[start:start + nbytes]
 
 
 def backend_of(buffer: Buffer) -> str:

@@ -1,0 +1,77 @@
+"""ExperimentalTensor <-> ONNX Runtime ``OrtValue``, through ``OrtValue.from_dlpack``.
+
+Install with ``pip install warp-buffer[onnx]`` (``onnxruntime``, CPU; ``onnxruntime-gpu`` for
+CUDA memory). ONNX Runtime 1.32 imports and exports DLPack, contiguous tensors only: a contiguous
+payload converts zero-copy (``clone=False``), a strided one needs ``clone=True``. An ``OrtValue``
+is an inference input, not a buffer to fill, so :func:`from_output_tensor_msg` raises; outputs
+go back with :func:`to_tensor_msg` (they export DLPack).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+
+from . import _api
+from .dtypes import DType, dtype_from_name
+from .errors import UnsupportedBackendError
+
+__all__ = ["allocate_tensor_msg", "from_input_tensor_msg", "from_output_tensor_msg",
+           "to_tensor_msg"]
+
+_ORT_NAMES = {"float": "float32", "double": "float64"}  # "tensor(float)" -> canonical names
+
+
+class _OrtAdapter(_api.DLPackAdapter[ort.OrtValue]):
+    name = "onnx"
+    value_type = ort.OrtValue
+
+    def consume(self, producer: Any) -> ort.OrtValue:
+        return ort.OrtValue.from_dlpack(producer.__dlpack__())
+
+    def reshape(self, view: Any, tensor: ort.OrtValue) -> ort.OrtValue:
+        return tensor  # OrtValues cannot be reshaped: a scalar behind Warp stays shape (1,)
+
+    def clone(self, view: Any) -> ort.OrtValue:
+        carrier = view.carrier
+        if type(carrier) is np.ndarray:
+            return ort.OrtValue.ortvalue_from_numpy(np.array(carrier, order="C", copy=True))
+        return super().clone(view)
+
+    def shape_dtype(self, value: Any) -> tuple[tuple[int, ...], DType]:
+        name = value.data_type().removeprefix("tensor(").removesuffix(")")
+        return tuple(value.shape()), dtype_from_name(_ORT_NAMES.get(name, name))
+
+
+_ADAPTER = _OrtAdapter()
+
+
+def from_output_tensor_msg(msg: Any) -> ort.OrtValue:
+    """Not available: an OrtValue is not filled in place. Raises
+    :class:`UnsupportedBackendError`."""
+    raise UnsupportedBackendError(
+        "ONNX Runtime values are not filled in place; run the session, then "
+        "tensor_conversions.onnx.to_tensor_msg(msg, output)")
+
+
+def allocate_tensor_msg(shape: Sequence[int] | int, dtype: Any, backend: str = "cpu",
+                        device: Any = None) -> Any:
+    """A new ExperimentalTensor for ``shape``/``dtype`` (a NumPy dtype), storage as in
+    :func:`tensor_conversions.torch.allocate_tensor_msg`."""
+    return _api.allocate_tensor_msg(_ADAPTER, shape, dtype, backend, device)
+
+
+def from_input_tensor_msg(msg: Any, clone: bool = True) -> ort.OrtValue:
+    """The tensor of ``msg``: an independent copy (default) or, with ``clone=False``, a
+    zero-copy alias of a contiguous payload (treat as read-only)."""
+    return _api.from_input_tensor_msg(_ADAPTER, msg, clone)
+
+
+def to_tensor_msg(msg_or_value: Any, value: Any = None, *, backend: str | None = None,
+                  device: Any = None) -> Any:
+    """Copy a OrtValue value into a message (``to_tensor_msg(msg, value)`` fills preallocated
+    storage, ``to_tensor_msg(value)`` makes a new message on the value's device)."""
+    return _api.to_tensor_msg(_ADAPTER, msg_or_value, value, backend=backend, device=device)
