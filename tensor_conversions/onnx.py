@@ -1,7 +1,8 @@
 """ExperimentalTensor <-> ONNX Runtime ``OrtValue``, through ``OrtValue.from_dlpack``.
 
 Install with ``pip install warp-buffer[onnx]`` (``onnxruntime``, CPU; ``onnxruntime-gpu`` for
-CUDA memory). ONNX Runtime 1.32 imports and exports DLPack, contiguous tensors only: a contiguous
+CUDA memory). ONNX Runtime imports and exports DLPack on its public ``OrtValue`` (tested with 1.32;
+earlier releases kept it on a private class), contiguous tensors only: a contiguous
 payload converts zero-copy (``clone=False``), a strided one needs ``clone=True``. An ``OrtValue``
 is an inference input, not a buffer to fill, so :func:`from_output_tensor_msg` raises; outputs
 go back with :func:`to_tensor_msg` (they export DLPack).
