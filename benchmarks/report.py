@@ -163,4 +163,10 @@ def format_table(report: dict[str, Any]) -> str:
         out += ["", "Copy kernels (benchmarks.copy_bandwidth --quick):", bandwidth["text"]]
     elif bandwidth:
         out += ["", f"Copy kernels: {bandwidth.get('status')}: {bandwidth.get('reason', '')}"]
+    conversions = report.get("conversions", {})
+    if conversions.get("status") == "ok" and conversions.get("text"):
+        out += ["", "Tensor conversions (benchmarks.conversions):", conversions["text"]]
+    elif conversions:
+        out += ["", f"Tensor conversions: {conversions.get('status')}: "
+                    f"{conversions.get('reason', '')}"]
     return "\n".join(out)

@@ -52,6 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated paths to run (default: all): %(default)s")
     parser.add_argument("--no-copy-bandwidth", action="store_true",
                         help="skip the copy-kernel bandwidth measurement")
+    parser.add_argument("--no-conversions", action="store_true",
+                        help="skip the tensor_conversions per-frame cost measurement")
 
 
 def _plan(args: argparse.Namespace) -> dict[str, Any]:
@@ -61,17 +63,18 @@ def _plan(args: argparse.Namespace) -> dict[str, Any]:
     return plan
 
 
-def _copy_bandwidth(quick: bool, timeout_s: float) -> dict[str, Any]:
-    """The copy kernels' bandwidth from ``benchmarks.copy_bandwidth`` (another module's job),
-    run in a child so its Warp kernels and threads do not disturb the latency runs."""
+def _section(module: str, quick: bool, timeout_s: float) -> dict[str, Any]:
+    """The printed report of ``python -m <module> [--quick]`` (a benchmark that is another
+    module's job), run in a child so its Warp kernels and threads do not disturb the latency
+    runs."""
     import importlib.util
 
-    if importlib.util.find_spec("benchmarks.copy_bandwidth") is None:
-        return {"status": "unavailable", "reason": "benchmarks/copy_bandwidth.py not present"}
+    if importlib.util.find_spec(module) is None:
+        return {"status": "unavailable", "reason": f"{module} not present"}
     argv = ["--quick"] if quick else []
-    code = ("import sys, benchmarks.copy_bandwidth as m; "
+    code = (f"import sys, {module} as m; "
             f"sys.exit(m.main({argv!r}) or 0)")
-    progress("copy bandwidth: benchmarks.copy_bandwidth " + " ".join(argv))
+    progress(f"{module} " + " ".join(argv))
     process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True,
                                cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -119,7 +122,11 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         if entry["status"] in ("unavailable", "error"):
             progress(f"  [{name}] {entry['status']}: {entry['reason']}")
     if not args.no_copy_bandwidth:
-        report["copy_bandwidth"] = _copy_bandwidth(args.quick, 60.0 if args.quick else 180.0)
+        report["copy_bandwidth"] = _section("benchmarks.copy_bandwidth", args.quick,
+                                            60.0 if args.quick else 180.0)
+    if not args.no_conversions:
+        report["conversions"] = _section("benchmarks.conversions", args.quick,
+                                         60.0 if args.quick else 180.0)
     report["ratios"] = ratios(report["paths"])
     report["wall_s"] = time.monotonic() - started
     return report
