@@ -1,19 +1,22 @@
-"""tensor_conversions: ``tensor_msgs/msg/ExperimentalTensor`` <-> torch, NumPy and Warp.
+"""tensor_conversions: ROS 2 messages <-> torch, NumPy, Warp, JAX, CuPy and ONNX Runtime.
 
-The core here is framework-neutral: DLPack dtypes (:mod:`.dtypes`), metadata validation
-(:mod:`.metadata`), storage backends (:mod:`.storage`) and :class:`TensorView`, a zero-copy
-DLPack producer over a message's bytes (:mod:`.dlpack`). One module per framework offers the same
-four operations: ``allocate_tensor_msg``, ``from_output_tensor_msg``, ``from_input_tensor_msg``
-and ``to_tensor_msg``:
+One small framework-neutral core lets DLPack carry dtype, shape, strides, device and ownership:
+:class:`TensorView` (:mod:`.dlpack`) lays a NumPy or Warp array over a message's bytes and
+forwards ``__dlpack__``; layouts are validated once per distinct metadata (:mod:`.metadata`);
+storage and handles live in :mod:`.storage`. One module per framework offers the same four
+operations on ``tensor_msgs/msg/ExperimentalTensor``: ``allocate_tensor_msg``,
+``from_output_tensor_msg``, ``from_input_tensor_msg`` and ``to_tensor_msg``; torch, NumPy and Warp
+also the same four for ``sensor_msgs/msg/Image`` (:mod:`.image`) and
+``from_input_pointcloud_msg`` for ``sensor_msgs/msg/PointCloud2`` (:mod:`.pointcloud`):
 
     from tensor_conversions import torch as tc
     msg = tc.allocate_tensor_msg((480, 640, 3), torch.uint8, backend="warp", device="cuda:0")
-    out = tc.from_output_tensor_msg(msg)   # fill in place
+    out = tc.from_output_tensor_msg(msg)   # fill in place, on torch's current stream
     out[:] = frame
     del out                                # or tensor_conversions.release_output(msg)
 
-Framework modules are imported on demand (``import tensor_conversions.torch``), so the core
-needs none of them.
+Framework modules are imported on demand (``import tensor_conversions.jax``), so the core needs
+none of them; JAX, CuPy and ONNX Runtime are optional extras.
 """
 
 from .dlpack import TensorView, input_view, output_view

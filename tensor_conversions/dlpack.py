@@ -75,24 +75,50 @@ class TensorView:
     is carried with shape ``(1,)`` and :meth:`reshape_result` restores ``()``.
     """
 
-    __slots__ = ("layout", "device", "writable", "carrier", "handle")
+    __slots__ = ("layout", "device", "writable", "handle", "_storage", "_carrier")
 
     def __init__(self, storage: Any, layout: TensorLayout, *, writable: bool,
                  handle: Any = None) -> None:
         self.layout = layout
         self.writable = writable
         self.handle = handle
-        if type(storage) is np.ndarray:  # CPU storage: host bytes
-            self.device = "cpu"
-            self.carrier = _host_carrier(storage, layout, storage)
-        elif storage.device.is_cpu:  # warp storage on Warp's cpu device: also host memory
-            self.device = "cpu"
-            host = _host_bytes(storage.ptr, storage.size, owner=(storage, handle))
-            self.carrier = _host_carrier(host, layout, (storage, handle))
+        self._storage = storage  # 1-D uint8: NumPy (CPU storage) or wp.array (warp storage)
+        self._carrier: Any = None  # built on first use: a Warp consumer may never need NumPy's
+        if type(storage) is np.ndarray or storage.device.is_cpu:
+            self.device = "cpu"  # host memory (Warp's cpu device included)
         else:
             self.device = str(storage.device)
-            self.carrier = _warp_carrier(storage.ptr, storage.size, self.device, layout,
-                                         owner=(storage, handle))
+            self._carrier = _warp_carrier(storage.ptr, storage.size, self.device, layout,
+                                          owner=(storage, handle))
+
+    @property
+    def carrier(self) -> Any:
+        """The NumPy (host memory; Warp for bfloat16) or Warp (device memory) array forwarded to
+        DLPack."""
+        carrier = self._carrier
+        if carrier is None:
+            storage = self._storage
+            if type(storage) is np.ndarray:
+                carrier = _host_carrier(storage, self.layout, storage)
+            else:  # warp storage on Warp's cpu device: NumPy exports versioned, writable DLPack
+                owner = (storage, self.handle)
+                host = _host_bytes(storage.ptr, storage.size, owner=owner)
+                carrier = _host_carrier(host, self.layout, owner)
+            self._carrier = carrier
+        return carrier
+
+    def warp_array(self) -> Any:
+        """This view as a ``wp.array`` (a scalar as shape ``(1,)``), zero-copy, built from the
+        storage's pointer: Warp's DLPack import refuses read-only arrays and costs ~10 us."""
+        carrier = self._carrier
+        if carrier is not None and type(carrier) is not np.ndarray:
+            return carrier
+        storage = self._storage
+        if type(storage) is np.ndarray:
+            base = storage.ctypes.data if storage.size else 0
+            return _warp_carrier(base, storage.size, "cpu", self.layout, owner=storage)
+        return _warp_carrier(storage.ptr, storage.size, "cpu", self.layout,
+                             owner=(storage, self.handle))
 
     @property
     def dtype(self) -> DType:

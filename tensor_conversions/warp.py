@@ -16,7 +16,7 @@ import warp as wp
 from . import _api
 from . import image as _image
 from . import pointcloud as _pointcloud
-from .dlpack import TensorView, import_warp, warp_dtype
+from .dlpack import TensorView, warp_dtype
 from .dtypes import DType, dtype_from_name
 from .errors import UnsupportedDTypeError, UnsupportedValueError
 
@@ -55,22 +55,8 @@ def dtype_to_warp(dtype: DType) -> Any:
 
 
 def as_warp(view: TensorView) -> wp.array:
-    """``view`` as a ``wp.array`` (a scalar as shape ``(1,)``), zero-copy.
-
-    A Warp carrier is returned as is. A NumPy carrier (host memory) is wrapped by pointer: Warp's
-    DLPack import refuses read-only arrays and costs ~10 us, the wrap ~4 us.
-    """
-    carrier = view.carrier
-    if isinstance(carrier, wp.array):
-        return carrier
-    import_warp()
-    layout = view.layout
-    shape, strides = (layout.shape, carrier.strides) if layout.shape else ((1,), (carrier.itemsize,))
-    array = wp.array(ptr=carrier.ctypes.data if carrier.size else None,
-                     dtype=warp_dtype(layout.dtype), shape=shape, strides=strides, device="cpu",
-                     copy=False)
-    array._tensor_conversions_owner = carrier  # keeps the host memory alive
-    return array
+    """``view`` as a ``wp.array`` (a scalar as shape ``(1,)``), zero-copy."""
+    return view.warp_array()
 
 
 class _WarpAdapter(_api.Adapter[wp.array]):
