@@ -182,12 +182,18 @@ def write_value(adapter: Adapter[Any], msg: Any, layout: TensorLayout, value: An
         adapter.copy_into(view_of(msg, layout, writable=True), value)
         return
     shared = live_write_handle(msg)
-    view = view_of(msg, layout, writable=True, stream=_stream(adapter, storage_device(data)),
-                   replace_if_spent=True)
+    device = storage_device(data)
+    stream = _stream(adapter, device)
+    view = view_of(msg, layout, writable=True, stream=stream, replace_if_spent=True)
     handle = view.handle
     adapter.copy_into(view, value)
-    if shared is None and handle is not None:
+    if shared is None:
         handle.release()  # ours: the message is complete and publishable
+    elif device != "cpu" and shared.stream is not None:
+        # A live view's handle records completion on ITS stream: order that after our copy.
+        ours = stream if stream is not None else import_warp().get_stream(device)
+        if ours is not shared.stream:
+            shared.stream.wait_stream(ours)
 
 
 _KDL_CPU, _KDL_CUDA = 1, 2  # DLPack device types
