@@ -303,3 +303,23 @@ def test_cdr_round_trip_keeps_strides_and_offset():
     received = deserialize_message(bytes(serialize_message(msg)), tc.TENSOR_MSG_TYPE)
     np.testing.assert_array_equal(tc_numpy.from_input_tensor_msg(received),
                                   tc_numpy.from_input_tensor_msg(msg))
+
+
+def test_a_layout_is_validated_once_per_distinct_metadata(monkeypatch):
+    from tensor_conversions import metadata
+
+    calls = []
+    real = metadata._validate
+    monkeypatch.setattr(metadata, "_LAYOUTS", {})
+    monkeypatch.setattr(metadata, "_validate", lambda *key: calls.append(key) or real(*key))
+    frames = [tc_numpy.to_tensor_msg(np.full((3, 4), i, np.float32)) for i in range(5)]
+    calls.clear()
+    for i, msg in enumerate(frames):  # new messages, same metadata: validated once
+        assert tc_numpy.from_input_tensor_msg(msg, clone=False)[0, 0] == i
+    assert len(calls) == 1
+    frames[0].shape = np.array([4, 3], np.int64)  # other metadata: validated again
+    assert tc_numpy.from_input_tensor_msg(frames[0]).shape == (4, 3)
+    assert len(calls) == 2
+    frames[1].byte_offset = 8  # and a bad change is still caught
+    with pytest.raises(tc.InvalidTensorMetadataError, match="needs 56 bytes"):
+        tc_numpy.from_input_tensor_msg(frames[1])
