@@ -178,6 +178,8 @@ def external_stream(device: str, cuda_stream: int) -> Any:
         wp = import_warp()
         raw = 0 if cuda_stream == 1 else cuda_stream
         found = wp.Stream(device, cuda_stream=raw)
+        if len(_STREAMS) >= 64:  # frameworks reuse pooled streams: a handful in practice
+            _STREAMS.clear()
         _STREAMS[key] = found
     return found
 
