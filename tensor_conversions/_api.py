@@ -196,7 +196,7 @@ def write_value(adapter: Adapter[Any], msg: Any, layout: TensorLayout, value: An
             shared.stream.wait_stream(ours)
 
 
-_KDL_CPU, _KDL_CUDA = 1, 2  # DLPack device types
+_KDL_CUDA = 2  # DLPack device type of CUDA memory
 
 
 class DLPackAdapter(Adapter[T]):

@@ -193,9 +193,8 @@ def from_input_image_msg(adapter: _api.Adapter[Any], msg: Any, clone: bool = Tru
             "foreign byte order is converted only for CPU storage; subscribe with the cpu backend")
     # One documented host copy: view the bytes with their byte order, convert to native order.
     raw = host_bytes(msg.data, writable=False)
-    foreign = np.lib.stride_tricks.as_strided(
-        raw.view(layout.dtype.numpy_dtype().newbyteorder()), shape=layout.shape,
-        strides=layout.byte_strides)
+    foreign = np.ndarray(layout.shape, dtype=layout.dtype.numpy_dtype().newbyteorder(),
+                         buffer=raw, strides=layout.byte_strides)
     copy = np.ascontiguousarray(foreign.astype(layout.dtype.numpy_dtype()))
     temp = image_msg_type()(height=msg.height, width=msg.width, encoding=msg.encoding,
                             is_bigendian=_NATIVE_BIGENDIAN, step=copy.strides[0],

@@ -1,7 +1,7 @@
 """``sensor_msgs/msg/PointCloud2``: a NumPy structured view, and an N x F tensor of chosen fields.
 
 :func:`structured_view` gives the points as a NumPy structured array over the message bytes
-(zero-copy for host memory; fields keep their byte order, offsets and padding). Shape is
+(zero-copy for CPU storage; fields keep their byte order, offsets and padding). Shape is
 ``(width,)`` for an unorganised cloud (``height == 1``), else ``(height, width)``.
 
 ``from_input_pointcloud_msg(msg, fields=("x", "y", "z"))`` in each framework module gives an
@@ -76,7 +76,7 @@ def _check_size(msg: Any) -> None:
 def structured_view(msg: Any) -> np.ndarray:
     """The points as a read-only structured array over the message's host bytes (no copy).
 
-    Warp storage on a CUDA device is copied to the host first (one copy, ``to_numpy``).
+    Warp storage is copied to the host first (one copy, ``Buffer.to_numpy``).
     """
     dtype = field_dtype(msg)
     _check_size(msg)
