@@ -91,10 +91,6 @@ class TensorLayout:
     strides: tuple[int, ...]
     byte_offset: int = 0
 
-    @property
-    def ndim(self) -> int:
-        return len(self.shape)
-
     @_cached  # perf: layouts are immutable; computed once, not per access
     def numel(self) -> int:
         return math.prod(self.shape)
@@ -206,16 +202,15 @@ def _validate(code: Any, bits: Any, lanes: Any, shape: tuple[int, ...], strides:
     return layout
 
 
-def write_metadata(msg: Any, layout: TensorLayout, *, explicit_strides: bool = False) -> None:
+def write_metadata(msg: Any, layout: TensorLayout) -> None:
     """Store ``layout`` in the metadata fields of ``msg`` (``data`` is left alone).
 
-    Contiguous layouts are written with empty ``strides`` (DLPack's convention) unless
-    ``explicit_strides`` is set.
+    Contiguous layouts are written with empty ``strides`` (DLPack's convention).
     """
     msg.dtype_code = layout.dtype.code
     msg.dtype_bits = layout.dtype.bits
     msg.dtype_lanes = layout.dtype.lanes
     msg.shape = np.asarray(layout.shape, dtype=np.int64).reshape(-1)
-    keep = explicit_strides or not layout.is_contiguous
-    msg.strides = np.asarray(layout.strides if keep else (), dtype=np.int64).reshape(-1)
+    strides = () if layout.is_contiguous else layout.strides
+    msg.strides = np.asarray(strides, dtype=np.int64).reshape(-1)
     msg.byte_offset = layout.byte_offset
