@@ -115,11 +115,6 @@ SUPPORTED_DTYPES: dict[str, DType] = {
 _NUMPY: dict[DType, np.dtype] = {
     dt: np.dtype(name) for name, dt in SUPPORTED_DTYPES.items() if name != "bfloat16"
 }
-_BY_VALUE = {dt: dt for dt in SUPPORTED_DTYPES.values()}
-
-
-# perf: (code, bits, lanes) tuple -> supported DType; a tuple lookup skips building and hashing
-# a DType dataclass per message (misses fall through to the validating path below).
 _BY_TRIPLE = {(dt.code, dt.bits, dt.lanes): dt for dt in SUPPORTED_DTYPES.values()}
 
 
@@ -135,13 +130,10 @@ def dtype_from_metadata(code: int, bits: int, lanes: int) -> DType:
             f"dtype_lanes={lanes} ({wanted.name}): vector (multi-lane) elements are not supported, "
             "lanes must be 1"
         )
-    found = _BY_VALUE.get(wanted)
-    if found is None:
-        raise UnsupportedDTypeError(
-            f"unsupported DLPack dtype code={code} bits={bits} ({wanted.name}); supported: "
-            + ", ".join(SUPPORTED_DTYPES)
-        )
-    return found
+    raise UnsupportedDTypeError(
+        f"unsupported DLPack dtype code={code} bits={bits} ({wanted.name}); supported: "
+        + ", ".join(SUPPORTED_DTYPES)
+    )
 
 
 def dtype_from_name(name: str) -> DType:
