@@ -35,9 +35,9 @@ def numpy_dtype(primitive: str) -> np.dtype:
 class Message:
     """Base of every generated message class.
 
-    ``_native`` is not a field: it is a per-message cache that conversions packages own (a
-    validated layout, a shared write handle, native views reused by loans). It is never
-    serialized, compared or printed; its value decides what copy/pickle keep of it.
+    ``_native`` is not a field: it is a per-message cache that conversions packages own (the
+    write handle its views share; native views a loan reuses). It is never serialized, compared
+    or printed; its value decides what copy/deepcopy keep of it.
     """
 
     __slots__ = ("_native",)
