@@ -37,9 +37,9 @@ def import_warp() -> Any:
     global _WARP
     if _WARP is not None:
         return _WARP
-    import warp as wp
+    from warp_buffer import init_warp  # quiet start: nothing of Warp's on stdout
 
-    wp.init()
+    wp = init_warp()
     _WARP = wp
     return wp
 
