@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import time
 
 import pytest
 
@@ -34,3 +35,47 @@ def test_demo_fails_when_a_check_fails(monkeypatch, capsys):
     monkeypatch.setenv("WARP_BUFFER_DEMO_CORRUPT", "1")
     assert demo.run(args) == 1
     assert "FAILED" in capsys.readouterr().out
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    demo.add_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def test_demo_fails_fast_with_the_typed_error_on_a_missing_device(capsys):
+    import warp_buffer
+
+    if "cuda:7" in {str(d.alias) for d in warp_buffer.init_warp().get_devices()}:
+        pytest.skip("this machine has a cuda:7")
+    started = time.monotonic()
+    assert demo.run(_parse(["--device", "cuda:7", "--domain", "3"])) == 1
+    assert time.monotonic() - started < 5
+    err = capsys.readouterr().err
+    assert "DeviceUnavailableError" in err and "cuda:7" in err
+
+
+def test_demo_defaults_to_warps_preferred_device():
+    import warp_buffer
+
+    args = _parse([])
+    assert args.device is None
+    assert demo._check_device(args) is None
+    assert args.device == str(warp_buffer.init_warp().get_preferred_device().alias)
+
+
+@pytest.mark.parametrize("argv", [["--frames", "0"], ["--frames", "x"], ["--width", "-3"],
+                                  ["--rate", "-1"], ["--timeout", "0"], ["--domain", "-1"]])
+def test_demo_rejects_bad_arguments_with_a_usage_error(argv, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        _parse(argv)
+    assert exit_info.value.code == 2
+    assert "error: argument " + argv[0] in capsys.readouterr().err
+
+
+def test_demo_help_shows_the_defaults():
+    parser = argparse.ArgumentParser()
+    demo.add_arguments(parser)
+    text = parser.format_help()
+    assert "frames to publish (default: 50)" in text
+    assert "(default: None)" not in text and "preferred device" in text

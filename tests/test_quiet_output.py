@@ -1,0 +1,96 @@
+"""Nothing of ours on stdout: every package and command leaves stdout to the application.
+
+Each check runs a fresh interpreter (Warp prints its banner once per process, at its first
+initialisation) and compares stdout with the application's own lines exactly.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+pytestmark = pytest.mark.multiprocess
+
+# A program that uses every package the way an application does and prints one line itself.
+LIBRARY_USER = textwrap.dedent("""
+    import numpy as np
+    import warp_buffer
+    from warp_buffer import allocate_buffer, from_output_buffer, from_input_buffer
+    from tensor_conversions import numpy as tcn, torch as tct, warp as tcw
+    from buffer_pubsub import Node
+
+    buf = allocate_buffer(64)
+    with from_output_buffer(buf) as out:
+        out.array.fill_(7)          # a Warp kernel of ours: Warp logs its module load
+    with from_input_buffer(buf) as inp:
+        assert int(inp.array.numpy()[0]) == 7
+    msg = tcn.allocate_tensor_msg((4, 4), np.uint8, backend="warp")
+    tcn.from_output_tensor_msg(msg)[:] = 3
+    import tensor_conversions
+    tensor_conversions.release_output(msg)
+    assert int(tct.from_input_tensor_msg(msg)[0, 0]) == 3
+    tcw.to_tensor_msg(tcw.from_input_tensor_msg(msg))
+    with Node("quiet_check", domain_id=%(domain)d) as node:
+        pub = node.create_publisher("tensor_msgs/msg/ExperimentalTensor", "/quiet_check")
+        pub.publish(msg)
+    print("application line")
+""")
+
+
+def _run(argv: list[str], env: dict[str, str] | None = None,
+         timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    full_env = dict(os.environ)
+    full_env.pop("WARP_BUFFER_VERBOSE", None)  # quiet unless the test asks
+    full_env.update(env or {})
+    return subprocess.run(argv, cwd=ROOT, env=full_env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def _no_warp_noise(text: str) -> None:
+    assert "Warp 1." not in text and "initialized" not in text, text
+    assert "CUDA driver" not in text, text
+    assert "Module " not in text, text  # Warp's "Module ... load on device ... took ..."
+
+
+def test_library_use_prints_only_the_applications_line() -> None:
+    code = LIBRARY_USER % {"domain": 200 + os.getpid() % 30}
+    done = _run([sys.executable, "-c", code])
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout == "application line\n"
+    _no_warp_noise(done.stderr)
+
+
+def test_verbose_hands_warp_its_own_output_back() -> None:
+    """The silence is ours, not an accident of this machine: asked for, Warp speaks."""
+    done = _run([sys.executable, "-c", "import warp_buffer"], env={"WARP_BUFFER_VERBOSE": "1"})
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "Warp 1." in done.stdout + done.stderr
+
+
+def test_info_prints_only_its_report() -> None:
+    done = _run([sys.executable, "-m", "warp_buffer_cli.main", "info"])
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = done.stdout.splitlines()
+    assert lines[0] == "Buffer backends:" and "Warp devices:" in lines
+    assert all(line == "Buffer backends:" or line == "Warp devices:" or line.startswith("  ")
+               for line in lines), done.stdout
+    _no_warp_noise(done.stdout + done.stderr)
+
+
+def test_demo_prints_only_its_report() -> None:
+    domain = 170 + os.getpid() % 30
+    done = _run([sys.executable, "-m", "warp_buffer_cli.main", "demo", "--frames", "3",
+                 "--height", "8", "--width", "8", "--rate", "0", "--timeout", "40",
+                 "--domain", str(domain)], timeout=150)
+    assert done.returncode == 0, done.stdout + done.stderr[-3000:]
+    prefixes = ("warp-buffer demo:", "publisher:", "warp subscriber:", "cpu subscriber:",
+                "demo:")
+    assert [line.split(" ")[0] for line in done.stdout.splitlines()] == [
+        p.split(" ")[0] for p in prefixes], done.stdout
+    _no_warp_noise(done.stdout + done.stderr)
