@@ -94,3 +94,35 @@ def test_demo_prints_only_its_report() -> None:
     assert [line.split(" ")[0] for line in done.stdout.splitlines()] == [
         p.split(" ")[0] for p in prefixes], done.stdout
     _no_warp_noise(done.stdout + done.stderr)
+
+
+def test_captured_native_output_is_logged_or_handed_back(
+        caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]) -> None:
+    import logging
+
+    from warp_buffer import startup
+
+    caplog.set_level(logging.INFO, logger="warp_buffer")
+    startup._replay("Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU "
+                    "execution will not be available.\nsomething else went wrong\n")
+    assert any("CUDA driver" in r.getMessage() and r.levelno == logging.INFO
+               for r in caplog.records)
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err == "something else went wrong\n"
+
+
+def test_warp_messages_go_to_logging(caplog: pytest.LogCaptureFixture,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    import logging
+
+    import warp as wp
+
+    from warp_buffer import startup  # importing warp_buffer installed the logger
+
+    if startup.verbose_requested():
+        pytest.skip("WARP_BUFFER_VERBOSE is set: Warp keeps its own logger by request")
+    assert isinstance(wp.get_logger(), startup._LoggingWarpLogger)
+    caplog.set_level(logging.INFO, logger="warp")
+    wp.get_logger().info("a Warp info message")
+    assert capsys.readouterr().out == ""
+    assert any(r.getMessage() == "a Warp info message" for r in caplog.records)

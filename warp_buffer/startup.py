@@ -86,9 +86,16 @@ def init_warp() -> Any:
 def _captured_fd2() -> Iterator[Any]:
     """Redirect file descriptor 2 into a temporary file; yields a function that reads it."""
     text = ""
-    with tempfile.TemporaryFile(mode="w+b") as sink:
-        sys.stderr.flush()
+    try:
         saved = os.dup(2)
+    except OSError:  # no stderr at all (a daemon): nothing to capture
+        yield lambda: text
+        return
+    with tempfile.TemporaryFile(mode="w+b") as sink:
+        try:
+            sys.stderr.flush()
+        except (AttributeError, OSError, ValueError):  # sys.stderr None or closed
+            pass
         try:
             os.dup2(sink.fileno(), 2)
             yield lambda: text
@@ -103,5 +110,5 @@ def _replay(text: str) -> None:
     for line in text.splitlines():
         if _CUDA_DRIVER_LINE in line:
             _log.info("%s (Warp runs on its cpu device only)", line.strip())
-        elif line.strip():
+        elif line.strip() and sys.stderr is not None:
             sys.stderr.write(line + "\n")  # not ours to judge: hand it back where it was going
