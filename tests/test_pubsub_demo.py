@@ -4,26 +4,35 @@ from __future__ import annotations
 
 import argparse
 import os
+import pathlib
+import subprocess
+import sys
 import time
 
 import pytest
 
 from warp_buffer_cli import demo
 
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.multiprocess
 
 
-def test_demo_passes_on_the_cpu_device(capsys):
-    parser = argparse.ArgumentParser()
-    demo.add_arguments(parser)
-    args = parser.parse_args(["--frames", "12", "--height", "32", "--width", "48",
-                              "--rate", "100", "--timeout", "40",
-                              "--domain", str(230 + os.getpid() % 20)])
-    code = demo.run(args)
-    out = capsys.readouterr().out
-    assert code == 0, out
+def test_demo_passes_on_the_cpu_device():
+    """Run as a user does (``warp-buffer demo``): exit 0, and stdout is its report alone."""
+    done = subprocess.run(
+        [sys.executable, "-m", "warp_buffer_cli.main", "demo", "--frames", "12", "--height",
+         "32", "--width", "48", "--rate", "100", "--timeout", "40", "--device", "cpu",
+         "--domain", str(230 + os.getpid() % 20)],
+        cwd=ROOT, env={k: v for k, v in os.environ.items() if k != "WARP_BUFFER_VERBOSE"},
+        capture_output=True, text=True, timeout=150)
+    out = done.stdout
+    assert done.returncode == 0, out + done.stderr[-3000:]
     assert "warp subscriber: path warp" in out and "cpu subscriber: path cpu" in out
     assert "received 12/12" in out and "p99" in out
+    report = ("warp-buffer demo:", "publisher:", "warp subscriber:", "cpu subscriber:", "demo:")
+    assert [line.split(" ")[0] for line in out.splitlines()] == [p.split(" ")[0] for p in report]
+    for noise in ("Warp 1.", "CUDA driver", "Module "):  # Warp's banner, native warning, logs
+        assert noise not in out + done.stderr
 
 
 def test_demo_fails_when_a_check_fails(monkeypatch, capsys):
