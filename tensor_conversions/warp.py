@@ -18,6 +18,8 @@ from .dlpack import TensorView, import_warp, warp_dtype
 from .dtypes import DType, dtype_from_name
 from .errors import UnsupportedDTypeError
 
+import_warp()  # at import: Warp starts quietly, before the application's first Warp call
+
 __all__ = [
     "allocate_tensor_msg",
     "dtype_to_warp",

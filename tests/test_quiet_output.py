@@ -59,8 +59,19 @@ def _no_warp_noise(text: str) -> None:
     assert "Module " not in text, text  # Warp's "Module ... load on device ... took ..."
 
 
-def test_library_use_prints_only_the_applications_line() -> None:
-    code = LIBRARY_USER % {"domain": 200 + os.getpid() % 30}
+# Importing only the Warp adapter, then using Warp directly, must be just as quiet.
+WARP_ADAPTER_USER = textwrap.dedent("""
+    from tensor_conversions import warp as tcw
+    import warp as wp
+    tcw.to_tensor_msg(wp.zeros(3))
+    print("application line")
+""")
+
+
+@pytest.mark.parametrize("program", ["library", "warp_adapter"])
+def test_library_use_prints_only_the_applications_line(program: str) -> None:
+    code = (LIBRARY_USER % {"domain": 200 + os.getpid() % 30} if program == "library"
+            else WARP_ADAPTER_USER)
     done = _run([sys.executable, "-c", code])
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout == "application line\n"
