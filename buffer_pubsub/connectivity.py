@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import threading
+from collections.abc import Callable
 
 import zenoh
 
@@ -62,19 +63,21 @@ def open_session(config: zenoh.Config | str | os.PathLike[str] | None = None,
     return session
 
 
-def _after(delay: float, cancel: threading.Event, action: object) -> None:
+def _after(delay: float, cancel: threading.Event, action: Callable[[], None]) -> None:
     def run() -> None:
         if not cancel.wait(delay):
-            action()  # type: ignore[operator]
+            action()
 
     threading.Thread(target=run, name="buffer_pubsub:connectivity", daemon=True).start()
 
 
 def _warn_if_alone(session: zenoh.Session, endpoints: list[str]) -> None:
     try:
+        if session.is_closed():  # a closed session lists no links: nothing to report
+            return
         linked = any(True for _ in session.info.routers_zid()) or any(
             True for _ in session.info.peers_zid())
-    except Exception:  # closed meanwhile: nothing to report
+    except zenoh.ZError:  # closed meanwhile
         return
     if not linked:
         _log.warning("none of the configured Zenoh endpoints %s answered within %.0f s; the "

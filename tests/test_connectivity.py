@@ -70,6 +70,17 @@ def test_unreachable_peer_of_a_config_file_is_reported(
                for r in caplog.records)
 
 
+def test_a_node_closed_before_the_check_is_not_reported(
+        fast_warning: None, tmp_path: pathlib.Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "peer.json5"
+    path.write_text('{mode: "peer", connect: {endpoints: ["tcp/127.0.0.1:1"]}, '
+                    'scouting: {multicast: {enabled: false}}}')
+    caplog.set_level(logging.WARNING, logger="buffer_pubsub")
+    Node("n", config=path).close()
+    time.sleep(1.0)  # twice the (patched) delay of the check
+    assert not [r for r in caplog.records if "keeps retrying" in r.getMessage()]
+
+
 def test_router_defaults_follow_rmw_zenoh() -> None:
     router = config.make_router_config()
     assert router.get_json("mode") == '"router"'
