@@ -48,8 +48,10 @@ def test_help_lists_every_command_and_the_verbose_flag(capsys: pytest.CaptureFix
 
 def test_verbose_flag_reaches_child_processes(monkeypatch: pytest.MonkeyPatch,
                                               capsys: pytest.CaptureFixture[str]) -> None:
-    monkeypatch.delenv("WARP_BUFFER_VERBOSE", raising=False)
-    assert main(["--verbose", "info"]) == 0
     import os
 
+    # setenv records the original state, so the "1" that main() sets is undone after the test
+    # (delenv of an absent variable records nothing, and later tests' children would be verbose).
+    monkeypatch.setenv("WARP_BUFFER_VERBOSE", "")
+    assert main(["--verbose", "info"]) == 0
     assert os.environ.get("WARP_BUFFER_VERBOSE") == "1"  # inherited by demo / bench children
