@@ -56,6 +56,12 @@ def _last_json(text: str) -> dict[str, Any]:
     return {}
 
 
+def _shm_prefixes(module: Any, settings: PathSettings) -> tuple[str, ...]:
+    """The /dev/shm name prefixes only this run of a path creates (a path may declare some)."""
+    declare = getattr(module, "shm_prefixes", None)
+    return tuple(declare(settings)) if declare is not None else ()
+
+
 def run_path(settings: PathSettings, plan: dict, timeout_s: float) -> dict[str, Any]:
     """Measure one path in child processes; always reaps them and removes their shared memory."""
     module = load_path(settings.name)
@@ -87,7 +93,7 @@ def run_path(settings: PathSettings, plan: dict, timeout_s: float) -> dict[str, 
             process.wait()
         reported = [path for output in outputs for path in output.get("shm_files", [])]
         removed = remove_leftovers(before, reported, [p.pid for p in processes],
-                                   getattr(module, "SHM_PREFIXES", ()))
+                                   _shm_prefixes(module, settings))
     result = outputs[0] if outputs else {}
     if not result:
         result = {"error": f"child exited with {processes[-1].returncode} and no result"

@@ -43,8 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``warp-buffer bench``."""
     parser.add_argument("--quick", action="store_true",
                         help=f"fewer sizes ({QUICK_SIZES}) and iterations: under a minute")
-    parser.add_argument("--out", default=os.path.join("benchmarks", "results"),
-                        help="directory for bench.json and latency.png (default: %(default)s)")
+    parser.add_argument("--out", default=default_out_dir(),
+                        help="directory for bench.json and latency.png, created if missing "
+                             "(default: %(default)s, i.e. $XDG_STATE_HOME/warp-buffer/bench)")
     parser.add_argument("--sizes", default=None,
                         help=f"comma-separated payload sizes, e.g. 4K,1M,16M (default: "
                              f"{DEFAULT_SIZES}; quick: {QUICK_SIZES})")
@@ -54,6 +55,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skip the copy-kernel bandwidth measurement")
     parser.add_argument("--no-conversions", action="store_true",
                         help="skip the tensor_conversions per-frame cost measurement")
+
+
+def default_out_dir() -> str:
+    """Where results go without ``--out``: ``$XDG_STATE_HOME/warp-buffer/bench`` (XDG's place
+    for data a program keeps between runs; ``~/.local/state`` when unset), never the current
+    directory, so a run from anywhere leaves no files behind in it."""
+    state = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local",
+                                                             "state")
+    return os.path.join(state, "warp-buffer", "bench")
 
 
 def _plan(args: argparse.Namespace) -> dict[str, Any]:
@@ -102,7 +112,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     run_id = uuid.uuid4().hex[:10]
     info = machine_info()
     report: dict[str, Any] = {
-        "schema": 1, "tool": "warp-buffer bench",
+        "schema": 1, "tool": "warp-buffer bench", "run_id": run_id,
         "started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "mode": "quick" if args.quick else "default", "method": METHOD,
         "machine": info, "machine_line": describe(info), "plan": plan, "paths": {},

@@ -3,13 +3,23 @@
 Choices, first match wins:
 
 1. ``Node(config=...)``: a ``zenoh.Config``, or the path of a Zenoh JSON5 configuration file.
-2. ``Node(router="tcp/host:7447")`` or env ``WARP_BUFFER_ZENOH_ROUTER``: peer mode connected to
-   that Zenoh router (``zenohd``), multicast scouting off, gossip on: rmw_zenoh's default layout,
-   for use across hosts.
+2. ``Node(router="tcp/host:7447")`` or env ``WARP_BUFFER_ZENOH_ROUTER``: Zenoh *client* mode
+   connected to that router (``warp-buffer router``, or any Zenoh router such as rmw_zenoh's
+   ``rmw_zenohd``), multicast scouting off: for use across hosts. Client, not peer, mode: Zenoh
+   1.10's routers no longer broker data between peers of their own region (the old
+   ``peers_failover_brokering`` is gone), so two peers that cannot open a link to each other (on
+   hosts that cannot reach each other's listening addresses, or in separate network namespaces)
+   exchanged nothing through a router; a client sends everything through its router. A node
+   waits up to ``WARP_BUFFER_ZENOH_CONNECT_TIMEOUT_S`` (default 10 s) for the router, warning
+   after a few seconds, then raises :class:`TransportConfigError`.
 3. env ``ZENOH_SESSION_CONFIG_URI`` (as rmw_zenoh): the path of a Zenoh JSON5 configuration file.
 4. The embedded default: peer mode, multicast scouting only on the loopback interface ``lo``,
    listening on ``tcp/127.0.0.1:0``. Processes of one host find each other in about 0.1 s with no
    router and no set-up, and no traffic leaves the host.
+
+Configuration files (``config=``, ``ZENOH_SESSION_CONFIG_URI``) are read here, and an error names
+the file. :data:`ROUTER_DEFAULTS` is the configuration of ``warp-buffer router``: the defaults of
+rmw_zenoh's router (``DEFAULT_RMW_ZENOH_ROUTER_CONFIG.json5``).
 
 The domain id (``Node(domain_id=...)`` or env ``ROS_DOMAIN_ID``, default 0) is the first key
 segment of everything a node publishes or advertises, so nodes of different domains never see each
@@ -20,17 +30,22 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from typing import Any
 
 import zenoh
 
 from .errors import TransportConfigError
 
-__all__ = ["DEFAULT_CONFIG", "ROUTER_ENV", "CONFIG_URI_ENV", "make_config", "resolve_domain_id"]
+__all__ = ["CONFIG_URI_ENV", "CONNECT_TIMEOUT_ENV", "DEFAULT_CONFIG", "ROUTER_DEFAULTS",
+           "ROUTER_ENV", "connect_timeout_s", "make_config", "make_router_config",
+           "resolve_domain_id", "zenoh_error_text"]
 
 ROUTER_ENV = "WARP_BUFFER_ZENOH_ROUTER"
 CONFIG_URI_ENV = "ZENOH_SESSION_CONFIG_URI"
+CONNECT_TIMEOUT_ENV = "WARP_BUFFER_ZENOH_CONNECT_TIMEOUT_S"
 DOMAIN_ENV = "ROS_DOMAIN_ID"
+DEFAULT_CONNECT_TIMEOUT_S = 10.0
 
 #: The embedded default (no router): loopback-only peer discovery by multicast scouting.
 DEFAULT_CONFIG: dict[str, Any] = {
@@ -43,34 +58,104 @@ DEFAULT_CONFIG: dict[str, Any] = {
 }
 
 
-def _router_config(endpoint: str) -> dict[str, Any]:
+#: ``warp-buffer router``: rmw_zenoh's router defaults (listen on every address at port 7447,
+#: multicast scouting off, gossip on, peers told only of the router, timestamps on).
+ROUTER_DEFAULTS: dict[str, Any] = {
+    "mode": "router",
+    "listen": {"endpoints": ["tcp/[::]:7447"]},
+    "connect": {"endpoints": []},
+    "scouting": {
+        "multicast": {"enabled": False},
+        "gossip": {"enabled": True, "multihop": False,
+                   "target": {"router": ["router", "peer"], "peer": ["router"]},
+                   "autoconnect": {"router": [], "peer": ["router", "peer"]}},
+    },
+    "timestamping": {"enabled": {"router": True, "peer": True, "client": True}},
+    "queries_default_timeout": 600000,
+}
+
+
+def connect_timeout_s() -> float:
+    """How long a node waits for its router: env ``WARP_BUFFER_ZENOH_CONNECT_TIMEOUT_S``."""
+    text = os.environ.get(CONNECT_TIMEOUT_ENV, "").strip()
+    try:
+        value = float(text) if text else DEFAULT_CONNECT_TIMEOUT_S
+    except ValueError:
+        raise TransportConfigError(f"{CONNECT_TIMEOUT_ENV}={text!r} is not a number") from None
+    if not value > 0:
+        raise TransportConfigError(f"{CONNECT_TIMEOUT_ENV} must be > 0, got {text!r}")
+    return value
+
+
+def _client_config(endpoint: str) -> dict[str, Any]:
     return {
-        "mode": "peer",
-        "connect": {"endpoints": [endpoint]},
-        "listen": {"endpoints": ["tcp/localhost:0"]},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": True}},
+        "mode": "client",
+        "connect": {"endpoints": [endpoint], "timeout_ms": int(connect_timeout_s() * 1000)},
+        "scouting": {"multicast": {"enabled": False}},
     }
+
+
+def _from_json(data: dict[str, Any], what: str) -> zenoh.Config:
+    try:
+        return zenoh.Config.from_json5(json.dumps(data))
+    except zenoh.ZError as exc:
+        raise TransportConfigError(f"invalid Zenoh configuration ({what}): {zenoh_error_text(exc)}") from exc
+
+
+def _from_file(path: str, source: str) -> zenoh.Config:
+    """Read a Zenoh JSON5 file; errors name the file and where its name came from."""
+    if not os.path.isfile(path):
+        raise TransportConfigError(f"Zenoh configuration file {path!r} ({source}) does not exist"
+                                   if not os.path.exists(path) else
+                                   f"Zenoh configuration {path!r} ({source}) is not a file")
+    try:
+        return zenoh.Config.from_file(path)
+    except zenoh.ZError as exc:
+        raise TransportConfigError(
+            f"invalid Zenoh configuration file {path!r} ({source}): {zenoh_error_text(exc)}") from exc
+
+
+def zenoh_error_text(exc: BaseException) -> str:
+    """Zenoh's message without the Rust source location it appends (``at .../lib.rs:1486.``)."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(exc)).strip()
 
 
 def make_config(config: zenoh.Config | str | os.PathLike[str] | None = None,
                 router: str | None = None) -> zenoh.Config:
-    """Build the ``zenoh.Config`` of a node from the choices listed in the module docstring."""
+    """Build the ``zenoh.Config`` of a node from the choices listed in the module docstring.
+
+    Raises:
+        TransportConfigError: a missing or invalid file (named), or an invalid router endpoint.
+    """
     if isinstance(config, zenoh.Config):
         return config
-    try:
-        if config is not None:
-            return zenoh.Config.from_file(os.fspath(config))
-        router = router or os.environ.get(ROUTER_ENV)
-        if router:
-            return zenoh.Config.from_json5(json.dumps(_router_config(router)))
-        uri = os.environ.get(CONFIG_URI_ENV)
-        if uri:
-            return zenoh.Config.from_file(uri)
-        return zenoh.Config.from_json5(json.dumps(DEFAULT_CONFIG))
-    except zenoh.ZError as exc:
-        raise TransportConfigError(f"invalid Zenoh configuration: {exc}") from exc
-    except OSError as exc:
-        raise TransportConfigError(f"cannot read Zenoh configuration {config!r}: {exc}") from exc
+    if config is not None:
+        return _from_file(os.fspath(config), "Node(config=...)")
+    router = router or os.environ.get(ROUTER_ENV)
+    if router:
+        return _from_json(_client_config(router), f"router {router!r}")
+    uri = os.environ.get(CONFIG_URI_ENV)
+    if uri:
+        return _from_file(uri, f"env {CONFIG_URI_ENV}")
+    return _from_json(DEFAULT_CONFIG, "embedded default")
+
+
+def make_router_config(listen: list[str] | None = None, connect: list[str] | None = None,
+                       config: str | os.PathLike[str] | None = None) -> zenoh.Config:
+    """The configuration of ``warp-buffer router``: ``config`` (a JSON5 file) or
+    :data:`ROUTER_DEFAULTS`, with ``listen`` / ``connect`` endpoints replacing the file's."""
+    if config is not None:
+        result = _from_file(os.fspath(config), "warp-buffer router --config")
+    else:
+        result = _from_json(ROUTER_DEFAULTS, "router defaults")
+    for key, endpoints in (("listen/endpoints", listen), ("connect/endpoints", connect)):
+        if endpoints:
+            try:
+                result.insert_json5(key, json.dumps(list(endpoints)))
+            except zenoh.ZError as exc:
+                raise TransportConfigError(
+                    f"invalid router endpoint in {endpoints!r}: {zenoh_error_text(exc)}") from exc
+    return result
 
 
 def resolve_domain_id(domain_id: int | None) -> int:

@@ -24,7 +24,8 @@ from rosidl_buffer.messages import Message, get_message_type, get_type_hash
 
 from . import _process, wire
 from ._zenoh import undeclare_quietly
-from .config import make_config, resolve_domain_id
+from .config import resolve_domain_id
+from .connectivity import open_session
 from .errors import InvalidEndpointError, NodeClosedError, PubSubError
 from .publisher import Publisher
 from .subscription import Subscription
@@ -75,7 +76,7 @@ class Node:
         self._subscriptions: list[Subscription] = []
         self._tasks: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
 
-        self.session = zenoh.open(make_config(config, router))
+        self.session = open_session(config, router)
         try:
             self.zid = str(self.session.zid())
             self.node_id = _process.next_id()

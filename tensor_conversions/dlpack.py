@@ -40,10 +40,9 @@ def import_warp() -> Any:
     """The ``warp`` module with its runtime initialised."""
     global _WARP
     if _WARP is None:
-        import warp as wp
+        from warp_buffer import init_warp  # quiet start: nothing of Warp's on stdout
 
-        wp.init()
-        _WARP = wp
+        _WARP = init_warp()
     return _WARP
 
 

@@ -20,6 +20,8 @@ from .dlpack import TensorView, warp_dtype
 from .dtypes import DType, dtype_from_name
 from .errors import UnsupportedDTypeError, UnsupportedValueError
 
+import_warp()  # at import: Warp starts quietly, before the application's first Warp call
+
 __all__ = [
     "allocate_image_msg",
     "from_input_image_msg",

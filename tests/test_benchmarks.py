@@ -52,6 +52,7 @@ def test_quick_run_writes_json_png_and_table(quick_run: tuple[dict, str, pathlib
     png = out / "latency.png"
     assert png.stat().st_size > 1000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "one-way p50" in stdout and "Ratios" in stdout
+    assert f"wrote {out / 'bench.json'}" in stdout  # it says where the results are
     for entry in report["ratios"].values():
         assert entry["verdict"] in ("PASS", "MISS", "N/A", "INFO")
 
@@ -84,7 +85,10 @@ def test_quick_run_figures_are_positive_and_finite(
 @pytest.mark.multiprocess
 def test_quick_run_leaves_no_children_or_shm(quick_run: tuple[dict, str, pathlib.Path]) -> None:
     report, _, _ = quick_run
-    leftovers = [n for n in os.listdir("/dev/shm") if n.startswith("iox2_")]
+    # Only this run's files: every iceoryx2 file of the run carries its run id in its prefix, and
+    # other programs on the host (with iceoryx2's default prefix or another run's) are not ours.
+    assert report["run_id"]
+    leftovers = [n for n in os.listdir("/dev/shm") if report["run_id"] in n]
     assert leftovers == []
     ran = [e for e in report["paths"].values() if e["status"] == "ok"]
     assert ran and all(e["wall_s"] < report["plan"]["path_timeout_s"] for e in ran)
@@ -106,6 +110,14 @@ def test_ratios_pass_miss_and_missing() -> None:
     assert ratios(paths)["slowdown_vs_iceoryx2_16MiB"]["verdict"] == "N/A"
 
 
+def test_default_out_dir_follows_xdg_state_home(monkeypatch: pytest.MonkeyPatch,
+                                                tmp_path: pathlib.Path) -> None:
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
+    assert bench.default_out_dir() == str(tmp_path / "warp-buffer" / "bench")
+    monkeypatch.delenv("XDG_STATE_HOME")
+    assert bench.default_out_dir() == os.path.expanduser("~/.local/state/warp-buffer/bench")
+
+
 def test_stats_helpers() -> None:
     summary = summarize_latency([1000, 2000, 3000, 4000])
     assert summary["p50_us"] == pytest.approx(2.5) and summary["samples"] == 4
@@ -119,5 +131,5 @@ def test_add_arguments_defaults() -> None:
     parser = argparse.ArgumentParser()
     bench.add_arguments(parser)
     args = parser.parse_args([])
-    assert args.out == os.path.join("benchmarks", "results") and not args.quick
+    assert args.out == bench.default_out_dir() and not args.quick
     assert parser.parse_args(["--quick", "--sizes", "4K"]).sizes == "4K"

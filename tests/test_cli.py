@@ -34,3 +34,24 @@ def test_unknown_subcommand_is_a_usage_error() -> None:
     with pytest.raises(SystemExit) as exit_info:
         main(["frobnicate"])
     assert exit_info.value.code == 2
+
+
+def test_help_lists_every_command_and_the_verbose_flag(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    for command in ("info", "demo", "bench", "router"):
+        assert command in out
+    assert "--verbose" in out
+
+
+def test_verbose_flag_reaches_child_processes(monkeypatch: pytest.MonkeyPatch,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    import os
+
+    # setenv records the original state, so the "1" that main() sets is undone after the test
+    # (delenv of an absent variable records nothing, and later tests' children would be verbose).
+    monkeypatch.setenv("WARP_BUFFER_VERBOSE", "")
+    assert main(["--verbose", "info"]) == 0
+    assert os.environ.get("WARP_BUFFER_VERBOSE") == "1"  # inherited by demo / bench children

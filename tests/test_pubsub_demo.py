@@ -4,25 +4,35 @@ from __future__ import annotations
 
 import argparse
 import os
+import pathlib
+import subprocess
+import sys
+import time
 
 import pytest
 
 from warp_buffer_cli import demo
 
+ROOT = pathlib.Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.multiprocess
 
 
-def test_demo_passes_on_the_cpu_device(capsys):
-    parser = argparse.ArgumentParser()
-    demo.add_arguments(parser)
-    args = parser.parse_args(["--frames", "12", "--height", "32", "--width", "48",
-                              "--rate", "100", "--timeout", "40",
-                              "--domain", str(230 + os.getpid() % 20)])
-    code = demo.run(args)
-    out = capsys.readouterr().out
-    assert code == 0, out
+def test_demo_passes_on_the_cpu_device():
+    """Run as a user does (``warp-buffer demo``): exit 0, and stdout is its report alone."""
+    done = subprocess.run(
+        [sys.executable, "-m", "warp_buffer_cli.main", "demo", "--frames", "12", "--height",
+         "32", "--width", "48", "--rate", "100", "--timeout", "40", "--device", "cpu",
+         "--domain", str(230 + os.getpid() % 20)],
+        cwd=ROOT, env={k: v for k, v in os.environ.items() if k != "WARP_BUFFER_VERBOSE"},
+        capture_output=True, text=True, timeout=150)
+    out = done.stdout
+    assert done.returncode == 0, out + done.stderr[-3000:]
     assert "warp subscriber: path warp" in out and "cpu subscriber: path cpu" in out
     assert "received 12/12" in out and "p99" in out
+    report = ("warp-buffer demo:", "publisher:", "warp subscriber:", "cpu subscriber:", "demo:")
+    assert [line.split(" ")[0] for line in out.splitlines()] == [p.split(" ")[0] for p in report]
+    for noise in ("Warp 1.", "CUDA driver", "Module "):  # Warp's banner, native warning, logs
+        assert noise not in out + done.stderr
 
 
 def test_demo_fails_when_a_check_fails(monkeypatch, capsys):
@@ -34,3 +44,47 @@ def test_demo_fails_when_a_check_fails(monkeypatch, capsys):
     monkeypatch.setenv("WARP_BUFFER_DEMO_CORRUPT", "1")
     assert demo.run(args) == 1
     assert "FAILED" in capsys.readouterr().out
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    demo.add_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def test_demo_fails_fast_with_the_typed_error_on_a_missing_device(capsys):
+    import warp_buffer
+
+    if "cuda:7" in {str(d.alias) for d in warp_buffer.init_warp().get_devices()}:
+        pytest.skip("this machine has a cuda:7")
+    started = time.monotonic()
+    assert demo.run(_parse(["--device", "cuda:7", "--domain", "3"])) == 1
+    assert time.monotonic() - started < 5
+    err = capsys.readouterr().err
+    assert "DeviceUnavailableError" in err and "cuda:7" in err
+
+
+def test_demo_defaults_to_warps_preferred_device():
+    import warp_buffer
+
+    args = _parse([])
+    assert args.device is None
+    assert demo._check_device(args) is None
+    assert args.device == str(warp_buffer.init_warp().get_preferred_device().alias)
+
+
+@pytest.mark.parametrize("argv", [["--frames", "0"], ["--frames", "x"], ["--width", "-3"],
+                                  ["--rate", "-1"], ["--timeout", "0"], ["--domain", "-1"]])
+def test_demo_rejects_bad_arguments_with_a_usage_error(argv, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        _parse(argv)
+    assert exit_info.value.code == 2
+    assert "error: argument " + argv[0] in capsys.readouterr().err
+
+
+def test_demo_help_shows_the_defaults():
+    parser = argparse.ArgumentParser()
+    demo.add_arguments(parser)
+    text = parser.format_help()
+    assert "frames to publish (default: 50)" in text
+    assert "(default: None)" not in text and "preferred device" in text

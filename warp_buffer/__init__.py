@@ -60,6 +60,7 @@ from .errors import (
     WriteHandleError,
 )
 from .pool import pool_stats, trim_pools
+from .startup import init_warp
 
 __all__ = [
     "WARP_BACKEND",
@@ -91,3 +92,5 @@ __all__ = [
     "to_buffer",
     "trim_pools",
 ]
+
+init_warp()  # at import: Warp's banner and CUDA-driver warning go to logging, not stdout

@@ -7,7 +7,8 @@
 - the CPU subscriber (``"cpu"``) gets the same frames as CPU bytes and checks them in NumPy.
 
 Prints the path each subscriber used, messages received and latency percentiles; exits 0 only if
-every check passed. Runs on Warp's ``cpu`` device with no set-up (no router, no GPU).
+every check passed. Runs with no set-up (no router); on Warp's preferred device by default
+(``cuda:0`` where a GPU is usable, else ``cpu``). A device this machine lacks fails at once.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 from typing import Any
 
@@ -27,15 +29,42 @@ TENSOR = "tensor_msgs/msg/ExperimentalTensor"
 _CHILD = "from warp_buffer_cli.demo import child_main; child_main()"
 
 
+def _number(kind: type, low: float, inclusive: bool = True) -> Any:
+    """An argparse type: a ``kind`` number >= ``low`` (> ``low`` unless ``inclusive``)."""
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a{'n integer' if kind is int else ' number'}") from None
+        if not (value >= low if inclusive else value > low) or value != value:
+            raise argparse.ArgumentTypeError(
+                f"{text} is out of range: must be {'>=' if inclusive else '>'} {low:g}")
+        return value
+
+    return parse
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows every default; a None default is described in the option's own help instead."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        return action.help if action.default is None else super()._get_help_string(action)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--frames", type=int, default=50, help="frames to publish (default 50)")
-    parser.add_argument("--height", type=int, default=240)
-    parser.add_argument("--width", type=int, default=320)
-    parser.add_argument("--rate", type=float, default=50.0, help="frames per second")
-    parser.add_argument("--device", default="cpu", help="Warp device of the frames (default cpu)")
-    parser.add_argument("--domain", type=int, default=None,
+    parser.formatter_class = _HelpFormatter
+    parser.add_argument("--frames", type=_number(int, 1), default=50, help="frames to publish")
+    parser.add_argument("--height", type=_number(int, 1), default=240, help="frame height")
+    parser.add_argument("--width", type=_number(int, 1), default=320, help="frame width")
+    parser.add_argument("--rate", type=_number(float, 0), default=50.0,
+                        help="frames per second (0: as fast as possible)")
+    parser.add_argument("--device", default=None,
+                        help="Warp device of the frames, e.g. cpu or cuda:0 (default: Warp's "
+                             "preferred device, cuda:0 where a GPU is usable, else cpu)")
+    parser.add_argument("--domain", type=_number(int, 0), default=None,
                         help="domain id (default: a private one derived from the process id)")
-    parser.add_argument("--timeout", type=float, default=60.0, help="give up after this long")
+    parser.add_argument("--timeout", type=_number(float, 0, inclusive=False), default=60.0,
+                        help="seconds before the demo gives up")
 
 
 # --------------------------------------------------------------------------- frame content
@@ -74,9 +103,16 @@ def _emit(kind: str, payload: Any = None) -> None:
 
 
 def _publisher(args: argparse.Namespace) -> int:
+    try:
+        return _publish(args)
+    except Exception as exc:  # the parent prints the verdict: hand it the typed error's message
+        _emit("RESULT", {"ok": False, "error": f"{type(exc).__name__}: {exc}"})
+        return 1
+
+
+def _publish(args: argparse.Namespace) -> int:
     import warp as wp
 
-    wp.config.quiet = True
     from buffer_pubsub import Node
     from tensor_conversions import warp as tcw
 
@@ -134,8 +170,9 @@ def _subscriber(args: argparse.Namespace, accept: str) -> int:
             if accept == "warp":
                 view = tct.from_input_tensor_msg(msg, clone=False)  # DLPack, zero copy
                 frame = int(view[0, 0].item()) // 1000
+                expected = torch.from_numpy(_expected(frame, args.height, args.width))
                 good = tuple(view.shape) == (args.height, args.width) and bool(torch.equal(
-                    view, torch.from_numpy(_expected(frame, args.height, args.width))))
+                    view, expected.to(view.device)))  # the frame may live on a GPU
                 del view
             else:
                 view = tcn.from_input_tensor_msg(msg, clone=False)
@@ -168,6 +205,9 @@ def child_main(argv: list[str] | None = None) -> int:
     parser.add_argument("role", choices=["publisher", "warp", "cpu"])
     add_arguments(parser)
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    from warp_buffer import init_warp
+
+    init_warp()  # before any Warp call: nothing of Warp's on the protocol (stdout) or stderr
     if args.role == "publisher":
         code = _publisher(args)
     else:
@@ -184,16 +224,40 @@ def _spawn(role: str, args: argparse.Namespace) -> subprocess.Popen:
     return subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
 
 
-def _result(proc: subprocess.Popen, timeout: float) -> dict[str, Any] | None:
-    try:
-        out, _ = proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, _ = proc.communicate()
-    for line in reversed(out.splitlines()):
-        if line.startswith("RESULT "):
-            return json.loads(line[len("RESULT "):])
-    return None
+class _Child:
+    """A demo child whose stdout is read on a thread; ``result`` is its RESULT line, parsed."""
+
+    def __init__(self, role: str, args: argparse.Namespace) -> None:
+        self.proc = _spawn(role, args)
+        self.result: dict[str, Any] | None = None
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            if line.startswith("RESULT "):
+                self.result = json.loads(line[len("RESULT "):])
+
+    def done(self) -> bool:
+        return self.proc.poll() is not None
+
+    def tell_done(self) -> None:
+        try:
+            assert self.proc.stdin is not None
+            self.proc.stdin.write("done\n")
+            self.proc.stdin.flush()
+        except (BrokenPipeError, OSError):
+            pass
+
+    def finish(self, timeout: float) -> dict[str, Any] | None:
+        try:
+            self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self._reader.join(timeout=5)
+        return self.result
 
 
 def _percentiles(values: list[float]) -> str:
@@ -203,40 +267,62 @@ def _percentiles(values: list[float]) -> str:
     return f"p50 {p50:.2f} ms  p90 {p90:.2f} ms  p99 {p99:.2f} ms"
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run the demo; 0 only if both subscribers got every frame by the expected path, intact."""
+def _check_device(args: argparse.Namespace) -> str | None:
+    """Resolve ``--device`` (default: Warp's preferred one) and try it at once: the typed error's
+    message, or None. A bad device must fail here in a second, not in a child after a timeout."""
     from rosidl_buffer import RosidlBufferError
     from rosidl_buffer.registry import create_backend_instance
 
     try:
         create_backend_instance("warp")
+        import warp_buffer
+
+        if args.device is None:
+            args.device = str(warp_buffer.init_warp().get_preferred_device().alias)
+        warp_buffer.allocate_buffer(1, device=args.device)
     except RosidlBufferError as exc:
-        print(f"demo: FAILED: the warp buffer backend is not available: {exc}")
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the demo; 0 only if both subscribers got every frame by the expected path, intact."""
+    error = _check_device(args)
+    if error is not None:
+        print(f"warp-buffer demo: FAILED: {error}", file=sys.stderr)
         return 1
     if args.domain is None:
         args.domain = 150 + os.getpid() % 80
     os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.getcwd(), ".warp_cache"))
     print(f"warp-buffer demo: {args.frames} frames of {args.height}x{args.width} float32 on "
           f"Warp device {args.device!r}, domain {args.domain}, topic {TOPIC}")
-    procs: dict[str, subprocess.Popen] = {}
+    children: dict[str, _Child] = {}
     try:
         for role in ("warp", "cpu", "publisher"):
-            procs[role] = _spawn(role, args)
-        subs = {role: _result(procs[role], args.timeout + 30) for role in ("warp", "cpu")}
-        if procs["publisher"].stdin is not None:
-            try:
-                procs["publisher"].stdin.write("done\n")
-                procs["publisher"].stdin.flush()
-            except BrokenPipeError:
-                pass
-        published = _result(procs["publisher"], 30)
+            children[role] = _Child(role, args)
+        publisher = children["publisher"]
+        deadline = time.monotonic() + args.timeout + 30
+        # Until both subscribers are done; a publisher that fails ends the demo at once.
+        while not (children["warp"].done() and children["cpu"].done()):
+            if publisher.done() or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+        publisher.tell_done()
+        published = publisher.finish(30)
+        failed_early = not (published and published.get("ok"))
+        subs = {role: children[role].finish(1 if failed_early else 30) for role in ("warp", "cpu")}
     finally:
-        for proc in procs.values():
-            if proc.poll() is None:
-                proc.kill()
-            proc.wait()
+        for child in children.values():
+            if child.proc.poll() is None:
+                child.proc.kill()
+            child.proc.wait()
     ok = bool(published and published.get("ok"))
-    print(f"publisher: {'published ' + str(published['published']) + ' frames (' + published['backend'] + ' storage)' if ok else 'FAILED ' + str(published)}")
+    if ok:
+        print(f"publisher: published {published['published']} frames "
+              f"({published['backend']} storage)")
+    else:
+        reason = (published or {}).get("error") or "no result"
+        print(f"publisher: FAILED: {reason}")
     expected_path = {"warp": "warp", "cpu": "cpu"}
     for role, stats in subs.items():
         if stats is None:

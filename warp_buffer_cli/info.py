@@ -15,7 +15,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def collect() -> dict[str, Any]:
     """Everything ``info`` reports, as plain data."""
-    _quiet_warp()  # before any backend imports Warp: its start-up banner would drown the report
     backends: list[dict[str, Any]] = [{"name": "cpu", "metadata": "", "status": "built in"}]
     loaded, errors = registry.load_backends()
     for name in registry.get_backend_names()[1:]:
@@ -27,20 +26,11 @@ def collect() -> dict[str, Any]:
     return {"backends": backends, "warp_devices": _warp_devices()}
 
 
-def _quiet_warp() -> None:
-    try:
-        import warp as wp
-    except ImportError:
-        return
-    # The report lists devices itself; Warp's banner and "no CUDA driver" warning are noise here.
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_ERROR)
-
-
 def _warp_devices() -> list[dict[str, Any]]:
     try:
-        import warp as wp
+        from warp_buffer import init_warp  # quiet: the report lists the devices itself
 
-        wp.init()
+        wp = init_warp()
     except Exception as exc:  # info must still list the backends
         return [{"name": "unavailable", "error": str(exc)}]
     devices = []

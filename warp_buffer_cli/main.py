@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
+import os
 import sys
+
+VERBOSE_ENV = "WARP_BUFFER_VERBOSE"  # read by warp_buffer.startup (not imported here: cost)
 
 # subcommand -> (module, help). Modules load lazily: `info` must not pay for torch or Zenoh.
 _COMMANDS = {
@@ -12,14 +16,31 @@ _COMMANDS = {
     "demo": ("warp_buffer_cli.demo",
              "run the publisher / warp subscriber / CPU subscriber demo over Zenoh"),
     "bench": ("benchmarks.run", "measure latency, rate and copies against peer transports"),
+    "router": ("warp_buffer_cli.router",
+               "run a Zenoh router (rmw_zenoh's defaults) for nodes on several hosts"),
 }
+
+
+def _configure_output(verbose: bool) -> None:
+    """Logs (ours, Warp's, Zenoh's warnings) go to stderr; stdout is the command's own report.
+    ``--verbose`` shows INFO logs and Warp's own banner and messages (env WARP_BUFFER_VERBOSE,
+    which child processes inherit)."""
+    if verbose:
+        os.environ[VERBOSE_ENV] = "1"
+    verbose = verbose or os.environ.get(VERBOSE_ENV, "").strip().lower() in ("1", "true", "yes",
+                                                                              "on")
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, stream=sys.stderr,
+                        format="%(name)s: %(levelname)s: %(message)s")
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="warp-buffer", description=__doc__)
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="log at INFO on stderr and let Warp print its own start-up banner "
+                             "(same as env WARP_BUFFER_VERBOSE=1)")
     subcommands = parser.add_subparsers(dest="command", required=True)
     argv = sys.argv[1:] if argv is None else argv
-    chosen = argv[0] if argv and argv[0] in _COMMANDS else None
+    chosen = next((a for a in argv if not a.startswith("-")), None)
     for name, (module_name, help_text) in _COMMANDS.items():
         sub = subcommands.add_parser(name, help=help_text)
         if name == chosen:
@@ -27,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
             module.add_arguments(sub)
             sub.set_defaults(run=module.run)
     args = parser.parse_args(argv)
+    _configure_output(args.verbose)
     return int(args.run(args))
 
 

@@ -17,7 +17,6 @@ from benchmarks.protocol import STAMP_SIZE, stamp_into
 LABEL = "iceoryx2 (zero-copy)"
 KIND = "peer"
 TOPOLOGY = "pair"
-SHM_PREFIXES = ("iox2_",)  # iceoryx2's segments, e.g. its global_mgmt that no one keeps mapped
 BUFFER = 16  # subscriber queue and publisher loans: more than the rate window
 
 
@@ -30,6 +29,13 @@ def _iox2() -> Any:
     return iceoryx2
 
 
+def shm_prefixes(settings: PathSettings) -> tuple[str, ...]:
+    """The prefix of every iceoryx2 file this run creates (iceoryx2's ``global.prefix``, its own
+    notion of a domain): the leftovers the runner may remove are this run's, never those of
+    another iceoryx2 program on the host, which keeps the default ``iox2_``."""
+    return (f"iox2b_{settings.run_id}_",)
+
+
 class _Service:
     """A node and, per payload size, a publish-subscribe service of its own."""
 
@@ -37,7 +43,10 @@ class _Service:
         self.iox2 = _iox2()
         self._settings = settings
         name = self.iox2.NodeName.new(f"bench_{role}_{settings.run_id}")
-        self.node = self.iox2.NodeBuilder.new().name(name).create(self.iox2.ServiceType.Ipc)
+        config = self.iox2.config.global_config()
+        config.global_cfg.prefix = self.iox2.FileName.new(shm_prefixes(settings)[0])
+        self.node = (self.iox2.NodeBuilder.new().name(name).config(config)
+                     .create(self.iox2.ServiceType.Ipc))
 
     def open(self, nbytes: int) -> Any:
         """The service carrying payloads of ``nbytes`` (created by whoever comes first)."""

@@ -1,0 +1,137 @@
+"""Reaching other hosts: ``warp-buffer router``, router/peer warnings, config errors that name the
+file (``buffer_pubsub.config`` and ``buffer_pubsub.connectivity``)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from buffer_pubsub import Node, TransportConfigError, config, connectivity
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture
+def fast_warning(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(connectivity, "WARN_AFTER_S", 0.5)
+
+
+def test_missing_config_file_is_named(tmp_path: pathlib.Path,
+                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    missing = tmp_path / "nope.json5"
+    with pytest.raises(TransportConfigError, match="nope.json5.*does not exist"):
+        Node("n", config=missing)
+    monkeypatch.setenv(config.CONFIG_URI_ENV, str(missing))
+    with pytest.raises(TransportConfigError, match=f"nope.json5.*{config.CONFIG_URI_ENV}"):
+        Node("n")
+
+
+@pytest.mark.parametrize("text", ['{mode: "peer",, }', '{mode: "blah"}'])
+def test_bad_json5_names_the_file_not_a_rust_source(tmp_path: pathlib.Path, text: str) -> None:
+    path = tmp_path / "bad.json5"
+    path.write_text(text)
+    with pytest.raises(TransportConfigError) as info:
+        config.make_config(path)
+    message = str(info.value)
+    assert str(path) in message and ".rs:" not in message
+
+
+def test_unreachable_router_warns_then_fails_naming_it(
+        fast_warning: None, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    monkeypatch.setenv(config.CONNECT_TIMEOUT_ENV, "1.5")
+    caplog.set_level(logging.WARNING, logger="buffer_pubsub")
+    started = time.monotonic()
+    with pytest.raises(TransportConfigError, match=r"tcp/127\.0\.0\.1:1.*warp-buffer router"):
+        Node("n", router="tcp/127.0.0.1:1")
+    assert time.monotonic() - started < 5
+    assert any("still waiting for Zenoh router tcp/127.0.0.1:1" in r.getMessage()
+               for r in caplog.records)
+
+
+def test_unreachable_peer_of_a_config_file_is_reported(
+        fast_warning: None, tmp_path: pathlib.Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "peer.json5"
+    path.write_text('{mode: "peer", connect: {endpoints: ["tcp/127.0.0.1:1"]}, '
+                    'scouting: {multicast: {enabled: false}}}')
+    caplog.set_level(logging.WARNING, logger="buffer_pubsub")
+    with Node("n", config=path):  # a peer starts anyway and keeps retrying
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not caplog.records:
+            time.sleep(0.05)
+    assert any("tcp/127.0.0.1:1" in r.getMessage() and "keeps retrying" in r.getMessage()
+               for r in caplog.records)
+
+
+def test_a_node_closed_before_the_check_is_not_reported(
+        fast_warning: None, tmp_path: pathlib.Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "peer.json5"
+    path.write_text('{mode: "peer", connect: {endpoints: ["tcp/127.0.0.1:1"]}, '
+                    'scouting: {multicast: {enabled: false}}}')
+    caplog.set_level(logging.WARNING, logger="buffer_pubsub")
+    Node("n", config=path).close()
+    time.sleep(1.0)  # twice the (patched) delay of the check
+    assert not [r for r in caplog.records if "keeps retrying" in r.getMessage()]
+
+
+def test_router_defaults_follow_rmw_zenoh() -> None:
+    router = config.make_router_config()
+    assert router.get_json("mode") == '"router"'
+    assert router.get_json("listen/endpoints") == '["tcp/[::]:7447"]'
+    assert router.get_json("scouting/multicast/enabled") == "false"
+    assert router.get_json("scouting/gossip/enabled") == "true"
+    assert config.make_config(router="tcp/localhost:7447").get_json("mode") == '"client"'
+
+
+def _start_router(socket_path: pathlib.Path) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "warp_buffer_cli.main", "router", "--listen",
+         f"unixsock-stream/{socket_path}"], cwd=ROOT, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.multiprocess
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_router_serves_a_node_and_stops_cleanly(tmp_path: pathlib.Path, signum: int) -> None:
+    socket_path = tmp_path / "router.sock"
+    router = _start_router(socket_path)
+    try:
+        assert router.stdout is not None
+        line = router.stdout.readline()
+        assert line.startswith("warp-buffer router ") and str(socket_path) in line, line
+        zid = line.split()[2]
+        with Node("router_user", router=f"unixsock-stream/{socket_path}") as node:
+            assert zid in {str(z) for z in node.session.info.routers_zid()}
+        router.send_signal(signum)
+        assert router.wait(timeout=10) == 0
+        assert router.stdout.read() == ""  # one line on stdout, nothing else
+    finally:
+        if router.poll() is None:
+            router.kill()
+        router.wait()
+        for stream in (router.stdout, router.stderr):
+            if stream is not None:
+                stream.close()
+
+
+def test_router_rejects_a_bad_endpoint() -> None:
+    done = subprocess.run([sys.executable, "-m", "warp_buffer_cli.main", "router", "--listen",
+                           "bogus"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "bogus" in done.stderr and done.stdout == ""
+
+
+def test_connect_timeout_env_is_validated(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(config.CONNECT_TIMEOUT_ENV, "soon")
+    with pytest.raises(TransportConfigError, match=config.CONNECT_TIMEOUT_ENV):
+        config.make_config(router="tcp/localhost:7447")
+    monkeypatch.setenv(config.CONNECT_TIMEOUT_ENV, "2.5")
+    assert config.connect_timeout_s() == 2.5
+    del os.environ[config.CONNECT_TIMEOUT_ENV]
+    assert config.connect_timeout_s() == config.DEFAULT_CONNECT_TIMEOUT_S
