@@ -576,7 +576,7 @@ def release_after(stream: Any, callback: Callable[[], None],
         callback()
         return
     event = stream.record_event(event)
-    (queue or _release_queue).defer(event, callback)
+    (queue if queue is not None else _release_queue).defer(event, callback)
 
 
 # ------------------------------------------------------------------------------ streams

@@ -23,7 +23,7 @@ from __future__ import annotations
 import warp as wp
 
 __all__ = ["NT_THRESHOLD", "CPU_CHUNK", "CUDA_CHUNK", "MAX_LAUNCH_THREADS", "copy_bytes",
-           "stamp_generation"]
+           "launch_slices", "stamp_generation"]
 
 #: Copies of at least this many bytes use non-temporal stores on the cpu device.
 NT_THRESHOLD = 4 << 20
@@ -127,13 +127,20 @@ def copy_bytes(dst: wp.array, src: wp.array, stream: wp.Stream | None = None) ->
     else:
         chunk = CUDA_CHUNK
         mode = _MODE_VECTOR if aligned else _MODE_PLAIN
+    for base, threads in launch_slices(nbytes, chunk):
+        wp.launch(
+            copy_bytes_kernel, dim=threads, inputs=[dst, src, base, chunk, nbytes, mode],
+            device=device, stream=stream,
+        )
+
+
+def launch_slices(nbytes: int, chunk: int) -> list[tuple[int, int]]:
+    """The launches that copy ``nbytes`` in ``chunk``-byte threads: ``(first byte, threads)``
+    pairs, each launch at most ``MAX_LAUNCH_THREADS`` threads so ``wp.tid()`` cannot overflow."""
     threads = (nbytes + chunk - 1) // chunk
     per_launch = MAX_LAUNCH_THREADS
-    for first in range(0, threads, per_launch):
-        wp.launch(
-            copy_bytes_kernel, dim=min(per_launch, threads - first),
-            inputs=[dst, src, first * chunk, chunk, nbytes, mode], device=device, stream=stream,
-        )
+    return [(first * chunk, min(per_launch, threads - first))
+            for first in range(0, threads, per_launch)]
 
 
 def stamp_generation(stamp: wp.array, value: int, stream: wp.Stream | None = None) -> None:
