@@ -297,6 +297,11 @@ def run_checks(checks: list[Check], ctx: Context) -> list[Result]:
             result = Result(check.name, "FAIL", f"{type(exc).__name__}: {exc}")
             ctx.log(traceback.format_exc())
         result.seconds = time.monotonic() - start
+        for proc in ctx.children:  # a failed check may leave its children: reap them now
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+                ctx.log(f"killed child {proc.pid} left by {check.name}")
         errors = stderr_path.read_text(errors="replace") if stderr_path.exists() else ""
         if errors.strip():
             ctx.log(f"[stderr of {check.name}]\n{errors}")
@@ -367,10 +372,22 @@ def spawn(ctx: Context, role: str, args: dict[str, Any], env: dict[str, str] | N
     return proc
 
 
-def wait_ready(proc: subprocess.Popen, timeout: float = 90) -> None:
-    line = _readline(proc, timeout)
-    if line.strip() != "READY":
-        raise Fail(f"child {proc.pid} did not get ready: {line!r} {_drain_stderr(proc)}")
+def wait_ready(proc: subprocess.Popen, timeout: float = 90, word: str = "READY") -> None:
+    """Read the child's stdout up to the line ``word`` (``READY``: its endpoints exist;
+    ``MATCHED``: it discovered the publisher)."""
+    deadline = time.monotonic() + timeout
+    line = ""
+    while time.monotonic() < deadline:
+        line = _readline(proc, max(0.1, deadline - time.monotonic()))
+        if not line or line.strip() == word:
+            break
+    if line.strip() != word:
+        raise Fail(f"child {proc.pid} did not say {word}: {line!r} {_drain_stderr(proc)}")
+
+
+def tell(proc: subprocess.Popen, line: str) -> None:
+    proc.stdin.write(line + "\n")
+    proc.stdin.flush()
 
 
 def _readline(proc: subprocess.Popen, timeout: float) -> str:
@@ -431,6 +448,9 @@ def _stop_event(timeout: float) -> threading.Event:
 
 
 def child_main(role: str, args: dict[str, Any]) -> int:
+    import warp as wp
+
+    wp.config.quiet = True  # stdout carries the protocol
     handler = CHILD_ROLES[role]
     result = handler(args)
     _emit("RESULT " + json.dumps(result, default=str))
@@ -682,10 +702,10 @@ def _node_env(ctx: Context) -> dict[str, Any]:
 
 
 def _publish_frames(ctx: Context, where: dict[str, Any], frames: list[tuple[int, int, int]],
-                    subscribers: int, spins: int = 1, repeat: int = 1, depth: int = 10,
-                    interval: float = 0.0) -> dict[str, Any]:
+                    subscribers: list[subprocess.Popen], spins: int = 1, repeat: int = 1,
+                    depth: int = 10, interval: float = 0.0) -> dict[str, Any]:
     """Publish (nbytes, seed, index) frames as warp buffers on the GPU (writer still busy when
-    published with ``spins``), each ``repeat`` times."""
+    published with ``spins``), each ``repeat`` times, once every subscriber child matched."""
     from buffer_pubsub import Node
     from rosidl_buffer.messages import get_message_type
 
@@ -695,7 +715,9 @@ def _publish_frames(ctx: Context, where: dict[str, Any], frames: list[tuple[int,
     published = 0
     with Node(f"gpu_check_pub_{os.getpid()}", domain_id=where["domain"]) as node:
         pub = node.create_publisher(tensor, where["topic"], depth=depth)
-        need(pub.wait_for_subscriptions(subscribers, timeout=60), "subscribers not matched")
+        need(pub.wait_for_subscriptions(len(subscribers), timeout=60), "subscribers not matched")
+        for child in subscribers:
+            wait_ready(child, 60, "MATCHED")
         for nbytes, seed, index in frames:
             buffer = warp_buffer.allocate_buffer(nbytes, ctx.device)
             _write_frame(buffer, seed, index, spins)
@@ -745,8 +767,9 @@ def _child_subscriber(args: dict[str, Any]) -> dict[str, Any]:
 
         sub = node.create_subscription(tensor, args["topic"], on_msg, depth=args.get("depth", 10),
                                        acceptable_buffer_backends=args["accept"], with_info=True)
-        sub.wait_for_publishers(1, timeout=60)
         _emit("READY")
+        sub.wait_for_publishers(1, timeout=60)
+        _emit("MATCHED")
         stop = _stop_event(args.get("timeout", 200))
         while not stop.is_set() and len(records) < args["expect"]:
             time.sleep(0.01)
@@ -784,7 +807,7 @@ def check_ipc_child(ctx: Context) -> dict[str, Any]:
     wait_ready(child)
     # Each frame published twice (imported twice), its writer still busy; the subscriber
     # releases each buffer explicitly and imports the next (release and re-import).
-    _publish_frames(ctx, where, frames, 1, spins=spins, repeat=2)
+    _publish_frames(ctx, where, frames, [child], spins=spins, repeat=2)
     result = finish(ctx, child)
     metrics = _judge_subscriber(result, 8, "buffer", ctx.device.split(":")[0])
     metrics["released"] = sum(bool(r.get("released")) for r in result["records"])
@@ -827,6 +850,8 @@ def check_failure_injection(ctx: Context) -> dict[str, Any]:
                                           "device": ctx.device})
     wait_ready(sub)
     wait_ready(pub)
+    wait_ready(sub, 60, "MATCHED")
+    tell(pub, "go")
     finish(ctx, pub, timeout=60)
     result = finish(ctx, sub, timeout=90)
     records = result["records"]
@@ -852,6 +877,7 @@ def _child_publish_and_exit(args: dict[str, Any]) -> dict[str, Any]:
         pub = node.create_publisher(tensor, args["topic"], depth=10)
         pub.wait_for_subscriptions(1, timeout=60)
         _emit("READY")
+        sys.stdin.readline()  # "go": the subscriber has discovered us
         for index in range(args["count"]):
             buffer = warp_buffer.allocate_buffer(args["nbytes"], args["device"])
             _write_frame(buffer, 5, index, 1)
@@ -871,7 +897,7 @@ def check_forced_staging(ctx: Context) -> dict[str, Any]:
     child = spawn(ctx, "subscriber", {**where, "accept": "warp", "expect": 6, "seeds": seeds},
                   env={"CUDA_VISIBLE_DEVICES": ""})
     wait_ready(child)
-    _publish_frames(ctx, where, frames, 1)
+    _publish_frames(ctx, where, frames, [child])
     return _judge_subscriber(finish(ctx, child), 6, None, "cpu")
 
 
@@ -886,7 +912,7 @@ def check_end_to_end(ctx: Context) -> dict[str, Any]:
     wait_ready(warp_sub)
     wait_ready(cpu_sub)
     start = time.monotonic()
-    _publish_frames(ctx, where, frames, 2, depth=count, interval=0.002)
+    _publish_frames(ctx, where, frames, [warp_sub, cpu_sub], depth=count, interval=0.002)
     warp_result, cpu_result = finish(ctx, warp_sub, 240), finish(ctx, cpu_sub, 240)
     seconds = time.monotonic() - start
     warp_metrics = _judge_subscriber(warp_result, count, "buffer", ctx.device.split(":")[0])
@@ -1123,12 +1149,12 @@ def main(argv: list[str] | None = None) -> int:
     out = ns.out or pathlib.Path(os.environ.get("OUT") or ROOT / "benchmarks/results/gpu_check")
     out.mkdir(parents=True, exist_ok=True)
     log_file = (out / "gpu_check.log").open("w")
+    start = time.monotonic()
 
     def log(line: str) -> None:
-        log_file.write(line + "\n")
+        log_file.write(f"[{time.monotonic() - start:7.1f}s] {line}\n")
         log_file.flush()
 
-    start = time.monotonic()
     target = ns.target or pathlib.Path(tempfile.mkdtemp(prefix="wb_gpu_check_site_"))
     try:
         report = install(target)
@@ -1136,6 +1162,12 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - reported by the install check
         log(f"install failed: {exc}")
     os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / ".warp_cache"))
+    try:
+        import warp as wp
+
+        wp.config.quiet = True  # the table is the last thing printed
+    except ImportError:
+        pass
     # --device cpu rehearses the GPU checks on the cpu device (those that need CUDA skip).
     gpu = not ns.no_gpu and (ns.device == "cpu" or _gpu_present())
     ctx = Context(ns.device, gpu, out, log, start + ns.budget_s, quick=ns.quick)
