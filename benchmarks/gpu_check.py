@@ -499,7 +499,19 @@ def kernels() -> dict[str, Any]:
             value = wp.uint8(0)
         dst[j] = value
 
-    _kernels.update(fill_pattern=fill_pattern, slow_copy=slow_copy)
+    @wp.kernel
+    def slow_fill(out: wp.array(dtype=wp.uint8), value: int, spins: int):
+        """out[j] = value after a spin: a writer still busy."""
+        j = wp.tid()
+        acc = float(j)
+        for _ in range(spins):
+            acc = acc * 0.999 + 1.0
+        v = value
+        if acc < -1.0:
+            v = 0
+        out[j] = wp.uint8(v)
+
+    _kernels.update(fill_pattern=fill_pattern, slow_copy=slow_copy, slow_fill=slow_fill)
     return _kernels
 
 

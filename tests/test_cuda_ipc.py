@@ -41,29 +41,10 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 @pytest.fixture(scope="module")
 def kernels() -> dict:
-    @wp.kernel
-    def slow_fill(out: wp.array(dtype=wp.uint8), value: int, spins: int):
-        j = wp.tid()
-        acc = float(j)
-        for _ in range(spins):
-            acc = acc * 0.999 + 1.0
-        v = value
-        if acc < -1.0:
-            v = 0
-        out[j] = wp.uint8(v)
+    """slow_fill(out, value, spins) and slow_copy(dst, src, spins): the GPU check's kernels."""
+    from benchmarks import gpu_check
 
-    @wp.kernel
-    def slow_copy(dst: wp.array(dtype=wp.uint8), src: wp.array(dtype=wp.uint8), spins: int):
-        j = wp.tid()
-        acc = float(j)
-        for _ in range(spins):
-            acc = acc * 0.999 + 1.0
-        v = src[j]
-        if acc < -1.0:
-            v = wp.uint8(0)
-        dst[j] = v
-
-    return {"slow_fill": slow_fill, "slow_copy": slow_copy}
+    return gpu_check.kernels()
 
 
 SPINS = 20000  # ~tens of ms over 1 MiB on a current GPU: long enough to race

@@ -139,6 +139,13 @@ def _cuda_device(device: Any) -> Any:
     return device
 
 
+def _ipc_device(device: Any) -> Any:
+    device = _cuda_device(device)
+    if not device.is_ipc_supported:
+        raise ExportUnavailableError(f"{device.alias} does not support CUDA IPC")
+    return device
+
+
 # ------------------------------------------------------------------------------ device identity
 @dataclass(frozen=True)
 class DeviceCapabilities:
@@ -256,10 +263,7 @@ def ipc_mem_handle(array: wp.array) -> bytes:
 
 def new_ipc_event(device: Any) -> wp.Event:
     """A new interprocess CUDA event on ``device`` (timing disabled, as IPC requires)."""
-    device = _cuda_device(device)
-    if not device.is_ipc_supported:
-        raise ExportUnavailableError(f"{device.alias} does not support CUDA IPC")
-    return wp.Event(device, interprocess=True)
+    return wp.Event(_ipc_device(device), interprocess=True)
 
 
 def ipc_event_handle(event: wp.Event) -> bytes:
@@ -298,9 +302,7 @@ def open_ipc_memory(handle: bytes, nbytes: int, device: Any) -> wp.array:
     forged handle), instead of returning fresh memory as ``wp.from_ipc_handle`` does.
     """
     handle = _check_handle(handle, "memory")
-    device = _cuda_device(device)
-    if not device.is_ipc_supported:
-        raise ExportUnavailableError(f"{device.alias} does not support CUDA IPC")
+    device = _ipc_device(device)
     ptr = _runtime().core.wp_cuda_ipc_open_mem_handle(device.context, handle)
     if not ptr:
         raise StaleBufferError(f"cannot open a CUDA IPC memory handle on {device.alias} (the "
@@ -316,9 +318,7 @@ def open_ipc_event(handle: bytes, device: Any) -> wp.Event:
     was never recorded (``wp.event_from_ipc_handle``), whose wait would order nothing.
     """
     handle = _check_handle(handle, "event")
-    device = _cuda_device(device)
-    if not device.is_ipc_supported:
-        raise ExportUnavailableError(f"{device.alias} does not support CUDA IPC")
+    device = _ipc_device(device)
     raw = _runtime().core.wp_cuda_ipc_open_event_handle(device.context, handle)
     if not raw:
         raise StaleBufferError(f"cannot open a CUDA IPC event handle on {device.alias}: "
