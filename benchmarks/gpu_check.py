@@ -26,7 +26,7 @@ across changes of the IPC core.
 
 Carrying wheels to a machine without network (the warp-lang wheel, ~149 MB, is larger than one
 call may carry): ``python -m benchmarks.gpu_check prepare DIR_OF_WHEELS`` splits them into parts
-under ``.whl/`` (``.whl/part1`` ... of at most 60 MiB each), and prints the calls to make: each
+under ``.whl/`` (``.whl/part1`` ... of at most 56 MiB each), and prints the calls to make: each
 call carries one part folder and copies it to ``/tmp/wb_wheel_parts`` on the (warm) machine;
 the last one runs the check, which reassembles and verifies the parts (SHA-256) before
 installing.
@@ -54,7 +54,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-PART_BYTES = 60 << 20
+PART_BYTES = 56 << 20  # a call carries 64 MiB, the repository included
 PARTS_STAGING = pathlib.Path("/tmp/wb_wheel_parts")
 DEFAULT_BUDGET_S = 450.0
 CUDA_ERROR = "Warp CUDA error"
@@ -75,21 +75,23 @@ class InstallReport:
 def split_wheels(source: pathlib.Path, dest: pathlib.Path, part_bytes: int = PART_BYTES) -> list[
         pathlib.Path]:
     """Copy the wheels of ``source`` into part folders ``dest/part1``, ``dest/part2`` ... of at
-    most ``part_bytes`` each; a wheel larger than that is cut into ``NAME.whl.partK`` pieces with
-    a ``NAME.whl.sha256`` beside the first. Returns the part folders."""
+    most ``part_bytes`` each (first fit, largest first, so small wheels ride along with the last
+    piece of a big one); a wheel larger than that is cut into ``NAME.whl.partK`` pieces with a
+    ``NAME.whl.sha256`` beside the first. Returns the part folders."""
     parts: list[pathlib.Path] = []
-    used = part_bytes  # forces a first folder
+    used: list[int] = []
 
     def folder(need: int) -> pathlib.Path:
-        nonlocal used
-        if not parts or used + need > part_bytes:
-            parts.append(dest / f"part{len(parts) + 1}")
-            parts[-1].mkdir(parents=True, exist_ok=True)
-            used = 0
-        used += need
+        for index, size in enumerate(used):
+            if size + need <= part_bytes:
+                used[index] += need
+                return parts[index]
+        parts.append(dest / f"part{len(parts) + 1}")
+        parts[-1].mkdir(parents=True, exist_ok=True)
+        used.append(need)
         return parts[-1]
 
-    for wheel in sorted(source.glob("*.whl")):
+    for wheel in sorted(source.glob("*.whl"), key=lambda w: -w.stat().st_size):
         size = wheel.stat().st_size
         if size <= part_bytes:
             shutil.copy2(wheel, folder(size) / wheel.name)
