@@ -504,33 +504,37 @@ class ReleaseQueue:
     until the release event recorded on its stream completed, so the publisher sees the hold
     go only after the reader's kernels finished with the bytes. A daemon thread polls the
     pending events (every ``poll_s``) while there are any; :meth:`poll` runs what is ready on the
-    caller's thread, and :meth:`flush` waits for everything (shutdown).
+    caller's thread, and :meth:`flush` waits for everything (shutdown). ``defer`` takes no lock
+    that ``poll`` holds, so it may run from a ``wp.array`` deleter during garbage collection.
     """
 
     def __init__(self, poll_s: float = 0.0002) -> None:
         self._poll_s = poll_s
+        self._incoming: collections.deque[tuple[Any, Callable[[], None]]] = collections.deque()
+        self._pending: list[tuple[Any, Callable[[], None]]] = []  # under _lock
         self._lock = threading.Lock()
-        self._pending: collections.deque[tuple[Any, Callable[[], None]]] = collections.deque()
+        self._start_lock = threading.RLock()  # re-entrant: a deleter may defer meanwhile
         self._thread: threading.Thread | None = None
 
     def defer(self, event: Any, callback: Callable[[], None]) -> None:
         if event is None or event.is_complete:
             callback()
             return
-        with self._lock:
-            self._pending.append((event, callback))
-            if self._thread is None or not self._thread.is_alive():
+        self._incoming.append((event, callback))  # deque appends are atomic
+        with self._start_lock:
+            if self._thread is None:
                 self._thread = threading.Thread(target=self._run, daemon=True,
                                                 name="warp_buffer-cuda-release")
                 self._thread.start()
 
     def poll(self) -> int:
         """Run the callbacks whose events completed; returns how many ran."""
-        ready = []
         with self._lock:
-            keep: collections.deque[tuple[Any, Callable[[], None]]] = collections.deque()
-            for event, callback in self._pending:
-                (ready if event.is_complete else keep).append((event, callback))
+            while self._incoming:
+                self._pending.append(self._incoming.popleft())
+            ready, keep = [], []
+            for item in self._pending:
+                (ready if item[0].is_complete else keep).append(item)
             self._pending = keep
         for _event, callback in ready:
             try:
@@ -551,17 +555,19 @@ class ReleaseQueue:
             time.sleep(self._poll_s)
 
     def __len__(self) -> int:
-        with self._lock:
-            return len(self._pending)
+        return len(self._pending) + len(self._incoming)
 
     def _run(self) -> None:
         while True:
             self.poll()
-            with self._lock:
-                if not self._pending:
-                    self._thread = None
-                    return
-            time.sleep(self._poll_s)
+            if len(self):
+                time.sleep(self._poll_s)
+                continue
+            with self._start_lock:  # a defer now either is seen here or starts a new thread
+                if len(self):
+                    continue
+                self._thread = None
+                return
 
 
 _release_queue = ReleaseQueue()
