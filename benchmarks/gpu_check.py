@@ -563,17 +563,17 @@ def _need_cuda(ctx: Context) -> None:
         raise Skip("needs a CUDA device (cpu rehearsal)")
 
 
-def _spins_for(ctx: Context, nbytes: int, target_ms: float = 60.0) -> int:
-    """Spin count that makes ``fill_pattern`` over ``nbytes`` take about ``target_ms``."""
+def spins_for(device_name: str, nbytes: int, target_ms: float = 60.0) -> int:
+    """Spin count that makes ``fill_pattern`` (and ``slow_fill``/``slow_copy``, the same loop)
+    over ``nbytes`` take about ``target_ms`` on ``device_name`` (1 on cpu)."""
     import warp as wp
 
-    if not ctx.device.startswith("cuda"):
+    if not device_name.startswith("cuda"):
         return 1
-
-    device = wp.get_device(ctx.device)
+    device = wp.get_device(device_name)
     probe = wp.empty(nbytes, dtype=wp.uint8, device=device)
     spins = 256
-    for _ in range(8):
+    for _ in range(10):
         start, end = wp.Event(device, enable_timing=True), wp.Event(device, enable_timing=True)
         stream = device.stream
         stream.record_event(start)
@@ -601,7 +601,8 @@ def check_capabilities(ctx: Context) -> dict[str, Any]:
     ctx.log(json.dumps(dataclasses.asdict(caps)))
     ctx.baseline_free = wp.get_device(ctx.device).free_memory
     return {"ipc": caps.ipc, "mempool": caps.mempool_supported, "vmm": caps.vmm,
-            "uuid": caps.uuid, "name": caps.name, "driver": wp.context.runtime.driver_version}
+            "uuid": caps.uuid, "name": caps.name,
+            "driver": wp._src.context.runtime.driver_version}
 
 
 def check_copy_bytes(ctx: Context) -> dict[str, Any]:
@@ -652,7 +653,7 @@ def check_stream_order(ctx: Context) -> dict[str, Any]:
 
     device = wp.get_device(ctx.device)
     nbytes = 16 << 20
-    spins = _spins_for(ctx, nbytes)
+    spins = spins_for(ctx.device, nbytes)
     a, b = wp.Stream(device), wp.Stream(device)
     buffer = warp_buffer.allocate_buffer(nbytes, ctx.device)
     _write_frame(buffer, 3, 1, spins, stream=a)  # slow writer on A, handle released at once
@@ -686,7 +687,7 @@ def check_reuse_hazard(ctx: Context) -> dict[str, Any]:
 
     device = wp.get_device(ctx.device)
     nbytes = 16 << 20
-    spins = _spins_for(ctx, nbytes, target_ms=100)
+    spins = spins_for(ctx.device, nbytes, target_ms=100)
     reader_stream, writer_stream = wp.Stream(device), wp.Stream(device)
     first = warp_buffer.allocate_buffer(nbytes, ctx.device)
     _write_frame(first, 1, 1, 1, stream=writer_stream)
@@ -813,7 +814,7 @@ def _judge_subscriber(result: dict[str, Any], expect: int, route: str | None, de
 def check_ipc_child(ctx: Context) -> dict[str, Any]:
     where = _node_env(ctx)
     nbytes = 4 << 20
-    spins = _spins_for(ctx, nbytes, target_ms=80)
+    spins = spins_for(ctx.device, nbytes, target_ms=80)
     frames = [(nbytes, 10 + i, i) for i in range(4)]
     seeds = {str(i): s for _, s, i in frames}
     child = spawn(ctx, "subscriber", {**where, "accept": "warp", "expect": 8, "seeds": seeds,
@@ -931,7 +932,8 @@ def check_end_to_end(ctx: Context) -> dict[str, Any]:
     seconds = time.monotonic() - start
     warp_metrics = _judge_subscriber(warp_result, count, "buffer", ctx.device.split(":")[0])
     cpu_metrics = _judge_subscriber(cpu_result, count, "cpu", None)
-    return {"frames": count, "warp_route": warp_metrics["routes"], "cpu_route": cpu_metrics["routes"],
+    return {"frames": count, "warp_route": warp_metrics["routes"],
+            "cpu_route": cpu_metrics["routes"],
             "seconds": round(seconds, 1)}
 
 

@@ -47,7 +47,12 @@ def kernels() -> dict:
     return gpu_check.kernels()
 
 
-SPINS = 20000  # ~tens of ms over 1 MiB on a current GPU: long enough to race
+@pytest.fixture(scope="module")
+def spins(kernels: dict) -> int:
+    """Spins that make a slow kernel over NBYTES take ~50 ms here: long enough to race."""
+    from benchmarks import gpu_check
+
+    return gpu_check.spins_for(DEVICE, NBYTES, target_ms=50)
 
 
 def _child(*args: str) -> subprocess.Popen:
@@ -120,12 +125,12 @@ def test_import_cache_opens_a_real_handle_once_and_reopens_after_drop(exporter: 
 
 
 # --------------------------------------------------------------------------- 2. reuse ordering
-def test_block_uses_ready_only_after_the_readers_kernel(kernels: dict) -> None:
+def test_block_uses_ready_only_after_the_readers_kernel(kernels: dict, spins: int) -> None:
     device = wp.get_device(DEVICE)
     src = wp.zeros(NBYTES, dtype=wp.uint8, device=device)
     dst = wp.zeros(NBYTES, dtype=wp.uint8, device=device)
     reader = wp.Stream(device)
-    wp.launch(kernels["slow_copy"], dim=NBYTES, inputs=[dst, src, SPINS], device=device,
+    wp.launch(kernels["slow_copy"], dim=NBYTES, inputs=[dst, src, spins], device=device,
               stream=reader)
     uses = cuda.BlockUses()
     uses.record_use(reader)
@@ -134,13 +139,14 @@ def test_block_uses_ready_only_after_the_readers_kernel(kernels: dict) -> None:
     assert uses.ready_for_reuse()
 
 
-def test_order_after_keeps_a_slow_reader_from_seeing_the_next_write(kernels: dict) -> None:
+def test_order_after_keeps_a_slow_reader_from_seeing_the_next_write(kernels: dict,
+                                                                   spins: int) -> None:
     device = wp.get_device(DEVICE)
     block = wp.full(NBYTES, 1, dtype=wp.uint8, device=device)
     out = wp.zeros(NBYTES, dtype=wp.uint8, device=device)
     reader, writer = wp.Stream(device), wp.Stream(device)
     wp.synchronize_device(device)
-    wp.launch(kernels["slow_copy"], dim=NBYTES, inputs=[out, block, SPINS], device=device,
+    wp.launch(kernels["slow_copy"], dim=NBYTES, inputs=[out, block, spins], device=device,
               stream=reader)
     uses = cuda.BlockUses()
     uses.record_use(reader)  # the reader's release
@@ -151,11 +157,11 @@ def test_order_after_keeps_a_slow_reader_from_seeing_the_next_write(kernels: dic
     assert int(out.numpy().max()) == 1 == int(out.numpy().min())
 
 
-def test_release_after_runs_only_once_the_stream_finished(kernels: dict) -> None:
+def test_release_after_runs_only_once_the_stream_finished(kernels: dict, spins: int) -> None:
     device = wp.get_device(DEVICE)
     data = wp.zeros(NBYTES, dtype=wp.uint8, device=device)
     reader = wp.Stream(device)
-    wp.launch(kernels["slow_fill"], dim=NBYTES, inputs=[data, 5, SPINS * 4], device=device,
+    wp.launch(kernels["slow_fill"], dim=NBYTES, inputs=[data, 5, spins * 4], device=device,
               stream=reader)
     queue = cuda.ReleaseQueue()
     seen = []
@@ -165,7 +171,7 @@ def test_release_after_runs_only_once_the_stream_finished(kernels: dict) -> None
     assert seen == [True]
 
 
-def test_public_api_reuse_hazard(kernels: dict) -> None:
+def test_public_api_reuse_hazard(kernels: dict, spins: int) -> None:
     """A slow reader on stream B; its buffer dropped and a new one of the same size written on
     stream A at once: the reader must still see the old bytes (the pool orders reuse)."""
     device = wp.get_device(DEVICE)
@@ -175,7 +181,7 @@ def test_public_api_reuse_hazard(kernels: dict) -> None:
         out.array.fill_(1)
     result = wp.zeros(NBYTES, dtype=wp.uint8, device=device)
     with warp_buffer.from_input_buffer(first, stream=reader) as view:
-        wp.launch(kernels["slow_copy"], dim=NBYTES, inputs=[result, view.array, SPINS * 4],
+        wp.launch(kernels["slow_copy"], dim=NBYTES, inputs=[result, view.array, spins * 4],
                   device=device, stream=reader)
     del view, first
     gc.collect()
@@ -234,11 +240,11 @@ def test_dlpack_stream_values_map_to_cuda_streams() -> None:
 
 
 # --------------------------------------------------------------------------- 4. no device syncs
-def test_stage_to_host_does_not_wait(kernels: dict) -> None:
+def test_stage_to_host_does_not_wait(kernels: dict, spins: int) -> None:
     device = wp.get_device(DEVICE)
     src = wp.zeros(NBYTES, dtype=wp.uint8, device=device)
     stream = wp.Stream(device)
-    wp.launch(kernels["slow_fill"], dim=NBYTES, inputs=[src, 6, SPINS * 4], device=device,
+    wp.launch(kernels["slow_fill"], dim=NBYTES, inputs=[src, 6, spins * 4], device=device,
               stream=stream)
     host = cuda.pinned_host_array(NBYTES)
     event = cuda.stage_to_host(src, host, stream)

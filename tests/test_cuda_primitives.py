@@ -350,7 +350,8 @@ def test_vmm_constants_and_layout_against_cuda_h(tmp_path: object) -> None:
 #include <cuda.h>
 int main(void) {
   printf("%zu %zu %zu %zu %zu %zu\n", sizeof(CUmemAllocationProp),
-         offsetof(CUmemAllocationProp, location), offsetof(CUmemAllocationProp, win32HandleMetaData),
+         offsetof(CUmemAllocationProp, location),
+         offsetof(CUmemAllocationProp, win32HandleMetaData),
          offsetof(CUmemAllocationProp, allocFlags), sizeof(CUmemAccessDesc),
          offsetof(CUmemAccessDesc, flags));
   printf("%d %d %d %d %d %d %d %d %d\n", CU_MEM_ALLOCATION_TYPE_PINNED,

@@ -133,7 +133,8 @@ def _cuda_device(device: Any) -> Any:
     try:
         device = wp.get_device(device)
     except (RuntimeError, ValueError, TypeError) as exc:
-        raise DeviceUnavailableError(f"Warp device {device!r} is not available here: {exc}") from None
+        raise DeviceUnavailableError(
+            f"Warp device {device!r} is not available here: {exc}") from None
     if not device.is_cuda:
         raise ExportUnavailableError(f"{device.alias} is not a CUDA device")
     return device
@@ -281,9 +282,11 @@ def ipc_event_handle(event: wp.Event) -> bytes:
 
 # ------------------------------------------------------------------------------ checked opens
 def _check_handle(handle: bytes, what: str) -> bytes:
-    if not isinstance(handle, (bytes, bytearray)) or len(handle) != IPC_HANDLE_SIZE:
+    if not isinstance(handle, (bytes, bytearray)):
+        raise DescriptorError(f"a CUDA IPC {what} handle is bytes, not {type(handle).__name__}")
+    if len(handle) != IPC_HANDLE_SIZE:
         raise DescriptorError(f"a CUDA IPC {what} handle is {IPC_HANDLE_SIZE} bytes, not "
-                              f"{len(handle) if isinstance(handle, (bytes, bytearray)) else handle!r}")
+                              f"{len(handle)}")
     if not any(handle):
         raise DescriptorError(f"an all-zero CUDA IPC {what} handle")
     return bytes(handle)
@@ -407,7 +410,8 @@ class ImportCache:
         dropped = 0
         with self._lock:
             for strong in self._strong.values():
-                for key in [k for k in strong if k[0] == session and (block is None or k[1] == block)]:
+                doomed = [k for k in strong if k[0] == session and (block is None or k[1] == block)]
+                for key in doomed:
                     del strong[key]
                     dropped += 1
         return dropped
@@ -790,9 +794,9 @@ def vmm_supported(device: Any) -> bool:
         device = wp.get_device(device)
         if not device.is_cuda:
             return False
-        return bool(_attribute(device, _CU_DEVICE_ATTRIBUTE_VIRTUAL_MEMORY_MANAGEMENT_SUPPORTED)
-                    and _attribute(device,
-                                   _CU_DEVICE_ATTRIBUTE_HANDLE_TYPE_POSIX_FILE_DESCRIPTOR_SUPPORTED))
+        vmm = _attribute(device, _CU_DEVICE_ATTRIBUTE_VIRTUAL_MEMORY_MANAGEMENT_SUPPORTED)
+        fd = _attribute(device, _CU_DEVICE_ATTRIBUTE_HANDLE_TYPE_POSIX_FILE_DESCRIPTOR_SUPPORTED)
+        return bool(vmm and fd)
     except (CudaDriverError, RuntimeError, ValueError):
         return False
 
