@@ -786,7 +786,7 @@ def _child_subscriber(args: dict[str, Any]) -> dict[str, Any]:
         sub.wait_for_publishers(1, timeout=60)
         _emit("MATCHED")
         stop = _stop_event(args.get("timeout", 200))
-        while not stop.is_set() and len(records) < args["expect"]:
+        while not stop.is_set() and len(records) + sub.counters.errors < args["expect"]:
             time.sleep(0.01)
         time.sleep(0.2)
         counters = vars(sub.counters).copy()
@@ -829,13 +829,14 @@ def check_ipc_child(ctx: Context) -> dict[str, Any]:
     return metrics
 
 
-def check_failure_injection(ctx: Context) -> dict[str, Any]:
+def _forged_handles(ctx: Context) -> bool:
+    """Forged CUDA IPC handles raise StaleBufferError; returns whether Warp's own
+    ``from_ipc_handle`` hands out (fresh) memory for one, for the record."""
     import warp as wp
 
     from warp_buffer import cuda
     from warp_buffer.errors import StaleBufferError
 
-    _need_cuda(ctx)
     device = wp.get_device(ctx.device)
     forged = os.urandom(cuda.IPC_HANDLE_SIZE)
     for opener in (lambda: cuda.open_ipc_memory(forged, 4096, device),
@@ -846,12 +847,16 @@ def check_failure_injection(ctx: Context) -> dict[str, Any]:
             pass
         else:
             raise Fail("a forged CUDA IPC handle was opened without an error")
-    # Warp's own open, for the record: does it hand out fresh memory for a forged handle?
     try:
-        warp_array = wp.from_ipc_handle(forged, wp.uint8, (4096,), device=device)
-        warp_gives_fresh = bool(warp_array.ptr)
+        return bool(wp.from_ipc_handle(forged, wp.uint8, (4096,), device=device).ptr)
     except Exception:  # noqa: BLE001
-        warp_gives_fresh = False
+        return False
+
+
+def check_failure_injection(ctx: Context) -> dict[str, Any]:
+    warp_gives_fresh = None
+    if ctx.device.startswith("cuda"):
+        warp_gives_fresh = _forged_handles(ctx)
     # Publisher gone: a child publishes two frames and exits while a child subscriber still
     # holds them unread (its callback sleeps first). Legacy CUDA IPC memory dies with its
     # exporter: a typed error is fine, wrong bytes or an untyped error are not. (In children,
@@ -1080,14 +1085,22 @@ def check_teardown(ctx: Context) -> dict[str, Any]:
     import warp_buffer
 
     gc.collect()
-    warp_buffer.trim_pools()
+    trim = getattr(warp_buffer, "trim_pools", None)  # the pool's public "give memory back"
+    if trim is not None:
+        trim()
     gc.collect()
     alive = [p.pid for p in ctx.children if p.poll() is None]
     need(not alive, f"children still running: {alive}")
     mine = [p.name for p in pathlib.Path("/dev/shm").glob("warp_buffer*") if f".{os.getpid()}"
             in p.name or f".{os.getpid()}-" in p.name]
     need(not mine, f"exports left in /dev/shm: {mine[:5]}")
-    metrics: dict[str, Any] = {"children": len(ctx.children)}
+    memfds = 0
+    for fd in pathlib.Path("/proc/self/fd").iterdir():
+        try:
+            memfds += os.readlink(fd).startswith("/memfd:")
+        except OSError:
+            pass
+    metrics: dict[str, Any] = {"children": len(ctx.children), "memfds_open": memfds}
     if ctx.baseline_free is not None and ctx.device.startswith("cuda"):
         wp.synchronize_device(ctx.device)
         free = wp.get_device(ctx.device).free_memory
