@@ -39,9 +39,11 @@ class FakeStream:
         self.cuda_stream = handle
         self.device = device
         self.waited: list[FakeEvent] = []
+        self.recorded: list[FakeEvent] = []
 
     def record_event(self, event: FakeEvent | None = None) -> FakeEvent:
         event = event or FakeEvent(self.device)
+        self.recorded.append(event)
         event.records += 1
         event.is_complete = False  # recorded work is pending until the test completes it
         return event
@@ -239,8 +241,17 @@ def test_release_after_records_on_the_readers_stream() -> None:
     stream = FakeStream(21)
     cuda.release_after(stream, lambda: ran.append("gpu"), queue)
     assert ran == ["cpu"] and len(queue) == 1
-    queue._pending[0][0].is_complete = True
+    stream.recorded[-1].is_complete = True
     assert queue.flush(2.0) and ran == ["cpu", "gpu"]
+
+
+def test_flush_releases_waits_for_the_module_queue() -> None:
+    ran = []
+    stream = FakeStream(22)
+    cuda.release_after(stream, lambda: ran.append(1))
+    assert cuda.flush_releases(timeout=0.05) is False and ran == []
+    stream.recorded[-1].is_complete = True
+    assert cuda.flush_releases(timeout=2.0) and ran == [1]
 
 
 # --------------------------------------------------------------------------- device identity

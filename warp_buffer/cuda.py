@@ -91,6 +91,7 @@ __all__ = [
     "ready_for_reuse",
     "ReleaseQueue",
     "release_after",
+    "flush_releases",
     "torch_current_stream",
     "stream_from_handle",
     "stream_from_dlpack",
@@ -575,6 +576,12 @@ class ReleaseQueue:
 
 
 _release_queue = ReleaseQueue()
+
+
+def flush_releases(timeout: float = 5.0) -> bool:
+    """Wait for every release deferred by :func:`release_after` (a clean shutdown calls this
+    before closing what the callbacks release); False if some did not complete in time."""
+    return _release_queue.flush(timeout)
 
 
 def release_after(stream: Any, callback: Callable[[], None],
