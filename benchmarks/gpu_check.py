@@ -718,16 +718,18 @@ def _node_env(ctx: Context) -> dict[str, Any]:
 
 def _publish_frames(ctx: Context, where: dict[str, Any], frames: list[tuple[int, int, int]],
                     subscribers: list[subprocess.Popen], spins: int = 1, repeat: int = 1,
-                    depth: int = 10, interval: float = 0.0) -> dict[str, Any]:
+                    depth: int = 10, interval: float = 0.0, timeout: float = 120
+                    ) -> list[dict[str, Any]]:
     """Publish (nbytes, seed, index) frames as warp buffers on the GPU (writer still busy when
-    published with ``spins``), each ``repeat`` times, once every subscriber child matched."""
+    published with ``spins``), each ``repeat`` times, once every subscriber child matched; then
+    collect every subscriber's result before the publisher's node closes (a subscriber still
+    taking queued frames needs its publisher's endpoint info). Returns the results."""
     from buffer_pubsub import Node
     from rosidl_buffer.messages import get_message_type
 
     import warp_buffer
 
     tensor = get_message_type(TENSOR)
-    published = 0
     with Node(f"gpu_check_pub_{os.getpid()}", domain_id=where["domain"]) as node:
         pub = node.create_publisher(tensor, where["topic"], depth=depth)
         need(pub.wait_for_subscriptions(len(subscribers), timeout=60), "subscribers not matched")
@@ -739,11 +741,9 @@ def _publish_frames(ctx: Context, where: dict[str, Any], frames: list[tuple[int,
             for _ in range(repeat):
                 pub.publish(tensor(dtype_code=1, dtype_bits=8, dtype_lanes=1,
                                    shape=[nbytes], data=buffer))
-                published += 1
             if interval:
                 time.sleep(interval)
-        time.sleep(0.5)
-    return {"published": published}
+        return [finish(ctx, child, timeout) for child in subscribers]
 
 
 def _child_subscriber(args: dict[str, Any]) -> dict[str, Any]:
@@ -785,8 +785,15 @@ def _child_subscriber(args: dict[str, Any]) -> dict[str, Any]:
         _emit("READY")
         sub.wait_for_publishers(1, timeout=60)
         _emit("MATCHED")
+        # "stop" means the publisher is done: keep taking what is still queued (up to
+        # drain_s more), so a subscriber slower than its publisher is judged on every frame.
         stop = _stop_event(args.get("timeout", 200))
-        while not stop.is_set() and len(records) + sub.counters.errors < args["expect"]:
+        drain_until = None
+        while len(records) + sub.counters.errors < args["expect"]:
+            if stop.is_set():
+                drain_until = drain_until or time.monotonic() + args.get("drain_s", 30)
+                if time.monotonic() > drain_until:
+                    break
             time.sleep(0.01)
         time.sleep(0.2)
         counters = vars(sub.counters).copy()
@@ -822,8 +829,7 @@ def check_ipc_child(ctx: Context) -> dict[str, Any]:
     wait_ready(child)
     # Each frame published twice (imported twice), its writer still busy; the subscriber
     # releases each buffer explicitly and imports the next (release and re-import).
-    _publish_frames(ctx, where, frames, [child], spins=spins, repeat=2)
-    result = finish(ctx, child)
+    [result] = _publish_frames(ctx, where, frames, [child], spins=spins, repeat=2)
     metrics = _judge_subscriber(result, 8, "buffer", ctx.device.split(":")[0])
     metrics["released"] = sum(bool(r.get("released")) for r in result["records"])
     return metrics
@@ -917,8 +923,8 @@ def check_forced_staging(ctx: Context) -> dict[str, Any]:
     child = spawn(ctx, "subscriber", {**where, "accept": "warp", "expect": 6, "seeds": seeds},
                   env={"CUDA_VISIBLE_DEVICES": ""})
     wait_ready(child)
-    _publish_frames(ctx, where, frames, [child])
-    return _judge_subscriber(finish(ctx, child), 6, None, "cpu")
+    [result] = _publish_frames(ctx, where, frames, [child])
+    return _judge_subscriber(result, 6, None, "cpu")
 
 
 def check_end_to_end(ctx: Context) -> dict[str, Any]:
@@ -932,8 +938,8 @@ def check_end_to_end(ctx: Context) -> dict[str, Any]:
     wait_ready(warp_sub)
     wait_ready(cpu_sub)
     start = time.monotonic()
-    _publish_frames(ctx, where, frames, [warp_sub, cpu_sub], depth=count, interval=0.002)
-    warp_result, cpu_result = finish(ctx, warp_sub, 240), finish(ctx, cpu_sub, 240)
+    warp_result, cpu_result = _publish_frames(ctx, where, frames, [warp_sub, cpu_sub],
+                                              depth=count, interval=0.002, timeout=240)
     seconds = time.monotonic() - start
     warp_metrics = _judge_subscriber(warp_result, count, "buffer", ctx.device.split(":")[0])
     cpu_metrics = _judge_subscriber(cpu_result, count, "cpu", None)

@@ -162,16 +162,10 @@ def test_plumbing_mode_end_to_end(tmp_path: pathlib.Path) -> None:
     assert len(lines) - table_start == len(gpu_check.CHECKS) + 3  # header, rule, rows, counts
 
 
-@pytest.mark.slow  # opt in (-m slow): see the note on the transport race below
 @pytest.mark.multiprocess
 def test_cpu_rehearsal_of_a_node_check(tmp_path: pathlib.Path) -> None:
     """``--device cpu`` runs the Node/child checks on the cpu device: their child protocol,
-    matching, CRC judging and teardown stay working without a GPU.
-
-    Opt-in because on the current transport about 1 run in 3 on a loaded 2-core machine loses
-    one descriptor right after the subscriber reported the publisher matched ("a backend
-    descriptor needs the publisher's endpoint info"): a buffer_pubsub discovery race, which this
-    check reports as FAIL when it happens, as it should."""
+    matching, CRC judging, explicit release and teardown stay working without a GPU."""
     out = tmp_path / "out"
     proc = subprocess.run(
         [sys.executable, "-m", "benchmarks.gpu_check", "--device", "cpu", "--quick", "--only",
