@@ -101,6 +101,7 @@ __all__ = [
     "HostRegistration",
     "stage_to_host",
     "vmm_supported",
+    "vmm_granularity",
     "VmmMemory",
 ]
 
@@ -178,8 +179,9 @@ def capabilities(device: Any) -> DeviceCapabilities:
 
 
 def find_device(uuid: str, devices: list[Any] | None = None) -> Any:
-    """The local CUDA device whose UUID is ``uuid`` (``wp.Device.uuid``, as ``nvidia-smi -L``
-    prints it). Matching by PCI bus id is wrong: MIG instances of one GPU share it.
+    """The local CUDA device whose UUID is ``uuid`` (``wp.Device.uuid``; Warp reads it with
+    ``cuDeviceGetUuid_v2``, which gives each MIG instance its own). Matching by PCI bus id is
+    wrong: MIG instances of one GPU share it.
 
     Raises :class:`ExportUnavailableError` when no local device has that UUID.
     """
