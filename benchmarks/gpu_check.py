@@ -12,9 +12,10 @@ offsets, bandwidth at 256 MiB); stream ordering (slow writer on stream A, reader
 a non-default torch stream); the reuse hazard; a child importing a CUDA export while the writer
 is busy, twice, released and re-imported; failure injection (publisher gone, forged handles);
 forced staging; end to end with ``Node`` (200 frames of 16 MiB to a warp and a cpu subscriber);
-tensor_conversions with torch on the GPU; teardown; a short latency benchmark against
-``cudaMemcpy`` device-to-host. A check fails on any ``Warp CUDA error`` its process printed,
-except the failure injections, whose errors are expected.
+tensor_conversions with torch on the GPU; a short latency benchmark against ``cudaMemcpy``
+device-to-host; the repository's cuda-marked tests (VMM, allocators); teardown. A check fails
+on any ``Warp CUDA error`` its process printed, except the failure injections, whose errors are
+expected.
 
 Without a GPU (``--no-gpu``, or none found) it runs in plumbing mode: the install step into a
 scratch directory, the child-process protocol, the stderr watch and the table, every GPU check
@@ -1085,6 +1086,21 @@ def check_benchmark(ctx: Context) -> dict[str, Any]:
     return metrics
 
 
+def check_cuda_tests(ctx: Context) -> dict[str, Any]:
+    """The repository's cuda-marked tests (VMM, allocators, checked opens, streams, copies)."""
+    _need_cuda(ctx)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "cuda and not slow",
+         "tests/test_cuda_ipc.py", "tests/test_cuda_copy.py"],
+        cwd=ROOT, capture_output=True, text=True, timeout=max(30.0, min(240.0, ctx.left() - 30)))
+    ctx.log(f"[pytest -m cuda]\n{proc.stdout[-8000:]}\n{proc.stderr[-2000:]}")
+    lines = proc.stdout.strip().splitlines()
+    summary = lines[-1] if lines else "no output"
+    failed = [line.split()[1] for line in lines if line.startswith("FAILED ")]
+    need(proc.returncode == 0, f"{summary}; failed: {', '.join(failed)[:400]}")
+    return {"summary": summary}
+
+
 def check_teardown(ctx: Context) -> dict[str, Any]:
     import warp as wp
 
@@ -1138,6 +1154,8 @@ CHECKS: list[Check] = [
     Check("end_to_end", check_end_to_end, doc="Node, 200 x 16 MiB to warp and cpu subscribers"),
     Check("tensor_conversions", check_tensor_conversions, doc="torch on the GPU, no device sync"),
     Check("benchmark", check_benchmark, doc="one-way latency vs cudaMemcpy D2H"),
+    Check("cuda_tests", check_cuda_tests, cuda_errors_expected=True,
+          doc="pytest -m cuda: VMM, allocators, checked opens, streams (own process)"),
     Check("teardown", check_teardown, doc="no exports, no children, device memory returned"),
 ]
 
