@@ -12,6 +12,9 @@ The copy kernel is vectorized, never one thread per byte:
 - on CUDA each thread copies 16 bytes (``int4`` loads and stores, coalesced) when both pointers
   are 16-byte aligned, else its 16 bytes one at a time.
 
+``wp.tid()`` is a 32-bit int, so one launch covers at most ``MAX_LAUNCH_THREADS`` threads: larger
+copies (over 16 GiB on CUDA) run as several launches, each starting at a 64-bit byte offset.
+
 ``benchmarks/copy_bandwidth.py`` measures it against ``np.copyto``.
 """
 
@@ -19,7 +22,8 @@ from __future__ import annotations
 
 import warp as wp
 
-__all__ = ["NT_THRESHOLD", "CPU_CHUNK", "copy_bytes", "stamp_generation"]
+__all__ = ["NT_THRESHOLD", "CPU_CHUNK", "CUDA_CHUNK", "MAX_LAUNCH_THREADS", "copy_bytes",
+           "launch_slices", "stamp_generation"]
 
 #: Copies of at least this many bytes use non-temporal stores on the cpu device.
 NT_THRESHOLD = 4 << 20
@@ -27,13 +31,16 @@ NT_THRESHOLD = 4 << 20
 CPU_CHUNK = 1 << 20
 #: Bytes one Warp thread copies on a CUDA device.
 CUDA_CHUNK = 16
+#: Threads of one copy launch: ``wp.tid()`` must stay below 2**31 (a 32 GiB CUDA copy would need
+#: 2**31 threads); bigger copies are split into launches of at most this many threads.
+MAX_LAUNCH_THREADS = 1 << 30
 
 _MODE_PLAIN = 0  # memcpy on cpu, byte loop on CUDA: any alignment
 _MODE_VECTOR = 1  # 16-byte aligned: memcpy on cpu, int4 on CUDA
 _MODE_STREAM = 2  # 16-byte aligned, large: non-temporal stores on cpu (int4 on CUDA)
 
 _COPY_SNIPPET = r"""
-    const long long start = (long long)t * chunk;
+    const long long start = base + (long long)t * chunk;
     long long end = start + chunk;
     if (end > count) end = count;
     if (start >= end) return;
@@ -71,6 +78,7 @@ def _copy_range(
     dst: wp.array(dtype=wp.uint8),
     src: wp.array(dtype=wp.uint8),
     t: wp.int32,
+    base: wp.int64,
     chunk: wp.int64,
     count: wp.int64,
     mode: wp.int32,
@@ -81,12 +89,14 @@ def _copy_range(
 def copy_bytes_kernel(
     dst: wp.array(dtype=wp.uint8),
     src: wp.array(dtype=wp.uint8),
+    base: wp.int64,
     chunk: wp.int64,
     count: wp.int64,
     mode: wp.int32,
 ):
-    """Copy ``count`` bytes from ``src`` to ``dst``; thread ``t`` copies ``[t*chunk, (t+1)*chunk)``."""
-    _copy_range(dst, src, wp.tid(), chunk, count, mode)
+    """Copy bytes ``[base, count)`` of ``src`` to ``dst``; thread ``t`` copies
+    ``[base + t*chunk, base + (t+1)*chunk)`` (64-bit offsets: ``t`` alone is 32-bit)."""
+    _copy_range(dst, src, wp.tid(), base, chunk, count, mode)
 
 
 @wp.kernel
@@ -117,11 +127,20 @@ def copy_bytes(dst: wp.array, src: wp.array, stream: wp.Stream | None = None) ->
     else:
         chunk = CUDA_CHUNK
         mode = _MODE_VECTOR if aligned else _MODE_PLAIN
-    dim = (nbytes + chunk - 1) // chunk
-    wp.launch(
-        copy_bytes_kernel, dim=dim, inputs=[dst, src, chunk, nbytes, mode], device=device,
-        stream=stream,
-    )
+    for base, threads in launch_slices(nbytes, chunk):
+        wp.launch(
+            copy_bytes_kernel, dim=threads, inputs=[dst, src, base, chunk, nbytes, mode],
+            device=device, stream=stream,
+        )
+
+
+def launch_slices(nbytes: int, chunk: int) -> list[tuple[int, int]]:
+    """The launches that copy ``nbytes`` in ``chunk``-byte threads: ``(first byte, threads)``
+    pairs, each launch at most ``MAX_LAUNCH_THREADS`` threads so ``wp.tid()`` cannot overflow."""
+    threads = (nbytes + chunk - 1) // chunk
+    per_launch = MAX_LAUNCH_THREADS
+    return [(first * chunk, min(per_launch, threads - first))
+            for first in range(0, threads, per_launch)]
 
 
 def stamp_generation(stamp: wp.array, value: int, stream: wp.Stream | None = None) -> None:
