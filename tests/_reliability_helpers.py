@@ -242,7 +242,7 @@ def release_pool_memory(timeout: float = 5.0) -> dict[str, Any]:
     deadline = time.monotonic() + timeout
     while True:
         gc.collect()
-        warp_buffer.trim_pools(0.0, inflight_grace=0.0)
+        warp_buffer.trim_pools(0.0)
         stats = warp_buffer.pool_stats()
         idle = all(s["leased"] == 0 and s["free_blocks"] == 0 for s in stats.values())
         if idle or time.monotonic() > deadline:
