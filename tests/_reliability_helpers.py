@@ -9,9 +9,7 @@ Same stdout protocol as :mod:`tests._pubsub_helpers` (``READY``, then ``RESULT <
 - ``soak``: subscriptions that join and leave in turns of ``--turn`` seconds until ``stop``;
   reports messages received, bad payloads, typed errors and its own resource samples.
 - ``export``: allocates and exports ``--count`` warp buffers, prints ``READY`` and waits to be
-  killed (leaves orphan exports behind).
-- ``sweep``: starts the library the way any process of it starts (the warp backend's first
-  endpoint) and prints ``RESULT`` with the exports it can still see.
+  killed.
 """
 
 from __future__ import annotations
@@ -37,15 +35,15 @@ SHM_DIR = "/dev/shm"
 
 # --------------------------------------------------------------------------- resource probes
 def resources() -> dict[str, int]:
-    """This process's open fds, /dev/shm mappings, our /dev/shm files, and RSS in KiB."""
-    from warp_buffer import ipc
-
+    """This process's open fds, shared mappings (arenas, /dev/shm), /dev/shm files named for
+    this process, and RSS in KiB."""
     with open("/proc/self/maps") as maps:
-        mappings = sum(1 for line in maps if f" {SHM_DIR}/" in line)
+        mappings = sum(1 for line in maps if f" {SHM_DIR}/" in line or "/memfd:warp_buffer" in line)
     with open("/proc/self/status") as status:
         rss = next(int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
+    mine = [n for n in os.listdir(SHM_DIR) if n.startswith("warp_buffer") and f".{os.getpid()}" in n]
     return {"fds": len(os.listdir("/proc/self/fd")), "maps": mappings,
-            "shm_files": len(ipc.list_exports()), "rss_kib": rss}
+            "shm_files": len(mine), "rss_kib": rss}
 
 
 # --------------------------------------------------------------------------- child programs
@@ -117,24 +115,9 @@ def run_export(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_sweep(args: argparse.Namespace) -> int:
-    from rosidl_buffer import EndpointInfo, EndpointType, local_host_id
-    from rosidl_buffer.registry import create_backend_instance
-    from warp_buffer import ipc
-
-    info = EndpointInfo(gid=bytes(16), node_name="sweeper", node_namespace="/",
-                        topic_name="/sweep", topic_type=TENSOR,
-                        endpoint_type=EndpointType.PUBLISHER, host_id=local_host_id(),
-                        process_id=os.getpid(), user_id=os.getuid())
-    create_backend_instance("warp").on_creating_endpoint(info)
-    left = [f.path for f in ipc.list_exports()]
-    _emit("RESULT " + json.dumps({"exports": left}))
-    return 0
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=MODULE)
-    parser.add_argument("role", choices=["hold", "soak", "export", "sweep"])
+    parser.add_argument("role", choices=["hold", "soak", "export"])
     parser.add_argument("--domain", type=int, default=0)
     parser.add_argument("--topic", default="/reliability")
     parser.add_argument("--depth", type=int, default=100)
@@ -144,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gap", type=float, default=0.3, help="soak: seconds unsubscribed")
     parser.add_argument("--progress", type=int, default=250, help="soak: GOT line every N")
     args = parser.parse_args(argv)
-    roles = {"hold": run_hold, "soak": run_soak, "export": run_export, "sweep": run_sweep}
+    roles = {"hold": run_hold, "soak": run_soak, "export": run_export}
     return roles[args.role](args)
 
 
@@ -233,8 +216,8 @@ class ForgedPublisher:
 
 
 def release_pool_memory(timeout: float = 5.0) -> dict[str, Any]:
-    """Give every free pool block of this process back (its /dev/shm file is removed); returns
-    the pool stats, in which a test expects no leased block left."""
+    """Give every free pool block of this process back (its arena pages are punched out);
+    returns the pool stats, in which a test expects no leased block left."""
     import gc
 
     import warp_buffer
