@@ -241,13 +241,13 @@ PUBLISHER = EndpointInfo(
 
 
 @pytest.mark.parametrize("changes, expected", [
-    ({"size": -1}, ExportBoundsError),
-    ({"offset": -4096}, ExportBoundsError),
-    ({"capacity": -BLOCK}, ExportBoundsError),
+    ({"size": -1}, DescriptorError),
+    ({"offset": -4096}, DescriptorError),
+    ({"capacity": -BLOCK}, DescriptorError),
     ({"generation": -1}, DescriptorError),
     ({"owner_pid": -1}, DescriptorError),
     ({"peer_slot": -1}, DescriptorError),
-    ({"size": 2**80}, ExportBoundsError),
+    ({"size": 2**80}, DescriptorError),
     ({"kind": -3}, DescriptorError),
     ({"session": "abc"}, DescriptorError),
     ({"offset": 1.5}, DescriptorError),
@@ -266,7 +266,7 @@ def test_a_foreign_publisher_and_a_wrong_type_are_refused():
     frame, good = good_frame(0)
     foreign = EndpointInfo(**{**{f: getattr(PUBLISHER, f) for f in (
         "gid", "node_name", "node_namespace", "topic_name", "topic_type", "endpoint_type",
-        "process_id")}, "host_id": "elsewhere", "user_id": os.getuid()})
+        "process_id")}, "gid": bytes(16), "host_id": "elsewhere", "user_id": os.getuid()})
     with pytest.raises(ForeignExportError):
         BACKEND.from_descriptor_with_endpoint(good, foreign)
     with pytest.raises(DescriptorError):

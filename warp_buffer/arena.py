@@ -88,15 +88,14 @@ class Geometry:
     """Where things are in an arena of ``data_bytes`` data bytes (both sides compute it)."""
 
     data_bytes: int
+    data_offset: int = dataclasses.field(init=False)
+    file_size: int = dataclasses.field(init=False)
 
-    @property
-    def data_offset(self) -> int:
+    def __post_init__(self) -> None:
         gens = self.data_bytes // MIN_BLOCK * 8
-        return -(-(GENS_OFFSET + gens) // MIN_BLOCK) * MIN_BLOCK
-
-    @property
-    def file_size(self) -> int:
-        return self.data_offset + self.data_bytes
+        offset = -(-(GENS_OFFSET + gens) // MIN_BLOCK) * MIN_BLOCK
+        object.__setattr__(self, "data_offset", offset)
+        object.__setattr__(self, "file_size", offset + self.data_bytes)
 
     def gen_index(self, offset: int) -> int:
         return (offset - self.data_offset) // MIN_BLOCK

@@ -48,6 +48,7 @@ class AttachedArena:
             base + ACKS_OFFSET)
         self._data_base = data_base
         self.data = host_view(data_base, geometry.data_bytes)
+        self.data.flags.writeable = False  # views of imports are read-only
         self._holds: dict[int, int] = {}
         self._lock = threading.Lock()
         self._deferred: collections.deque[int] = collections.deque()
@@ -92,9 +93,7 @@ class AttachedArena:
     def host_array(self, offset: int, nbytes: int) -> np.ndarray:
         """A read-only NumPy view of ``nbytes`` at file offset ``offset`` (no copy)."""
         rel = offset - self.data_offset
-        view = self.data[rel:rel + nbytes]
-        view.flags.writeable = False
-        return view
+        return self.data[rel:rel + nbytes]
 
     # -- holds ------------------------------------------------------------------------------
     def hold(self, offset: int) -> None:

@@ -2,10 +2,12 @@
 
 The storage is a 1-D ``wp.array`` of uint8 on a Warp device, over a block leased from the
 device's pool (:mod:`warp_buffer.pool`) or over memory imported from another process
-(:mod:`warp_buffer.ipc`). The array's ``deleter`` owns the lease (or the import's hold), so the
-memory is recycled, or the hold dropped, exactly when the last array over it, views and DLPack
-consumers included, is collected; :meth:`WarpBufferImpl.release` drops an import's hold at once.
-An import wraps its ``wp.array`` lazily (on first use), so importing costs no Warp call.
+(:mod:`warp_buffer.ipc`). The lease (or the import's hold) is owned by the impl and is the
+``deleter`` of its array, so the memory is recycled, or the hold dropped, exactly when the impl
+and the last array over it, views and DLPack consumers included, are gone;
+:meth:`WarpBufferImpl.release` drops an import's hold at once. On cpu the ``wp.array`` is made
+lazily (on first use), so allocating and importing cost no Warp call, and host copies
+(``to_cpu``, ``clone``, ``to_buffer``) are plain NumPy copies at memory speed.
 
 Write ordering lives here too. A buffer takes one write handle, ever; its write ends when the
 handle is released, or the buffer is sealed (published) or read while the handle is still open.
@@ -68,10 +70,22 @@ class WarpBufferImpl(BufferImplBase):
     (``from_output_buffer`` / ``from_input_buffer``) to write and read it in order.
     """
 
+    # State every impl starts with, as class attributes: an import builds no more than it needs
+    # (an instance attribute shadows one when it changes).
+    _event: Any = None  # CUDA event recorded when the last write completed
+    _writer: WriteState | None = None  # the open write, if any
+    _write_opened = False
+    _published = False
+    _read = False
+    _released = False
+    _staging: Any = None  # host staging copy for CUDA exports
+    _reexport: WarpBufferImpl | None = None  # local copy of an import, to re-publish
+
     def __init__(self, array: wp.array | None, device: Any, *, block: Any = None,
                  imported: Any = None, hold: Any = None, ptr: int = 0, size: int = 0,
-                 host: np.ndarray | None = None) -> None:
+                 host: np.ndarray | None = None, owner: Any = None) -> None:
         self._arr = array
+        self._owner = owner if owner is not None else hold  # deleter of the lazy array
         self._device = device
         self._ptr = array.ptr if array is not None else ptr
         self._size = array.shape[0] if array is not None else size
@@ -80,14 +94,6 @@ class WarpBufferImpl(BufferImplBase):
         self._hold = hold  # an import's hold on the publisher's block
         self._host = host  # NumPy view of host storage, for plain host copies
         self._lock = threading.RLock()
-        self._event: Any = None  # CUDA event recorded when the last write completed
-        self._writer: WriteState | None = None  # the open write, if any
-        self._write_opened = False
-        self._published = False
-        self._read = False
-        self._released = False
-        self._staging: Any = None  # host staging copy for CUDA exports
-        self._reexport: WarpBufferImpl | None = None  # local copy of an import, to re-publish
 
     @classmethod
     def allocate(cls, nbytes: int, device: Any = None) -> WarpBufferImpl:
@@ -98,9 +104,13 @@ class WarpBufferImpl(BufferImplBase):
         size_class(nbytes)  # validates the size before touching the pool
         lease = get_pool(device).acquire(nbytes)
         block = lease.block
-        array = wrap_bytes(block.data_ptr, nbytes, device, lease)
         host = block.host
-        return cls(array, device, block=block, host=None if host is None else host[:nbytes])
+        if host is None:  # CUDA: the array now (its users are Warp calls anyway)
+            return cls(wrap_bytes(block.data_ptr, nbytes, device, lease), device, block=block)
+        # cpu: the wp.array is made on first use; the lease returns the block when both this
+        # impl and that array are gone.
+        return cls(None, device, block=block, ptr=block.data_ptr, size=nbytes,
+                   host=host[:nbytes], owner=lease)
 
     @classmethod
     def imported(cls, ptr: int, size: int, device: Any, hold: Any, descriptor: Any,
@@ -117,7 +127,7 @@ class WarpBufferImpl(BufferImplBase):
                                           "accessible through it")
             with self._lock:
                 if self._arr is None:
-                    self._arr = wrap_bytes(self._ptr, self._size, self._device, self._hold)
+                    self._arr = wrap_bytes(self._ptr, self._size, self._device, self._owner)
                 array = self._arr
         return array
 
@@ -138,9 +148,7 @@ class WarpBufferImpl(BufferImplBase):
         after the writer's pending work on CUDA."""
         host = self._host
         if host is not None and not self._released:
-            out = np.empty(self._size, dtype=np.uint8)
-            np.copyto(out, host)
-            return CpuBufferImpl.wrap(out)
+            return CpuBufferImpl.wrap(host.copy())
         self._check_live()
         n = self._size
         out = np.empty(n, dtype=np.uint8)

@@ -10,6 +10,7 @@ bytes are those of the generic codec.
 
 from __future__ import annotations
 
+import operator
 import struct
 from typing import Any
 
@@ -75,24 +76,27 @@ def make(values: tuple[int, ...]) -> Any:
     return message
 
 
+_get_fields = operator.attrgetter(*FIELDS)
+
+
 def values_of(descriptor: Any) -> tuple[int, ...]:
-    """The field values of ``descriptor``, checked to be ints (a forged or hand-made one)."""
+    """The field values of ``descriptor``, checked to be what the wire can carry (a forged or
+    hand-made one may hold anything): integers in each field's range, else
+    :class:`DescriptorError`. The check is the layout itself (one C call)."""
     try:
-        values = tuple(getattr(descriptor, name) for name in FIELDS)
+        values = _get_fields(descriptor)
+        LAYOUT.pack(*values)
     except AttributeError as exc:
         raise DescriptorError(f"not a {DESCRIPTOR_TYPE}: {exc}") from None
-    for name, value in zip(FIELDS, values):
-        if type(value) is not int:
-            raise DescriptorError(f"descriptor field {name} is {type(value).__name__}, not int")
+    except struct.error as exc:
+        raise DescriptorError(f"a descriptor field the wire cannot carry: {exc}") from None
     return values
 
 
 def pack(descriptor: Any) -> bytes:
     """The descriptor's CDR bytes (as at an 8-byte boundary of a CDR stream)."""
-    try:
-        return LAYOUT.pack(*values_of(descriptor))
-    except struct.error as exc:
-        raise DescriptorError(f"descriptor field out of range: {exc}") from None
+    values = values_of(descriptor)
+    return LAYOUT.pack(*values)
 
 
 def unpack(data: bytes | bytearray | memoryview) -> Any:

@@ -236,8 +236,8 @@ class CudaBlock(Block):
 
 
 class Lease:
-    """One buffer's use of one block. Used as the ``deleter`` of the buffer's base ``wp.array``,
-    so the block returns to the pool exactly when the last array over it is collected."""
+    """One buffer's use of one block, owned by the impl and used as the ``deleter`` of its
+    ``wp.array``: the block returns to the pool exactly when both are collected."""
 
     __slots__ = ("pool", "block", "_done", "__weakref__")
 
@@ -250,6 +250,9 @@ class Lease:
         if not self._done:
             self._done = True
             self.pool._give_back(self.block)
+
+    def __del__(self) -> None:  # the impl went before any array was made over the block
+        self()
 
 
 class BlockPool:

@@ -124,6 +124,9 @@ class WarpBufferBackend(BufferBackend):
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._peers: dict[bytes, _Peer] = {}
+        # Publishers judged on the import side: gid -> None (served) or (error class, message):
+        # a fresh error per refusal (a raised one would keep its traceback's frames alive).
+        self._publishers: dict[bytes, tuple[type[Exception], str] | None] = {}
         self._devices: tuple[str, ...] | None = None
         self._cuda_ipc = False
 
@@ -177,6 +180,7 @@ class WarpBufferBackend(BufferBackend):
         it no longer pins any block)."""
         with self._lock:
             peer = self._peers.pop(endpoint_info.gid, None)
+            self._publishers.pop(endpoint_info.gid, None)
         if peer is not None and peer.slot is not None:
             forget_peer(endpoint_info.gid)
 
@@ -281,17 +285,32 @@ class WarpBufferBackend(BufferBackend):
 
         Raises the typed errors of :func:`warp_buffer.ipc.import_buffer`, plus
         :class:`ForeignExportError` for a publisher on another host or user and
-        :class:`ExportUnavailableError` when IPC is disabled here.
+        :class:`ExportUnavailableError` when IPC is disabled here (both judged once per
+        publisher, on its first descriptor).
         """
-        if ipc_disabled():
-            raise ExportUnavailableError("IPC is disabled here (WARP_BUFFER_DISABLE_IPC)")
-        if endpoint_info.host_id != local_host_id() or endpoint_info.user_id != local_user_id():
-            raise ForeignExportError(
-                f"descriptor from a publisher on host {endpoint_info.host_id!r} as user "
-                f"{endpoint_info.user_id}; this is host {local_host_id()!r}, user "
-                f"{local_user_id()}"
-            )
+        gid = endpoint_info.gid
+        try:
+            refusal = self._publishers[gid]
+        except KeyError:
+            refusal = self._judge_publisher(endpoint_info)
+        if refusal is not None:
+            raise refusal[0](refusal[1])
         return import_buffer(descriptor)
+
+    def _judge_publisher(self, info: EndpointInfo) -> tuple[type[Exception], str] | None:
+        refusal: tuple[type[Exception], str] | None = None
+        if ipc_disabled():
+            refusal = (ExportUnavailableError, "IPC is disabled here (WARP_BUFFER_DISABLE_IPC)")
+        elif info.host_id != local_host_id() or info.user_id != local_user_id():
+            refusal = (ForeignExportError,
+                       f"descriptor from a publisher on host {info.host_id!r} as user "
+                       f"{info.user_id}; this is host {local_host_id()!r}, user "
+                       f"{local_user_id()}")
+        with self._lock:
+            self._publishers[info.gid] = refusal
+            while len(self._publishers) > _PEER_CACHE_SIZE:
+                self._publishers.pop(next(iter(self._publishers)))
+        return refusal
 
     def __repr__(self) -> str:
         return f"WarpBufferBackend(pid={os.getpid()})"
