@@ -9,9 +9,11 @@ and 142 us before the arena design); publisher and subscriber fds O(1) (a few, n
 nothing in /dev/shm after any death; ``to_cpu``/``clone`` >= 0.95x ``np.empty`` + ``np.copyto``
 from 4 KiB to 256 MiB, fresh and reused destinations.
 
-Build = ``create_descriptor_with_endpoint`` + CDR of the descriptor (the generic codec); import =
-CDR decode + ``from_descriptor_with_endpoint`` + ``release()``, in another process that has
-attached to the publisher's session (the steady state). Medians of many runs.
+Build = ``create_descriptor_with_endpoint`` + the descriptor's bytes; import = decode +
+``from_descriptor_with_endpoint`` + ``release()``, in another process that has attached to the
+publisher's session (the steady state). Each is measured twice, interleaved: with the fixed
+layout (``warp_buffer.descriptor.pack``/``unpack``, one struct call) and with the generic CDR codec
+(``serialize_message`` / ``deserialize_message`` of the descriptor alone). Medians.
 """
 
 from __future__ import annotations
@@ -98,13 +100,20 @@ def _child(role: str, path: str, count: int) -> None:
     kind = descriptor.DESCRIPTOR_TYPE
     if role == "import":
         backend.from_descriptor_with_endpoint(deserialize_message(frames[0], kind), pub).release()
-        times = []
-        for frame in frames[1:]:
-            start = time.perf_counter()
-            impl = backend.from_descriptor_with_endpoint(deserialize_message(frame, kind), pub)
-            impl.release()
-            times.append(time.perf_counter() - start)
-        out["import_us"] = statistics.median(times) * 1e6
+        fixed, generic = [], []
+        for index, frame in enumerate(frames[1:]):
+            if index % 2:
+                start = time.perf_counter()
+                impl = backend.from_descriptor_with_endpoint(deserialize_message(frame, kind), pub)
+                impl.release()
+                generic.append(time.perf_counter() - start)
+            else:
+                start = time.perf_counter()
+                impl = backend.from_descriptor_with_endpoint(descriptor.unpack(frame[4:]), pub)
+                impl.release()
+                fixed.append(time.perf_counter() - start)
+        out["import_us"] = statistics.median(fixed) * 1e6
+        out["import_cdr_us"] = statistics.median(generic) * 1e6
     else:
         held = [backend.from_descriptor_with_endpoint(deserialize_message(f, kind), pub)
                 for f in frames]
@@ -146,21 +155,31 @@ def _finish(proc: subprocess.Popen, sig: int | None = None) -> None:
 # --------------------------------------------------------------------------- measurements
 def _publish(backend: Any, sub: Any, count: int, path: str, timed: bool) -> dict[str, Any]:
     """Publish ``count`` 4 KiB buffers for ``sub`` into ``path`` (descriptor CDR each)."""
-    from rosidl_buffer.messages import serialize_message
-    from warp_buffer import allocate_buffer
+    from rosidl_buffer.messages import CDR_HEADER, serialize_message
+    from warp_buffer import allocate_buffer, descriptor
 
-    times: list[float] = []
+    fixed: list[float] = []
+    generic: list[float] = []
     keep = []
     with open(path, "wb") as out:
-        for _ in range(count):
+        for index in range(count):
             impl = allocate_buffer(4096, "cpu").get_impl()
-            start = time.perf_counter()
-            data = serialize_message(backend.create_descriptor_with_endpoint(impl, sub))
-            times.append(time.perf_counter() - start)
+            if index % 2:
+                start = time.perf_counter()
+                data = serialize_message(backend.create_descriptor_with_endpoint(impl, sub))
+                generic.append(time.perf_counter() - start)
+            else:
+                start = time.perf_counter()
+                raw = descriptor.pack(backend.create_descriptor_with_endpoint(impl, sub))
+                fixed.append(time.perf_counter() - start)
+                data = CDR_HEADER + raw
             out.write(data)
             if timed:
                 keep.append(impl)  # the import run reads them all: keep them published
-    return {"build_us": statistics.median(times) * 1e6 if timed else None, "keep": keep}
+    if not timed or not generic:
+        return {"keep": keep}
+    return {"build_us": statistics.median(fixed) * 1e6,
+            "build_cdr_us": statistics.median(generic) * 1e6, "keep": keep}
 
 
 def descriptor_costs(count: int) -> dict[str, float]:
@@ -179,7 +198,8 @@ def descriptor_costs(count: int) -> dict[str, float]:
             _finish(child)
         backend.on_endpoint_gone(sub)
         del built["keep"]
-    return {"build_us": built["build_us"], "import_us": result["import_us"]}
+    return {"build_us": built["build_us"], "build_cdr_us": built["build_cdr_us"],
+            "import_us": result["import_us"], "import_cdr_us": result["import_cdr_us"]}
 
 
 def resources_in_flight(count: int) -> dict[str, int]:
@@ -261,50 +281,66 @@ def _median(fn: Callable[[], Any], repeat: int) -> float:
 
 
 def copies(sizes: Sequence[int], quick: bool) -> list[dict[str, Any]]:
-    """``to_cpu`` (fresh destination) and ``clone`` (reused and fresh block) of a cpu buffer,
-    each as a ratio to ``np.empty`` + ``np.copyto`` of the same bytes (interleaved, one run)."""
+    """``to_cpu`` and ``clone`` of a cpu buffer as ratios to the plain NumPy copy (interleaved,
+    one run): ``to_cpu`` against ``np.empty`` + ``np.copyto`` (the same allocator for the
+    destination, fresh or reused as it decides); ``clone`` into a block the pool reuses against
+    the same; ``clone`` into a fresh arena range (the pool trimmed first) against a copy into a
+    fresh anonymous mapping (fresh pages on both sides)."""
+    import mmap
+
     from warp_buffer import allocate_buffer, from_output_buffer, to_buffer, trim_pools
 
     rows = []
     for nbytes in sizes:
-        repeat = max(3, min(2000 if not quick else 300, (256 << 20) // nbytes * 3))
+        repeat = max(5, min(2000 if not quick else 300, (256 << 20) // nbytes * 3))
+        fresh_runs = max(3, min(repeat // 4, 50))
         buffer = allocate_buffer(nbytes, "cpu")
         with from_output_buffer(buffer) as out:
             to_buffer(np.arange(nbytes, dtype=np.uint64).astype(np.uint8), out)
         impl = buffer.get_impl()
         src = impl._host
-        reused = np.empty(nbytes, np.uint8)
-        reused[:] = 1
 
-        def fresh_copy() -> None:
+        def numpy_copy() -> None:
             np.copyto(np.empty(nbytes, np.uint8), src)
 
-        def fresh_clone() -> None:
-            impl.clone()
-            gc.collect()
-            trim_pools(0.0)  # the next clone gets a new range: fresh pages, like np.empty
+        def timed(prepare: Callable[[], Any], copy: Callable[[Any], Any], runs: int) -> float:
+            times = []
+            for _ in range(runs):
+                target = prepare()
+                start = time.perf_counter()
+                copy(target)
+                times.append(time.perf_counter() - start)
+                del target
+            return statistics.median(times)
 
-        base_fresh = _median(fresh_copy, repeat)
+        def fresh_mapping() -> np.ndarray:
+            return np.frombuffer(mmap.mmap(-1, nbytes), np.uint8)
+
+        def trimmed() -> None:
+            gc.collect()
+            trim_pools(0.0)  # the clone gets a new range: fresh pages
+
+        base = _median(numpy_copy, repeat)
         to_cpu = _median(impl.to_cpu, repeat)
-        base_reused = _median(lambda: np.copyto(reused, src), repeat)
         clone_reused = _median(impl.clone, repeat)  # the dropped clone's block comes back
-        clone_fresh = _median(fresh_clone, max(3, repeat // 4))
-        base_fresh_again = _median(fresh_copy, max(3, repeat // 4))
+        base_again = _median(numpy_copy, repeat)
+        base_fresh = timed(fresh_mapping, lambda dst: np.copyto(dst, src), fresh_runs)
+        clone_fresh = timed(trimmed, lambda _none: impl.clone(), fresh_runs)
         assert np.array_equal(impl.to_cpu().view(), src)
-        rows.append({"nbytes": nbytes, "to_cpu": base_fresh / to_cpu,
-                     "clone_reused": base_reused / clone_reused,
-                     "clone_fresh": base_fresh_again / clone_fresh})
-        del buffer, impl, src, reused
+        rows.append({"nbytes": nbytes, "to_cpu": base / to_cpu,
+                     "clone_reused": base_again / clone_reused,
+                     "clone_fresh": base_fresh / clone_fresh})
+        del buffer, impl, src
         gc.collect()
         trim_pools(0.0)
     return rows
 
 
 # --------------------------------------------------------------------------- report
-def measure(quick: bool, sizes: Sequence[int]) -> dict[str, Any]:
+def measure(quick: bool, sizes: Sequence[int], flood: int = FLOOD) -> dict[str, Any]:
     _quiet_warp()
     count = 500 if quick else 3000
-    return {"descriptor": descriptor_costs(count), "in_flight": resources_in_flight(FLOOD),
+    return {"descriptor": descriptor_costs(count), "in_flight": resources_in_flight(flood),
             "dev_shm": dev_shm_after_deaths(), "copies": copies(sizes, quick)}
 
 
@@ -313,10 +349,12 @@ def format_report(report: dict[str, Any]) -> str:
     lines = [
         "IPC core (benchmarks.ipc_core; p50, this machine, one run)",
         f"  descriptor build  {d['build_us']:7.1f} us  goal <= {BUILD_GOAL_US:.0f}  "
-        f"({d['build_us'] / BUILD_GOAL_US:.2f}x of the goal; was {BEFORE_US['build']:.0f})",
+        f"({d['build_us'] / BUILD_GOAL_US:.2f}x of the goal; was {BEFORE_US['build']:.0f}); "
+        f"with the generic CDR codec {d['build_cdr_us']:.1f} us",
         f"  descriptor import {d['import_us']:7.1f} us  goal <= {IMPORT_GOAL_US:.0f}  "
-        f"({d['import_us'] / IMPORT_GOAL_US:.2f}x of the goal; was {BEFORE_US['import']:.0f})",
-        f"  publisher fds, {FLOOD:,} messages in flight: {f['pub_fds_before']} -> "
+        f"({d['import_us'] / IMPORT_GOAL_US:.2f}x of the goal; was {BEFORE_US['import']:.0f}); "
+        f"with the generic CDR codec {d['import_cdr_us']:.1f} us",
+        f"  publisher fds, {f['sub_held']:,} messages in flight: {f['pub_fds_before']} -> "
         f"{f['pub_fds_in_flight']} (+{f['pub_fds_in_flight'] - f['pub_fds_before']})",
         f"  subscriber fds, {f['sub_held']:,} views held: {f['sub_fds_before']} -> "
         f"{f['sub_fds_holding']} (+{f['sub_fds_holding'] - f['sub_fds_before']})",
@@ -339,10 +377,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.ipc_core", description=__doc__)
     parser.add_argument("--quick", action="store_true", help=f"sizes {QUICK_SIZES}, fewer runs")
     parser.add_argument("--sizes", default=None, help=f"copy sizes (default {SIZES})")
+    parser.add_argument("--flood", type=int, default=FLOOD,
+                        help="messages in flight / views held (default %(default)s)")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON too")
     args = parser.parse_args(argv)
     text = args.sizes or (QUICK_SIZES if args.quick else SIZES)
-    report = measure(args.quick, [_parse_size(x) for x in text.split(",") if x.strip()])
+    report = measure(args.quick, [_parse_size(x) for x in text.split(",") if x.strip()],
+                     args.flood)
     print(format_report(report))
     if args.json:
         print(json.dumps(report))

@@ -52,6 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated paths to run (default: all): %(default)s")
     parser.add_argument("--no-copy-bandwidth", action="store_true",
                         help="skip the copy-kernel bandwidth measurement")
+    parser.add_argument("--no-ipc-core", action="store_true",
+                        help="skip the IPC core section (benchmarks.ipc_core)")
 
 
 def _plan(args: argparse.Namespace) -> dict[str, Any]:
@@ -64,14 +66,19 @@ def _plan(args: argparse.Namespace) -> dict[str, Any]:
 def _copy_bandwidth(quick: bool, timeout_s: float) -> dict[str, Any]:
     """The copy kernels' bandwidth from ``benchmarks.copy_bandwidth`` (another module's job),
     run in a child so its Warp kernels and threads do not disturb the latency runs."""
+    return _section("copy_bandwidth", "copy bandwidth", quick, timeout_s)
+
+
+def _section(module: str, title: str, quick: bool, timeout_s: float) -> dict[str, Any]:
+    """Run ``benchmarks.<module>.main`` in a child and keep what it printed."""
     import importlib.util
 
-    if importlib.util.find_spec("benchmarks.copy_bandwidth") is None:
-        return {"status": "unavailable", "reason": "benchmarks/copy_bandwidth.py not present"}
+    if importlib.util.find_spec(f"benchmarks.{module}") is None:
+        return {"status": "unavailable", "reason": f"benchmarks/{module}.py not present"}
     argv = ["--quick"] if quick else []
-    code = ("import sys, benchmarks.copy_bandwidth as m; "
+    code = (f"import sys, benchmarks.{module} as m; "
             f"sys.exit(m.main({argv!r}) or 0)")
-    progress("copy bandwidth: benchmarks.copy_bandwidth " + " ".join(argv))
+    progress(f"{title}: benchmarks.{module} " + " ".join(argv))
     process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True,
                                cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -120,6 +127,9 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
             progress(f"  [{name}] {entry['status']}: {entry['reason']}")
     if not args.no_copy_bandwidth:
         report["copy_bandwidth"] = _copy_bandwidth(args.quick, 60.0 if args.quick else 180.0)
+    if not getattr(args, "no_ipc_core", False):
+        report["ipc_core"] = _section("ipc_core", "IPC core", args.quick,
+                                      120.0 if args.quick else 300.0)
     report["ratios"] = ratios(report["paths"])
     report["wall_s"] = time.monotonic() - started
     return report

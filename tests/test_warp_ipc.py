@@ -324,3 +324,31 @@ def test_cuda_ipc_and_staging_exports_reach_another_process():  # pragma: no cov
             assert result["device"] == ("cpu" if kind == descriptor.KIND_CUDA_STAGING
                                         else device.alias)
             child.finish()
+
+
+# --------------------------------------------------------------------------- the benchmark
+def test_the_ipc_core_benchmark_measures_every_figure():
+    """``python -m benchmarks.ipc_core`` runs end to end (small) and reports what the issue asks,
+    with the O(1) and nothing-left figures it measured itself."""
+    import json
+    import subprocess
+    import sys
+
+    from tests._warp_helpers import ROOT
+
+    done = subprocess.run([sys.executable, "-m", "benchmarks.ipc_core", "--quick", "--sizes",
+                           "4K", "--flood", "2000", "--json"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=240)
+    assert done.returncode == 0, done.stderr[-2000:]
+    text, raw = done.stdout.rstrip().rsplit("\n", 1)
+    report = json.loads(raw)
+    for needle in ("descriptor build", "descriptor import", "messages in flight", "views held",
+                   "after SIGTERM", "to_cpu"):
+        assert needle in text
+    assert report["descriptor"]["build_us"] > 0 and report["descriptor"]["import_us"] > 0
+    flight = report["in_flight"]
+    assert flight["sub_held"] == 2000
+    assert flight["pub_fds_in_flight"] - flight["pub_fds_before"] <= 3
+    assert flight["sub_fds_holding"] - flight["sub_fds_before"] <= 2
+    assert report["dev_shm"] == {"SIGTERM": 0, "SIGKILL": 0}
+    assert [row["nbytes"] for row in report["copies"]] == [4096]
