@@ -33,6 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.copy_bandwidth import _median_seconds as _median
+
 BUILD_GOAL_US = 10.0
 IMPORT_GOAL_US = 10.0
 BEFORE_US = {"build": 92.0, "import": 142.0}
@@ -182,14 +184,17 @@ def _publish(backend: Any, sub: Any, count: int, path: str, timed: bool) -> dict
             "build_cdr_us": statistics.median(generic) * 1e6, "keep": keep}
 
 
-def descriptor_costs(count: int) -> dict[str, float]:
+def _with_child(role: str, count: int, publish: Callable[[Any, Any, str], Any],
+                ) -> tuple[Any, dict[str, Any]]:
+    """Start child ``role``, publish for it (``publish(backend, sub, path)``), let it read, and
+    return what ``publish`` returned with the child's result."""
     backend, sub, _pub = _infos()
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "d")
-        child = _spawn("import", path, count)
+        child = _spawn(role, path, count)
         try:
             sub = type(sub)(**{**sub.__dict__, "process_id": child.pid})
-            built = _publish(backend, sub, count, path, timed=True)
+            published = publish(backend, sub, path)
             assert child.stdin is not None
             child.stdin.write("go\n")
             child.stdin.flush()
@@ -197,7 +202,12 @@ def descriptor_costs(count: int) -> dict[str, float]:
         finally:
             _finish(child)
         backend.on_endpoint_gone(sub)
-        del built["keep"]
+    return published, result
+
+
+def descriptor_costs(count: int) -> dict[str, float]:
+    built, result = _with_child(
+        "import", count, lambda backend, sub, path: _publish(backend, sub, count, path, True))
     return {"build_us": built["build_us"], "build_cdr_us": built["build_cdr_us"],
             "import_us": result["import_us"], "import_cdr_us": result["import_cdr_us"]}
 
@@ -205,23 +215,13 @@ def descriptor_costs(count: int) -> dict[str, float]:
 def resources_in_flight(count: int) -> dict[str, int]:
     """Publisher fds with ``count`` messages in flight to a subscriber that has not read any;
     then the subscriber's fds once it holds them all."""
-    backend, sub, _pub = _infos()
-    with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, "d")
-        child = _spawn("hold", path, count)
-        try:
-            sub = type(sub)(**{**sub.__dict__, "process_id": child.pid})
-            gc.collect()
-            before = _fds()
-            _publish(backend, sub, count, path, timed=False)  # each buffer dropped at once
-            in_flight = _fds()
-            assert child.stdin is not None
-            child.stdin.write("go\n")
-            child.stdin.flush()
-            held = _result(child)
-        finally:
-            _finish(child)
-        backend.on_endpoint_gone(sub)
+    def publish(backend: Any, sub: Any, path: str) -> tuple[int, int]:
+        gc.collect()
+        before = _fds()
+        _publish(backend, sub, count, path, timed=False)  # each buffer dropped at once
+        return before, _fds()
+
+    (before, in_flight), held = _with_child("hold", count, publish)
     return {"pub_fds_before": before, "pub_fds_in_flight": in_flight,
             "sub_fds_before": held["fds_before"], "sub_fds_holding": held["fds"],
             "sub_held": held["held"]}
@@ -268,16 +268,6 @@ def _deaths_publisher() -> None:
     keep = _publish(backend, sub, 16, sys.argv[1], timed=True)
     print("RESULT " + json.dumps({"published": len(keep["keep"])}), flush=True)
     sys.stdin.readline()
-
-
-def _median(fn: Callable[[], Any], repeat: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def copies(sizes: Sequence[int], quick: bool) -> list[dict[str, Any]]:

@@ -172,12 +172,12 @@ def test_an_exporting_process_leaves_nothing_behind_however_it_ends(how):
 
 
 # --------------------------------------------------------------------------- permissions
-def _socket_inodes() -> set[str]:
-    """Inode numbers of the sockets this process holds open."""
+def _socket_inodes(pid: int | str = "self") -> set[str]:
+    """Inode numbers of the sockets process ``pid`` (this one by default) holds open."""
     inodes = set()
-    for fd in os.listdir("/proc/self/fd"):
+    for fd in os.listdir(f"/proc/{pid}/fd"):
         try:
-            target = os.readlink(f"/proc/self/fd/{fd}")
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
         except OSError:
             continue
         if target.startswith("socket:["):
@@ -223,14 +223,8 @@ def _abstract_names() -> list[str]:
 
 
 def _abstract_sockets_of(pid: int) -> list[str]:
-    inodes = set()
-    for fd in os.listdir(f"/proc/{pid}/fd"):
-        try:
-            target = os.readlink(f"/proc/{pid}/fd/{fd}")
-        except OSError:
-            continue
-        if target.startswith("socket:["):
-            inodes.add(target[8:-1])
+    """Abstract names (``@...``) of the unix sockets process ``pid`` holds open."""
+    inodes = _socket_inodes(pid)
     with open("/proc/net/unix") as table:
         next(table)
         return [p[7] for p in (line.split() for line in table)

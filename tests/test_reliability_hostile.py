@@ -49,7 +49,7 @@ from warp_buffer import (
     handoff,
     ipc,
 )
-from warp_buffer.arena import HELLO, MAGIC, SEALS, VERSION, Geometry
+from warp_buffer.arena import HELLO, MAGIC, SEALS, VERSION, Geometry, alive
 from warp_buffer_backend import WarpBufferBackend
 
 pytestmark = pytest.mark.multiprocess
@@ -93,7 +93,7 @@ def truncated_in_descriptor(payload: bytes, desc: Any) -> bytes:
 
 def dead_pid() -> int:
     pid = 4_000_000
-    while handoff._alive(pid):
+    while alive(pid):
         pid -= 1
     return pid
 

@@ -274,7 +274,7 @@ class Arena:
             return
         self._last_liveness = now
         with self._lock:
-            dead = [key for key, slot in self._slots.items() if not _alive(slot.pid)]
+            dead = [key for key, slot in self._slots.items() if not alive(slot.pid)]
         for key in dead:
             self.forget_peer(key)
 
@@ -287,7 +287,8 @@ class Arena:
                 if s.issued and acks[s.index * (SLOT_STRIDE // 8)] < (s.epoch << SEQ_BITS | s.issued)}
 
 
-def _alive(pid: int) -> bool:
+def alive(pid: int) -> bool:
+    """Does process ``pid`` exist (it may be another user's)?"""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

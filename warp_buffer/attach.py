@@ -23,8 +23,17 @@ from typing import Any
 import numpy as np
 
 from . import handoff, memory
-from .arena import ACKS_OFFSET, GENS_OFFSET, MAX_PEERS, SLOT_STRIDE, Arena, Geometry, \
-    existing_arena, host_view
+from .arena import (
+    ACKS_OFFSET,
+    GENS_OFFSET,
+    MAX_PEERS,
+    SLOT_STRIDE,
+    Arena,
+    Geometry,
+    alive,
+    existing_arena,
+    host_view,
+)
 from .errors import ExportError, StaleBufferError
 
 __all__ = ["AttachedArena", "Hold", "attach", "attached_sessions", "forget_idle"]
@@ -209,7 +218,7 @@ def forget_idle() -> int:
     (called when a new session is attached, so the address space stays bounded)."""
     dropped = 0
     for key, arena in list(_sessions.items()):
-        if arena.held == 0 and not handoff._alive(arena.owner_pid):
+        if arena.held == 0 and not alive(arena.owner_pid):
             _sessions.pop(key, None)
             arena.close()
             dropped += 1

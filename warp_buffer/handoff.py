@@ -27,7 +27,7 @@ import threading
 import time
 from typing import Any
 
-from .arena import HELLO, MAGIC, SEALS, VERSION, Arena, Geometry
+from .arena import HELLO, MAGIC, SEALS, VERSION, Arena, Geometry, alive
 from .errors import DescriptorError, ExportError, ForeignExportError, StaleBufferError
 
 __all__ = ["socket_name", "Server", "fetch_arena", "linger_s"]
@@ -98,7 +98,7 @@ class Server:
         deadline = time.monotonic() + timeout
         with self._cond:
             while True:
-                waiting = {p for p in pids - self.connected if _alive(p)}
+                waiting = {p for p in pids - self.connected if alive(p)}
                 left = deadline - time.monotonic()
                 if not waiting or left <= 0:
                     return
@@ -113,16 +113,6 @@ class Server:
         except OSError:
             pass
         self._sock.close()
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def fetch_arena(owner_pid: int, session: int) -> tuple[int, Geometry]:
