@@ -298,3 +298,31 @@ def test_a_subscriber_under_another_uid_is_served_by_cpu_fallback(domain, topic)
     assert {r["backend"] for r in foreign} == {"cpu"}
     assert {r["backend"] for r in local} == {"warp"}
     assert results[0]["counters"]["errors"] == 0
+
+
+# --------------------------------------------------------------------------- outrun, ulimit
+def test_under_ulimit_1024_a_publisher_runs_10000_ahead_of_a_slow_holding_subscriber(domain,
+                                                                                     topic):
+    """End to end through the transport: both processes under ``ulimit -n 1024``; the
+    subscriber is slow and keeps every frame; ``publish()`` never fails, the publisher's fds do
+    not grow with the messages in flight, and every frame the subscriber holds stays intact."""
+    count = 10_000
+    holder = Child("hold", domain=domain, topic=topic, hold=1000, depth=count + 100,
+                   delay=0.0002, nofile=1024)
+    pub = Child("outrun", domain=domain, topic=topic, count=count, depth=100, nofile=1024)
+    try:
+        holder.wait_ready()
+        pub.wait_ready()
+        ran = pub._expect("RESULT ", 180)
+        import json
+
+        result = json.loads(ran[len("RESULT "):])
+        assert result["failed"] == 0, result["failures"]
+        assert result["after"]["fds"] - result["before"]["fds"] <= 4, result
+        assert result["pool"]["created"] >= 0.9 * count  # the held frames were never recycled
+        holder.expect(f"HELD {count}", timeout=180)
+        held = holder.stop(timeout=60)
+        assert held["held"] == count and held["intact"] == count and held["errors"] == 0
+        assert held["fds"] < 200 and held["maps"] <= 2, held
+    finally:
+        _close(pub, holder)

@@ -346,6 +346,9 @@ class BlockPool:
         are kept, and so are exported blocks whose descriptors are still on their way to a live
         peer. Returns the bytes given back."""
         now = time.monotonic()
+        arena = _arena.existing_arena()
+        if arena is not None:
+            arena.forget_dead_peers()  # what a dead peer never imported pins nothing
         victims: list[Block] = []
         with self._lock:
             self._drain()
