@@ -17,7 +17,7 @@ import pytest
 import warp as wp
 
 from rosidl_buffer import Buffer
-from tests._warp_helpers import Child, checksum, expected_pattern, fill_pattern, mapping_of
+from tests._warp_helpers import Child, checksum, expected_pattern, fill_pattern
 from warp_buffer import (
     DescriptorError,
     ExportBoundsError,

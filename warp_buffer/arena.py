@@ -53,6 +53,8 @@ __all__ = [
     "current_arena",
     "existing_arena",
     "arena_bytes",
+    "alive",
+    "host_view",
 ]
 
 _log = logging.getLogger(__name__)

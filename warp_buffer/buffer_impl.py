@@ -28,7 +28,7 @@ from rosidl_buffer.buffer_impl import BufferImplBase, CpuBufferImpl
 
 from . import kernels
 from .errors import DeviceUnavailableError, EmptyBufferError, HandleReleasedError, WriteHandleError
-from .pool import get_pool, size_class
+from .pool import get_pool
 
 __all__ = ["WARP_BACKEND", "WarpBufferImpl", "WriteState", "resolve_device"]
 
@@ -101,8 +101,7 @@ class WarpBufferImpl(BufferImplBase):
         if nbytes <= 0:
             raise EmptyBufferError(f"a warp buffer holds at least one byte, not {nbytes}")
         device = resolve_device(device)
-        size_class(nbytes)  # validates the size before touching the pool
-        lease = get_pool(device).acquire(nbytes)
+        lease = get_pool(device).acquire(nbytes)  # validates the size first
         block = lease.block
         host = block.host
         if host is None:  # CUDA: the array now (its users are Warp calls anyway)

@@ -32,7 +32,7 @@ from rosidl_buffer.endpoint import local_host_id as _real_host_id
 from . import attach as _attach
 from . import descriptor as _desc
 from . import handoff
-from .arena import MAX_PEERS, NO_PEER, PeerSlot, current_arena
+from .arena import MAX_PEERS, NO_PEER, PeerSlot, current_arena, existing_arena
 from .buffer_impl import WarpBufferImpl, wrap_bytes
 from .errors import (
     DescriptorError,
@@ -84,8 +84,6 @@ def peer_slot(key: Any, pid: int) -> PeerSlot | None:
 
 def forget_peer(key: Any) -> None:
     """The peer subscription ``key`` is gone: what was sent to it pins nothing any more."""
-    from .arena import existing_arena
-
     arena = existing_arena()
     if arena is not None:
         arena.forget_peer(key)

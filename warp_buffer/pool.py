@@ -280,7 +280,7 @@ class BlockPool:
     def acquire(self, nbytes: int) -> Lease:
         capacity = size_class(nbytes)
         with self._lock:
-            self._drain()
+            drained = self._drain()
             block = self._take_free(capacity)
             if block is not None:
                 self.reused += 1
@@ -295,7 +295,8 @@ class BlockPool:
             with self._lock:
                 self.created += 1
         _janitor.ensure_running()
-        self._enforce_idle_cap()
+        if drained:  # free memory grew since the last allocation: hold it to the cap
+            self._enforce_idle_cap()
         return Lease(self, block)
 
     def _take_free(self, capacity: int) -> Block | None:
@@ -323,13 +324,16 @@ class BlockPool:
         if not self._defunct and not sys.is_finalizing():
             self._returned.append((block, time.monotonic()))
 
-    def _drain(self) -> None:
-        """Move returned blocks onto the free lists (call with the lock held)."""
+    def _drain(self) -> int:
+        """Move returned blocks onto the free lists (call with the lock held); returns how
+        many."""
+        moved = 0
         while True:
             try:
                 block, released = self._returned.popleft()
             except IndexError:
-                return
+                return moved
+            moved += 1
             self._leased -= 1
             self._free.setdefault(block.capacity, collections.deque()).append((block, released))
             self.free_bytes += block.capacity
