@@ -11,6 +11,7 @@ import gc
 import os
 import signal
 import tempfile
+import time
 
 import numpy as np
 import pytest
@@ -145,6 +146,24 @@ def test_a_forgotten_peer_pins_nothing():
     ipc.forget_peer(b"peer-gone")  # the transport reports the subscription's departure
     gc.collect()
     assert allocate_buffer(3000, "cpu").get_impl()._block is block
+
+
+def test_a_peer_whose_process_died_pins_nothing():
+    dead = 4_000_000
+    while os.path.exists(f"/proc/{dead}"):
+        dead -= 1
+    peer = ipc.peer_slot(b"peer-dead", dead)
+    try:
+        buffer, _desc = _published(3000, peer=peer)
+        block = buffer.get_impl()._block
+        del buffer
+        gc.collect()
+        time.sleep(0.15)  # liveness is checked at most every 100 ms
+        first = allocate_buffer(3000, "cpu")  # finds the block pinned, forgets the dead peer
+        again = first if first.get_impl()._block is block else allocate_buffer(3000, "cpu")
+        assert again.get_impl()._block is block
+    finally:
+        ipc.forget_peer(b"peer-dead")
 
 
 def test_out_of_bounds_and_malformed_descriptors_raise_typed_errors():

@@ -239,6 +239,9 @@ class Arena:
     def peer_slot(self, key: Any, pid: int) -> PeerSlot | None:
         """The delivery slot of peer ``key`` (its subscription gid), assigned on first use;
         None when every slot is taken (the peer is then served by CPU)."""
+        if not self._free_slots and key not in self._slots:
+            self._last_liveness = 0.0
+            self.forget_dead_peers()  # make room: dead peers first
         with self._lock:
             slot = self._slots.get(key)
             if slot is None:

@@ -178,14 +178,16 @@ class WarpBufferImpl(BufferImplBase):
         self._mark_published()
 
     def release(self) -> None:
-        """Drop an import's hold on the publisher's block now (idempotent); the buffer is
-        unusable afterwards. A local buffer's memory returns to the pool when it is collected
-        (views of it may still be alive), so this only ends access through it."""
+        """Drop an import's hold on the publisher's block now (idempotent); the imported buffer
+        is unusable afterwards (:class:`HandleReleasedError`). A local buffer holds nothing to
+        give back early (its memory returns to the pool when it and its views are collected,
+        and an intra-process message shares it with its publisher): a no-op."""
+        hold = self._hold
+        if hold is None:
+            return
         with self._lock:
             self._released = True
-            hold = self._hold
-        if hold is not None:
-            hold.release()
+        hold.release()
 
     # -- public properties ---------------------------------------------------------------------
     @property

@@ -398,12 +398,17 @@ class BlockPool:
             }
 
     def close(self) -> None:
-        """Destroy every free block now (leased ones are left to their buffers)."""
+        """Destroy every free block no reader holds now (leased ones are left to their
+        buffers, held ones to their readers)."""
         with self._lock:
             self._drain()
-            blocks = [block for queue in self._free.values() for block, _ in queue]
-            self._free.clear()
-            self.free_bytes = 0
+            blocks = []
+            for queue in self._free.values():
+                for entry in list(queue):
+                    if entry[0].try_reclaim():
+                        queue.remove(entry)
+                        blocks.append(entry[0])
+                        self.free_bytes -= entry[0].capacity
             self.destroyed += len(blocks)
         for block in blocks:
             try:
