@@ -15,6 +15,8 @@ Commands:
 - ``flood``: publish ``count`` numbered frames for ``peer_pid``, dropping each at once (so only
   delivery accounting and holds keep their blocks), appending the descriptors to ``path``; then
   on each ``more <n>`` line publish n more; report fds and pool counters each time.
+- ``shrink``: fetch the arena of ``owner_pid``/``session`` as a peer does and try to shrink,
+  grow and re-seal it; report each attempt's errno.
 - ``holdall``: on a first stdin line, import every descriptor in ``path`` and keep them all;
   report fds and whether every frame is intact; on each ``check`` line verify them again.
 """
@@ -221,6 +223,31 @@ def _cmd_publish(argument: dict[str, Any]) -> None:
     _hold()
 
 
+def _cmd_shrink(argument: dict[str, Any]) -> None:
+    """Fetch a session's arena as a peer does, try to shrink, grow and re-seal it, and report
+    each attempt's errno (0 where it worked)."""
+    import errno
+    import fcntl
+
+    from warp_buffer import handoff
+
+    fd, geometry = handoff.fetch_arena(argument["owner_pid"], argument["session"])
+    outcomes = {}
+    attempts = {"shrink_to_0": lambda: os.ftruncate(fd, 0),
+                "shrink_by_a_page": lambda: os.ftruncate(fd, geometry.file_size - 4096),
+                "grow": lambda: os.ftruncate(fd, geometry.file_size + 4096),
+                "seal_writes": lambda: fcntl.fcntl(fd, fcntl.F_ADD_SEALS, fcntl.F_SEAL_WRITE)}
+    for name, attempt in attempts.items():
+        try:
+            attempt()
+            outcomes[name] = 0
+        except OSError as exc:
+            outcomes[name] = exc.errno
+    outcomes["size_after"] = os.fstat(fd).st_size
+    os.close(fd)
+    _report({"outcomes": outcomes, "eperm": errno.EPERM, "size": geometry.file_size})
+
+
 def _cmd_flood(argument: dict[str, Any]) -> None:
     import warp_buffer
     from warp_buffer import allocate_buffer, descriptor, from_output_buffer, ipc
@@ -271,7 +298,7 @@ def main(argv: list[str] | None = None) -> None:
     wp.config.log_level = wp.LOG_WARNING  # keep stdout for the protocol
     command, argument = argv[0], json.loads(argv[1])
     commands = {"import": _cmd_import, "publish": _cmd_publish, "flood": _cmd_flood,
-                "holdall": _cmd_holdall}
+                "holdall": _cmd_holdall, "shrink": _cmd_shrink}
     commands[command](argument)
 
 

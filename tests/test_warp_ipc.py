@@ -274,6 +274,21 @@ def test_a_publisher_that_exits_cleanly_leaves_every_queued_frame_readable():
     attach.forget_idle()
 
 
+def test_another_process_cannot_shrink_the_arena_under_a_reader_or_the_publisher():
+    buffer, desc = _published(1 << 16, seed=12)
+    reader = ipc.import_buffer(desc)
+    with Child("shrink", {"owner_pid": os.getpid(), "session": desc.session}) as child:
+        result = child.result()
+    outcomes = result["outcomes"]
+    for attempt in ("shrink_to_0", "shrink_by_a_page", "grow", "seal_writes"):
+        assert outcomes[attempt] == result["eperm"], (attempt, outcomes)
+    assert outcomes["size_after"] == result["size"]
+    # Reader and publisher read every byte: no SIGBUS, nothing changed.
+    np.testing.assert_array_equal(reader.to_cpu().view(), expected_pattern(1 << 16, 12))
+    np.testing.assert_array_equal(buffer.to_numpy(), expected_pattern(1 << 16, 12))
+    reader.release()
+
+
 def test_a_peer_cannot_shrink_or_reseal_the_arena():
     buffer, desc = _published(4096, seed=2)
     fd, geometry = handoff.fetch_arena(os.getpid(), desc.session)  # what a peer receives

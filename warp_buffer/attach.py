@@ -105,19 +105,28 @@ class AttachedArena:
         return self.data[rel:rel + nbytes]
 
     # -- holds ------------------------------------------------------------------------------
-    def hold(self, offset: int) -> None:
+    def hold(self, offset: int, slot: int = -1, sequence: int = 0) -> None:
         """Take (or share) this process's read lock on the block at ``offset``; raises
-        :class:`StaleBufferError` while the publisher is recycling it."""
+        :class:`StaleBufferError` while the publisher is recycling it. With a peer ``slot``,
+        then record that this process imported delivery ``sequence`` of that peer (also when the
+        lock fails: the descriptor was consumed either way). The lock comes first: once the
+        publisher sees the acknowledgement, its write-lock probe meets our lock."""
         with self._lock:
             self._flush_deferred()
-            count = self._holds.get(offset, 0)
-            if count == 0:
-                try:
-                    memory.try_lock(self.fd, offset, exclusive=False)
-                except memory.LockBusy:
-                    raise StaleBufferError(f"block {offset:#x} of process {self.owner_pid} is "
-                                           "being recycled") from None
-            self._holds[offset] = count + 1
+            try:
+                count = self._holds.get(offset, 0)
+                if count == 0:
+                    try:
+                        memory.try_lock(self.fd, offset, exclusive=False)
+                    except memory.LockBusy:
+                        raise StaleBufferError(f"block {offset:#x} of process {self.owner_pid} "
+                                               "is being recycled") from None
+                self._holds[offset] = count + 1
+            finally:
+                if slot >= 0:
+                    index = slot * (SLOT_STRIDE // 8)
+                    if self.acks[index] < sequence:
+                        self.acks[index] = sequence
 
     def drop(self, offset: int) -> None:
         """Give one hold back (the lock goes with the last one). Safe from a finalizer: if the
@@ -144,13 +153,6 @@ class AttachedArena:
                 memory.unlock(self.fd, offset)
         else:
             self._holds[offset] = count - 1
-
-    def acknowledge(self, slot: int, sequence: int) -> None:
-        """Record that this process imported delivery ``sequence`` of peer ``slot``."""
-        index = slot * (SLOT_STRIDE // 8)
-        with self._lock:
-            if self.acks[index] < sequence:
-                self.acks[index] = sequence
 
     @property
     def held(self) -> int:

@@ -218,21 +218,29 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
         raise ExportBoundsError(f"descriptor of process {owner_pid}: {problem}")
     if not 0 < size <= capacity:
         raise ExportBoundsError(f"size {size} outside 1..{capacity}")
-    arena.hold(offset)
+    arena.hold(offset, -1 if slot == NO_PEER else slot, sequence)
     hold = _attach.Hold(arena, offset)
     try:
-        if slot != NO_PEER:
-            arena.acknowledge(slot, sequence)
         if arena.gens[arena.geometry.gen_index(offset)] != generation:
             raise StaleBufferError(f"block {offset:#x} of process {owner_pid} was recycled "
                                    "(a later publish reuses it)")
         if cuda:
             return _import_cuda(descriptor, capacity, size, pci, handles, hold)
-        return WarpBufferImpl.imported(arena.address(offset), size, wp.get_device("cpu"), hold,
+        return WarpBufferImpl.imported(arena.address(offset), size, _cpu_device(), hold,
                                        descriptor, arena.host_array(offset, size))
     except BaseException:
         hold.release()
         raise
+
+
+_cpu: Any = None
+
+
+def _cpu_device() -> Any:
+    global _cpu
+    if _cpu is None:
+        _cpu = wp.get_device("cpu")
+    return _cpu
 
 
 # -- CUDA (the one place an import opens a CUDA handle) ------------------------------------
