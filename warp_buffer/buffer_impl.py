@@ -185,8 +185,7 @@ class WarpBufferImpl(BufferImplBase):
         hold = self._hold
         if hold is None:
             return
-        with self._lock:
-            self._released = True
+        self._released = True  # a plain store: later accesses check it
         hold.release()
 
     # -- public properties ---------------------------------------------------------------------
