@@ -293,3 +293,17 @@ def test_an_imported_buffer_is_republished_from_a_local_copy(backend):
     assert again is not None and again.offset != buffer.get_impl()._block.offset
     relayed = backend.from_descriptor_with_endpoint(again, publisher)
     np.testing.assert_array_equal(relayed.to_cpu().view(), expected_pattern(2048, 4))
+
+
+def test_cuda_fields_round_trip_through_the_fixed_layout():
+    """What a CUDA IPC descriptor carries (no GPU needed): Warp's PCI bus id and the 64-byte
+    memory and event handles, as words."""
+    for pci in ("00000000:01:00", "0000ABCD:FF:1F"):
+        assert wire_layout.pci_from_int(wire_layout.pci_to_int(pci)) == pci
+    assert wire_layout.pci_to_int("") == 0
+    with pytest.raises(DescriptorError):
+        wire_layout.pci_to_int("not-a-bus-id")
+    handle = bytes(range(64))
+    assert wire_layout.handle_bytes(wire_layout.handle_words(handle)) == handle
+    with pytest.raises(DescriptorError):
+        wire_layout.handle_words(bytes(65))
