@@ -78,7 +78,8 @@ def address_of(buffer: Any) -> int:
 
 
 class ShmMappings:
-    """Address ranges of the /dev/shm files this process maps (refreshed on demand)."""
+    """Address ranges of the shared memory this process maps: /dev/shm files and memfds
+    (refreshed on demand)."""
 
     def __init__(self) -> None:
         self._starts: list[int] = []
@@ -89,7 +90,8 @@ class ShmMappings:
         with open("/proc/self/maps", encoding="utf-8", errors="replace") as maps:
             for line in maps:
                 parts = line.split(maxsplit=5)
-                if len(parts) == 6 and parts[5].startswith("/dev/shm/"):
+                # /dev/shm files, and memfd arenas (warp_buffer's shared memory has no name)
+                if len(parts) == 6 and parts[5].startswith(("/dev/shm/", "/memfd:")):
                     start, end = (int(x, 16) for x in parts[0].split("-"))
                     ranges.append((start, end, parts[5].strip()))
         ranges.sort()

@@ -158,6 +158,11 @@ def format_table(report: dict[str, Any]) -> str:
                                                  f"{r['target']:g}x)"
         detail = f"  [{r['detail']}]" if r.get("detail") else ""
         out.append(f"  {r['verdict']:<5} {r['description']}: {value}{target}{detail}")
+    ipc_core = report.get("ipc_core", {})
+    if ipc_core.get("status") == "ok" and ipc_core.get("text"):
+        out += ["", ipc_core["text"]]
+    elif ipc_core:
+        out += ["", f"IPC core: {ipc_core.get('status')}: {ipc_core.get('reason', '')}"]
     bandwidth = report.get("copy_bandwidth", {})
     if bandwidth.get("status") == "ok" and bandwidth.get("text"):
         out += ["", "Copy kernels (benchmarks.copy_bandwidth --quick):", bandwidth["text"]]

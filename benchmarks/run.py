@@ -55,6 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skip the copy-kernel bandwidth measurement")
     parser.add_argument("--no-conversions", action="store_true",
                         help="skip the tensor_conversions per-frame cost measurement")
+    parser.add_argument("--no-ipc-core", action="store_true",
+                        help="skip the IPC core section (benchmarks.ipc_core)")
 
 
 def default_out_dir() -> str:
@@ -73,18 +75,17 @@ def _plan(args: argparse.Namespace) -> dict[str, Any]:
     return plan
 
 
-def _section(module: str, quick: bool, timeout_s: float) -> dict[str, Any]:
-    """The printed report of ``python -m <module> [--quick]`` (a benchmark that is another
-    module's job), run in a child so its Warp kernels and threads do not disturb the latency
-    runs."""
+def _section(module: str, title: str, quick: bool, timeout_s: float) -> dict[str, Any]:
+    """Run ``benchmarks.<module>.main`` in a child (a benchmark that is another module's job), so
+    its Warp kernels and threads do not disturb the latency runs; keep what it printed."""
     import importlib.util
 
-    if importlib.util.find_spec(module) is None:
-        return {"status": "unavailable", "reason": f"{module} not present"}
+    if importlib.util.find_spec(f"benchmarks.{module}") is None:
+        return {"status": "unavailable", "reason": f"benchmarks/{module}.py not present"}
     argv = ["--quick"] if quick else []
-    code = (f"import sys, {module} as m; "
+    code = (f"import sys, benchmarks.{module} as m; "
             f"sys.exit(m.main({argv!r}) or 0)")
-    progress(f"{module} " + " ".join(argv))
+    progress(f"{title}: benchmarks.{module} " + " ".join(argv))
     process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True,
                                cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -132,11 +133,14 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         if entry["status"] in ("unavailable", "error"):
             progress(f"  [{name}] {entry['status']}: {entry['reason']}")
     if not args.no_copy_bandwidth:
-        report["copy_bandwidth"] = _section("benchmarks.copy_bandwidth", args.quick,
+        report["copy_bandwidth"] = _section("copy_bandwidth", "copy bandwidth", args.quick,
                                             60.0 if args.quick else 180.0)
     if not args.no_conversions:
-        report["conversions"] = _section("benchmarks.conversions", args.quick,
+        report["conversions"] = _section("conversions", "tensor conversions", args.quick,
                                          60.0 if args.quick else 180.0)
+    if not args.no_ipc_core:
+        report["ipc_core"] = _section("ipc_core", "IPC core", args.quick,
+                                      120.0 if args.quick else 300.0)
     report["ratios"] = ratios(report["paths"])
     report["wall_s"] = time.monotonic() - started
     return report

@@ -128,6 +128,8 @@ class Publisher:
                 peer = self._peers.pop(gid, None)
             if peer is not None:
                 peer.close()
+                for name in peer.served:  # what was sent to it no longer pins backend memory
+                    self.node.backends[name].on_endpoint_gone(peer.info)
             return
         info = endpoint_info(token)
         peer = _Peer(token, info)

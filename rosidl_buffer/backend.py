@@ -3,7 +3,8 @@
 Mirrors ``rosidl::BufferBackend``. A transport calls :meth:`on_creating_endpoint` for each local
 endpoint, :meth:`on_discovering_endpoint` for each peer, and then, per publish and peer,
 :meth:`create_descriptor_with_endpoint` on the publisher side and
-:meth:`from_descriptor_with_endpoint` on the subscriber side.
+:meth:`from_descriptor_with_endpoint` on the subscriber side; :meth:`on_endpoint_gone` when an
+endpoint leaves.
 """
 
 from __future__ import annotations
@@ -74,3 +75,8 @@ class BufferBackend(abc.ABC):
         serve several endpoints with one export; most return an empty list.
         """
         return self.get_backend_type() in endpoint_supported_backends, []
+
+    def on_endpoint_gone(self, endpoint_info: EndpointInfo) -> None:
+        """A peer (or local) endpoint this backend was told about is gone: drop what is cached
+        for it. Not in the C++ interface (which never forgets a peer); the transport calls it
+        when discovery reports the endpoint's departure. Default: nothing."""

@@ -9,9 +9,12 @@ Same stdout protocol as :mod:`tests._pubsub_helpers` (``READY``, then ``RESULT <
 - ``soak``: subscriptions that join and leave in turns of ``--turn`` seconds until ``stop``;
   reports messages received, bad payloads, typed errors and its own resource samples.
 - ``export``: allocates and exports ``--count`` warp buffers, prints ``READY`` and waits to be
-  killed (leaves orphan exports behind).
-- ``sweep``: starts the library the way any process of it starts (the warp backend's first
-  endpoint) and prints ``RESULT`` with the exports it can still see.
+  killed.
+- ``outrun``: a warp publisher that publishes ``--count`` frames as fast as it can once matched,
+  then prints ``RESULT`` (publish failures, its fds before and after) and waits.
+
+``hold`` takes ``--delay`` (a slow subscriber) and on a stdin line prints ``RESULT`` with how many
+held frames are still intact.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import argparse
 import json
 import os
 import queue
+import resource
 import subprocess
 import sys
 import threading
@@ -37,15 +41,15 @@ SHM_DIR = "/dev/shm"
 
 # --------------------------------------------------------------------------- resource probes
 def resources() -> dict[str, int]:
-    """This process's open fds, /dev/shm mappings, our /dev/shm files, and RSS in KiB."""
-    from warp_buffer import ipc
-
+    """This process's open fds, shared mappings (arenas, /dev/shm), /dev/shm files named for
+    this process, and RSS in KiB."""
     with open("/proc/self/maps") as maps:
-        mappings = sum(1 for line in maps if f" {SHM_DIR}/" in line)
+        mappings = sum(1 for line in maps if f" {SHM_DIR}/" in line or "/memfd:warp_buffer" in line)
     with open("/proc/self/status") as status:
         rss = next(int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
+    mine = [n for n in os.listdir(SHM_DIR) if n.startswith("warp_buffer") and f".{os.getpid()}" in n]
     return {"fds": len(os.listdir("/proc/self/fd")), "maps": mappings,
-            "shm_files": len(ipc.list_exports()), "rss_kib": rss}
+            "shm_files": len(mine), "rss_kib": rss}
 
 
 # --------------------------------------------------------------------------- child programs
@@ -64,11 +68,42 @@ def run_hold(args: argparse.Namespace) -> int:
                 held.append(msg)
                 if len(held) % args.hold == 0:
                     _emit(f"HELD {len(held)}")
+            if args.delay:
+                time.sleep(args.delay)  # a slow subscriber
 
-        node.create_subscription(TENSOR, args.topic, on_msg, depth=args.depth,
-                                 acceptable_buffer_backends="warp")
+        sub = node.create_subscription(TENSOR, args.topic, on_msg, depth=args.depth,
+                                       acceptable_buffer_backends="warp")
         _emit("READY")
         sys.stdin.readline()  # held until the parent kills us (or says stop)
+        intact = sum(check_frame(msg)["ok"] for msg in held)  # still the bytes received
+        _emit("RESULT " + json.dumps({"held": len(held), "intact": intact,
+                                      "errors": sub.counters.errors, **resources()}))
+    return 0
+
+
+def run_outrun(args: argparse.Namespace) -> int:
+    """A warp publisher that runs ``--count`` messages ahead as fast as it can, once a
+    subscription is matched; reports publish failures and its fds before and after."""
+    from buffer_pubsub import Node
+
+    import warp_buffer
+
+    with Node(f"outrun_{os.getpid()}", domain_id=args.domain) as node:
+        pub = node.create_publisher(TENSOR, args.topic, depth=args.depth)
+        _emit("READY")
+        pub.wait_for_subscriptions(1, timeout=30)
+        before = resources()
+        failures = []
+        for index in range(args.count):
+            try:
+                pub.publish(pubsub.make_frame(0, index, 2048, "warp"))
+            except Exception as exc:  # noqa: BLE001 - counted and reported, never expected
+                failures.append(f"{index}: {type(exc).__name__}: {exc}")
+        _emit("RESULT " + json.dumps({"published": args.count, "failures": failures[:5],
+                                      "failed": len(failures), "before": before,
+                                      "after": resources(),
+                                      "pool": warp_buffer.pool_stats()["cpu"]}))
+        sys.stdin.readline()
     return 0
 
 
@@ -117,34 +152,20 @@ def run_export(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_sweep(args: argparse.Namespace) -> int:
-    from rosidl_buffer import EndpointInfo, EndpointType, local_host_id
-    from rosidl_buffer.registry import create_backend_instance
-    from warp_buffer import ipc
-
-    info = EndpointInfo(gid=bytes(16), node_name="sweeper", node_namespace="/",
-                        topic_name="/sweep", topic_type=TENSOR,
-                        endpoint_type=EndpointType.PUBLISHER, host_id=local_host_id(),
-                        process_id=os.getpid(), user_id=os.getuid())
-    create_backend_instance("warp").on_creating_endpoint(info)
-    left = [f.path for f in ipc.list_exports()]
-    _emit("RESULT " + json.dumps({"exports": left}))
-    return 0
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=MODULE)
-    parser.add_argument("role", choices=["hold", "soak", "export", "sweep"])
+    parser.add_argument("role", choices=["hold", "soak", "export", "outrun"])
     parser.add_argument("--domain", type=int, default=0)
     parser.add_argument("--topic", default="/reliability")
     parser.add_argument("--depth", type=int, default=100)
     parser.add_argument("--hold", type=int, default=8, help="hold: report every N held")
-    parser.add_argument("--count", type=int, default=2, help="export: buffers to export")
+    parser.add_argument("--delay", type=float, default=0.0, help="hold: seconds per callback")
+    parser.add_argument("--count", type=int, default=2, help="export/outrun: buffers")
     parser.add_argument("--turn", type=float, default=2.0, help="soak: seconds subscribed")
     parser.add_argument("--gap", type=float, default=0.3, help="soak: seconds unsubscribed")
     parser.add_argument("--progress", type=int, default=250, help="soak: GOT line every N")
     args = parser.parse_args(argv)
-    roles = {"hold": run_hold, "soak": run_soak, "export": run_export, "sweep": run_sweep}
+    roles = {"hold": run_hold, "soak": run_soak, "export": run_export, "outrun": run_outrun}
     return roles[args.role](args)
 
 
@@ -153,14 +174,20 @@ class Child(pubsub.Child):
     """A child running a role of this module (or of ``module``), with extra environment."""
 
     def __init__(self, role: str, *, module: str = MODULE, env: dict[str, str] | None = None,
-                 **options: Any) -> None:
+                 nofile: int | None = None, **options: Any) -> None:
         argv = [sys.executable, "-m", module, role]
         for key, value in options.items():
             argv += [f"--{key.replace('_', '-')}", str(value)]
         environment = child_env()
         environment.update(env or {})
+
+        def limit() -> None:  # in the child, before exec: ``ulimit -n nofile``
+            if nofile is not None:
+                resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
+
         self.proc = subprocess.Popen(argv, cwd=pubsub.ROOT, env=environment,
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                     preexec_fn=limit)
         self._lines: queue.Queue[str | None] = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
 
@@ -233,8 +260,8 @@ class ForgedPublisher:
 
 
 def release_pool_memory(timeout: float = 5.0) -> dict[str, Any]:
-    """Give every free pool block of this process back (its /dev/shm file is removed); returns
-    the pool stats, in which a test expects no leased block left."""
+    """Give every free pool block of this process back (its arena pages are punched out);
+    returns the pool stats, in which a test expects no leased block left."""
     import gc
 
     import warp_buffer
@@ -242,7 +269,7 @@ def release_pool_memory(timeout: float = 5.0) -> dict[str, Any]:
     deadline = time.monotonic() + timeout
     while True:
         gc.collect()
-        warp_buffer.trim_pools(0.0, inflight_grace=0.0)
+        warp_buffer.trim_pools(0.0)
         stats = warp_buffer.pool_stats()
         idle = all(s["leased"] == 0 and s["free_blocks"] == 0 for s in stats.values())
         if idle or time.monotonic() > deadline:

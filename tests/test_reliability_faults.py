@@ -1,14 +1,15 @@
 """Faults and permissions with real processes on loopback: SIGKILLed publishers and subscribers,
-the orphan sweep, owner-only exports and sockets, and CPU fallback for another user.
+nothing left in /dev/shm by any death, owner-only hand-off sockets, and CPU fallback for another
+user.
 
-Every child is reaped in ``finally``; pool blocks of this process are given back after each test
-(the suite's leak guard then finds no /dev/shm file left).
+Every child is reaped in ``finally``; pool blocks of this process are given back after each test.
 """
 
 from __future__ import annotations
 
 import itertools
 import os
+import signal
 import socket
 import stat
 import uuid
@@ -24,7 +25,8 @@ from tests._reliability_helpers import (
     release_pool_memory,
     wait_until,
 )
-from warp_buffer import ipc
+from warp_buffer import handoff, ipc
+from warp_buffer.arena import existing_arena
 
 pytestmark = pytest.mark.multiprocess
 
@@ -60,6 +62,11 @@ def _crc(msg) -> int:
     return zlib.crc32(msg.data.to_numpy().tobytes())
 
 
+def _named_for(pid: int) -> list[str]:
+    """/dev/shm entries named for ``pid`` by any version of this library."""
+    return [n for n in os.listdir("/dev/shm") if n.startswith("warp_buffer") and f".{pid}" in n]
+
+
 def _frames_from(got, pub_id: int) -> list:
     return [m for m, _ in got if check_frame(m)["pub"] == pub_id]
 
@@ -81,18 +88,9 @@ def test_sigkilled_publisher_leaves_held_buffers_intact_and_a_new_publisher_deli
             first.kill()  # mid-stream: it was publishing every 4 ms
             assert wait_until(lambda: sub.get_publisher_count() == 0), "dead publisher not seen"
             held = list(got)
-            assert ipc.list_exports(pid=dead_pid), "the killed publisher left no export to sweep"
-
-            # Any process of the library that starts sweeps the dead publisher's exports...
-            sweeper = Child("sweep")
-            try:
-                left = sweeper.result()["exports"]
-            finally:
-                _close(sweeper)
-            assert not [p for p in left if f".{dead_pid}-" in p]
-            assert not ipc.list_exports(pid=dead_pid)
-
-            # ...while the buffers we hold stay mapped, valid and unchanged.
+            # Nothing has a name: SIGKILL leaves nothing to sweep, and the buffers we hold stay
+            # mapped (our mapping keeps the publisher's arena alive), valid and unchanged.
+            assert not _named_for(dead_pid)
             for msg, crc in held:
                 assert msg.data.get_backend_type() == "warp"
                 assert check_frame(msg)["ok"] and _crc(msg) == crc
@@ -149,33 +147,37 @@ def test_sigkilled_holding_subscriber_frees_its_blocks_without_pool_growth(domai
             assert _created() <= pinned + 2, ipc.pool_stats()
     finally:
         _close(*holders)
-    assert not [f for f in ipc.list_exports() if f.owner_pid != os.getpid()]
+    assert not [p for h in holders for p in _named_for(h.proc.pid)]
 
 
-def test_orphan_exports_of_a_sigkilled_process_are_swept_by_the_next_library_process():
+@pytest.mark.parametrize("how", ["SIGKILL", "SIGTERM", "exit"])
+def test_an_exporting_process_leaves_nothing_behind_however_it_ends(how):
     exporter = Child("export", count=3)
-    sweeper = None
     try:
         exporter.wait_ready()
         pid = exporter.proc.pid
-        files = ipc.list_exports(pid=pid)
-        assert len([f for f in files if not f.is_lock]) == 3 and any(f.is_lock for f in files)
-        exporter.kill()
-        assert ipc.list_exports(pid=pid), "SIGKILL cannot have removed the files"
-        sweeper = Child("sweep")
-        assert not [p for p in sweeper.result()["exports"] if f".{pid}-" in p]
+        names = _abstract_sockets_of(pid)
+        assert [n for n in names if n.startswith(f"@warp_buffer.{os.getuid()}.{pid}.")], names
+        if how == "exit":
+            exporter.proc.stdin.write("\n")
+            exporter.proc.stdin.flush()
+            assert exporter.proc.wait(timeout=20) == 0
+        else:
+            exporter.proc.send_signal(getattr(signal, how))
+            exporter.proc.wait(timeout=20)
     finally:
-        _close(exporter, sweeper)
-    assert not ipc.list_exports(pid=pid)
+        _close(exporter)
+    assert not _named_for(pid)
+    assert not [n for n in _abstract_names() if f".{pid}." in n and n.startswith("@warp_buffer")]
 
 
 # --------------------------------------------------------------------------- permissions
-def _socket_inodes() -> set[str]:
-    """Inode numbers of the sockets this process holds open."""
+def _socket_inodes(pid: int | str = "self") -> set[str]:
+    """Inode numbers of the sockets process ``pid`` (this one by default) holds open."""
     inodes = set()
-    for fd in os.listdir("/proc/self/fd"):
+    for fd in os.listdir(f"/proc/{pid}/fd"):
         try:
-            target = os.readlink(f"/proc/self/fd/{fd}")
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
         except OSError:
             continue
         if target.startswith("socket:["):
@@ -214,7 +216,43 @@ def _tcp_sockets() -> list[tuple[str, int]]:
     return found
 
 
-def test_exports_and_sockets_are_owner_only_and_traffic_stays_on_loopback(domain, topic):
+def _abstract_names() -> list[str]:
+    with open("/proc/net/unix") as table:
+        next(table)
+        return [parts[7] for parts in (line.split() for line in table) if len(parts) >= 8]
+
+
+def _abstract_sockets_of(pid: int) -> list[str]:
+    """Abstract names (``@...``) of the unix sockets process ``pid`` holds open."""
+    inodes = _socket_inodes(pid)
+    with open("/proc/net/unix") as table:
+        next(table)
+        return [p[7] for p in (line.split() for line in table)
+                if len(p) >= 8 and p[6] in inodes and p[7].startswith("@")]
+
+
+def _fetch_as_nobody(session: int) -> int:
+    """Fork a child that becomes uid 65534 and asks this process's server for its arena; its
+    exit status is 0 when it got no fd, 1 when it got one."""
+    name = handoff.socket_name(os.getuid(), os.getpid(), session)
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child reports through its exit status
+        code = 2
+        try:
+            os.setuid(65534)
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+                sock.settimeout(5)
+                sock.connect(name)
+                _data, fds, _flags, _addr = socket.recv_fds(sock, 64, 1)
+                code = 1 if fds else 0
+        except BaseException:
+            code = 3
+        os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    return os.waitstatus_to_exitcode(status)
+
+
+def test_the_hand_off_is_owner_only_and_traffic_stays_on_loopback(domain, topic):
     got: list = []
     with Node("perm_pub", domain_id=domain) as pub_node, \
             Node("perm_sub", domain_id=domain) as sub_node:
@@ -222,21 +260,20 @@ def test_exports_and_sockets_are_owner_only_and_traffic_stays_on_loopback(domain
         pub = pub_node.create_publisher(TENSOR, topic)
         assert pub.wait_for_subscriptions(1, timeout=10)
         frames = [make_frame(0, i, SIZE, "warp") for i in range(3)]
-        records = [ipc.export_buffer(frame.data) for frame in frames]
-        files = ipc.list_exports(pid=os.getpid())
-        assert {r.path for r in records} <= {f.path for f in files}
-        assert any(f.is_lock for f in files)
-        for f in files:
-            st = os.lstat(f.path)
-            assert stat.S_ISREG(st.st_mode) and st.st_uid == os.getuid(), f.path
-            assert stat.S_IMODE(st.st_mode) == 0o600, f"{f.path}: {stat.S_IMODE(st.st_mode):o}"
-            assert f.path.startswith(ipc.shm_prefix())
+        descriptors = [ipc.export_buffer(frame.data) for frame in frames]
+        arena = existing_arena()
+        assert arena is not None and {d.session for d in descriptors} == {arena.session}
+        assert not _named_for(os.getpid())  # the memory has no name anyone could open
+        ours = _abstract_sockets_of(os.getpid())
+        assert f"@warp_buffer.{os.getuid()}.{os.getpid()}.{arena.session:016x}" in ours
         for path in _unix_socket_paths():
             assert stat.S_IMODE(os.stat(path).st_mode) & 0o077 == 0, path
+        if os.getuid() == 0:  # another uid is refused by the server (a child drops to nobody)
+            assert _fetch_as_nobody(arena.session) == 0, "another uid was handed the arena"
         sockets = _tcp_sockets()
         assert sockets, "no Zenoh TCP socket found: the probe is broken"
         assert all(addr in ("127.0.0.1", "::1", "::ffff:127.0.0.1") for addr, _ in sockets), sockets
-        del frames, records
+        del frames, descriptors
 
 
 def test_a_subscriber_under_another_uid_is_served_by_cpu_fallback(domain, topic):
@@ -261,3 +298,31 @@ def test_a_subscriber_under_another_uid_is_served_by_cpu_fallback(domain, topic)
     assert {r["backend"] for r in foreign} == {"cpu"}
     assert {r["backend"] for r in local} == {"warp"}
     assert results[0]["counters"]["errors"] == 0
+
+
+# --------------------------------------------------------------------------- outrun, ulimit
+def test_under_ulimit_1024_a_publisher_runs_10000_ahead_of_a_slow_holding_subscriber(domain,
+                                                                                     topic):
+    """End to end through the transport: both processes under ``ulimit -n 1024``; the
+    subscriber is slow and keeps every frame; ``publish()`` never fails, the publisher's fds do
+    not grow with the messages in flight, and every frame the subscriber holds stays intact."""
+    count = 10_000
+    holder = Child("hold", domain=domain, topic=topic, hold=1000, depth=count + 100,
+                   delay=0.0002, nofile=1024)
+    pub = Child("outrun", domain=domain, topic=topic, count=count, depth=100, nofile=1024)
+    try:
+        holder.wait_ready()
+        pub.wait_ready()
+        ran = pub._expect("RESULT ", 180)
+        import json
+
+        result = json.loads(ran[len("RESULT "):])
+        assert result["failed"] == 0, result["failures"]
+        assert result["after"]["fds"] - result["before"]["fds"] <= 4, result
+        assert result["pool"]["created"] >= 0.9 * count  # the held frames were never recycled
+        holder.expect(f"HELD {count}", timeout=180)
+        held = holder.stop(timeout=60)
+        assert held["held"] == count and held["intact"] == count and held["errors"] == 0
+        assert held["fds"] < 200 and held["maps"] <= 2, held
+    finally:
+        _close(pub, holder)

@@ -10,11 +10,14 @@ after each one is delivered. A successful import must always be the exported byt
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import itertools
 import os
 import re
 import secrets
+import socket
 import struct
+import threading
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -40,13 +43,13 @@ from tests._reliability_helpers import ForgedPublisher, release_pool_memory, wai
 from warp_buffer import (
     DescriptorError,
     ExportBoundsError,
-    ExportError,
     ForeignExportError,
     StaleBufferError,
-    SyncTimeoutError,
+    descriptor,
+    handoff,
     ipc,
-    shm,
 )
+from warp_buffer.arena import HELLO, MAGIC, SEALS, VERSION, Geometry, alive
 from warp_buffer_backend import WarpBufferBackend
 
 pytestmark = pytest.mark.multiprocess
@@ -59,8 +62,7 @@ _domains = itertools.count(4500 + os.getpid() % 50 * 40)
 
 
 @pytest.fixture(autouse=True)
-def _pool_memory_back(monkeypatch):
-    monkeypatch.setenv("WARP_BUFFER_SYNC_TIMEOUT_S", "0.05")  # a wrong stamp fails fast
+def _pool_memory_back():
     yield
     stats = release_pool_memory()
     assert all(s["leased"] == 0 for s in stats.values()), f"buffers left alive: {stats}"
@@ -70,74 +72,71 @@ def _pool_memory_back(monkeypatch):
 def good_frame(index: int):
     """A warp ExperimentalTensor filling one whole block, with a descriptor of its export."""
     frame = make_frame(9, index, BLOCK, "warp")
-    return frame, BACKEND.record_to_descriptor(ipc.export_buffer(frame.data))
+    return frame, ipc.export_buffer(frame.data)
 
 
-def mutated(descriptor: Any, **changes: Any) -> Any:
-    fields = {name: getattr(descriptor, name) for name in descriptor.get_fields_and_field_types()}
-    copy = type(descriptor)(**fields)
-    for name, value in changes.items():
-        setattr(copy, name, value)
-    return copy
+def mutated(desc: Any, **changes: Any) -> Any:
+    values = dict(zip(descriptor.FIELDS, (getattr(desc, n) for n in descriptor.FIELDS)))
+    values.update(changes)
+    return descriptor.make(tuple(values[name] for name in descriptor.FIELDS))
 
 
-def payload_for(frame: Any, descriptor: Any, backend: str = "warp") -> bytes:
-    return bytes(serialize_message(frame, route=lambda _buffer: (backend, descriptor)))
+def payload_for(frame: Any, desc: Any, backend: str = "warp") -> bytes:
+    return bytes(serialize_message(frame, route=lambda _buffer: (backend, desc)))
 
 
-def oversize_host(payload: bytes, host: str, length: int = 5000) -> bytes:
-    """``payload`` with its host_id string replaced by a ``length``-byte one (bound is 255)."""
-    encoded = host.encode() + b"\0"
-    old = struct.pack("<I", len(encoded)) + encoded
-    assert payload.count(old) == 1
-    return payload.replace(old, struct.pack("<I", length + 1) + b"h" * length + b"\0")
-
-
-def truncated_in_descriptor(payload: bytes, host: str) -> bytes:
-    """``payload`` cut in the middle of the descriptor's host_id string."""
-    return payload[:payload.index(host.encode()) + 3]
+def truncated_in_descriptor(payload: bytes, desc: Any) -> bytes:
+    """``payload`` cut in the middle of the descriptor."""
+    at = payload.index(struct.pack("<Q", desc.session))
+    return payload[:at + 3]
 
 
 def dead_pid() -> int:
     pid = 4_000_000
-    while shm.pid_alive(pid):
+    while alive(pid):
         pid -= 1
     return pid
 
 
 @contextlib.contextmanager
-def forged_block(capacity: int = BLOCK, *, file_size: int | None = None, mode: int = 0o600,
-                 owner: int | None = None, magic: bytes = shm.MAGIC, symlink: bool = False,
-                 ) -> Iterator[dict[str, int]]:
-    """A hand-made block file under our prefix (this pid, a fresh session): a valid header
-    unless told otherwise. Yields the descriptor fields that name it. Always removed."""
+def forged_session(*, sealed: bool = True, owner_pid: int | None = None, magic: bytes = MAGIC,
+                   size_delta: int = 0, hello_session: int | None = None,
+                   serve_pid_of_ours: bool = True) -> Iterator[dict[str, int]]:
+    """A hand-made publisher session served from this process: an abstract socket under the
+    names the importer builds, handing over a memfd that may be unsealed, of the wrong size, or
+    described by a wrong hello. Yields the descriptor fields naming its first block."""
     session = secrets.randbits(63) | 1
-    path = shm.block_path(os.getpid(), session, 1)
-    target = f"{shm.SHM_DIR}/outside_prefix_{uuid.uuid4().hex}" if symlink else path
-    fd = os.open(target, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+    pid = os.getpid() if owner_pid is None else owner_pid
+    geometry = Geometry(1 << 20)
+    fd = os.memfd_create("warp_buffer", os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
+    os.ftruncate(fd, geometry.file_size + size_delta)
+    if sealed:
+        fcntl.fcntl(fd, fcntl.F_ADD_SEALS, SEALS)
+    hello = HELLO.pack(magic, VERSION, pid, session if hello_session is None else hello_session,
+                       geometry.data_offset, geometry.data_bytes, geometry.file_size)
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.bind(handoff.socket_name(os.getuid(), pid, session))
+    sock.listen(4)
+
+    def serve() -> None:
+        with contextlib.suppress(OSError):
+            while True:
+                conn, _ = sock.accept()
+                with conn:
+                    socket.send_fds(conn, [hello], [fd])
+
+    threading.Thread(target=serve, daemon=True).start()
     try:
-        header = shm.BlockHeader(magic=magic, version=shm.HEADER_VERSION,
-                                 header_size=shm.HEADER_SIZE, uid=7, generation=1,
-                                 capacity=capacity, session=session, owner_pid=os.getpid(),
-                                 block_id=1, kind=shm.KIND_HOST_DATA)
-        os.pwrite(fd, bytes(header), 0)
-        os.ftruncate(fd, shm.HEADER_SIZE + capacity if file_size is None else file_size)
-        os.fchmod(fd, mode)
-        if owner is not None:
-            os.fchown(fd, owner, owner)
-        if symlink:
-            os.symlink(target, path)
-        yield {"session": session, "owner_pid": os.getpid(), "block_id": 1, "uid": 7,
-               "generation": 1, "capacity": capacity, "size": min(capacity, BLOCK), "offset": 0}
+        yield {"session": session, "owner_pid": pid, "offset": geometry.data_offset,
+               "capacity": BLOCK, "size": BLOCK, "generation": 1}
     finally:
+        with contextlib.suppress(OSError):
+            sock.shutdown(socket.SHUT_RDWR)
+        sock.close()
         os.close(fd)
-        for name in {path, target}:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(name)
 
 
 BACKEND = WarpBufferBackend()
-OTHER_UID = 65534
 
 
 # --------------------------------------------------------------------------- hostile cases
@@ -158,42 +157,32 @@ def _forged(frame: Any, good: Any, names: dict[str, int]) -> bytes:
 
 
 CASES = [
-    Case("recycled uid", StaleBufferError, lambda f, g: payload_for(f, mutated(g, uid=g.uid ^ 1))),
-    Case("missing export (block id)", StaleBufferError, _field(block_id=99_999)),
+    Case("recycled block (generation)", StaleBufferError,
+         lambda f, g: payload_for(f, mutated(g, generation=g.generation + 1))),
     Case("missing export (dead owner)", StaleBufferError, _field(owner_pid=dead_pid())),
     Case("missing export (session)", StaleBufferError, _field(session=12345)),
-    Case("descriptor of another user", ForeignExportError,
-         lambda f, g: payload_for(f, mutated(g, user_id=g.user_id + 1))),
-    Case("host id with path separators", ForeignExportError, _field(host_id="../../etc/x")),
     Case("size beyond the block", ExportBoundsError, _field(size=BLOCK + 1)),
-    Case("offset beyond the block", ExportBoundsError, _field(offset=BLOCK)),
-    Case("offset + size beyond the block", ExportBoundsError, _field(offset=1, size=BLOCK)),
+    Case("offset inside a block", ExportBoundsError, lambda f, g: payload_for(
+        f, mutated(g, offset=g.offset + 1))),
+    Case("offset before the data", ExportBoundsError, _field(offset=0)),
     Case("huge size", ExportBoundsError, _field(size=2**64 - 1)),
-    Case("huge offset", ExportBoundsError, _field(offset=2**64 - 1)),
-    Case("capacity larger than the file", ExportBoundsError, _field(capacity=2 * BLOCK)),
+    Case("huge offset", ExportBoundsError, _field(offset=2**64 - 4096)),
+    Case("capacity larger than the arena", ExportBoundsError, _field(capacity=1 << 62)),
     Case("capacity not a block size", ExportBoundsError, _field(capacity=3000, size=100)),
     Case("zero size", ExportBoundsError, _field(size=0)),
-    Case("unknown version", DescriptorError, _field(version=2)),
+    Case("unknown version", DescriptorError, _field(version=1)),
     Case("unknown kind", DescriptorError, _field(kind=9)),
     Case("owner pid 0", DescriptorError, _field(owner_pid=0)),
-    Case("writer stamp never arrives", SyncTimeoutError,
-         lambda f, g: payload_for(f, mutated(g, generation=g.generation + 1))),
+    Case("peer slot out of range", DescriptorError, _field(peer_slot=4000)),
     Case("truncated serialized descriptor", DeserializationError,
-         lambda f, g: truncated_in_descriptor(payload_for(f, g), g.host_id)),
-    Case("oversize serialized descriptor", DeserializationError,
-         lambda f, g: oversize_host(payload_for(f, g), g.host_id)),
+         lambda f, g: truncated_in_descriptor(payload_for(f, g), g)),
     Case("unknown backend name", DeserializationError, lambda f, g: payload_for(f, g, "nope")),
-    *([Case("export file owned by another user", ForeignExportError, _forged,
-            {"owner": OTHER_UID})] if os.geteuid() == 0 else []),  # chown needs root
-    Case("export file with group/other access", ForeignExportError, _forged, {"mode": 0o644}),
-    Case("symlink out of the prefix", ForeignExportError, _forged, {"symlink": True}),
-    Case("truncated export file", StaleBufferError, _forged,
-         {"file_size": shm.HEADER_SIZE + BLOCK // 2}),
-    Case("file shorter than a header", StaleBufferError, _forged, {"file_size": 100}),
-    Case("not a block header", StaleBufferError, _forged, {"magic": b"NOTWARP!"}),
-    # A 1 TiB sparse block passes every size check; mapping it fails (ENOMEM under the default
-    # overcommit heuristic), which must be a typed error too.
-    Case("huge sparse block", ExportError, _forged, {"capacity": 1 << 40}),
+    Case("arena not sealed against shrinking", ForeignExportError, _forged, {"sealed": False}),
+    Case("socket squatted by another process", ForeignExportError, _forged,
+         {"owner_pid": os.getppid()}),
+    Case("hello of another session", StaleBufferError, _forged, {"hello_session": 99}),
+    Case("arena of the wrong size", StaleBufferError, _forged, {"size_delta": 4096}),
+    Case("not an arena", DescriptorError, _forged, {"magic": b"NOTWARP!"}),
 ]
 
 
@@ -203,7 +192,7 @@ def hostile_payload(case: Case, frame: Any, good: Any) -> Iterator[bytes]:
     if case.forge is None:
         yield case.build(frame, good)
         return
-    with forged_block(**case.forge) as names:
+    with forged_session(**case.forge) as names:
         yield _forged(frame, good, names)
 
 
@@ -252,16 +241,16 @@ PUBLISHER = EndpointInfo(
 
 
 @pytest.mark.parametrize("changes, expected", [
-    ({"size": -1}, ExportBoundsError),
-    ({"offset": -4096}, ExportBoundsError),
-    ({"capacity": -BLOCK}, ExportBoundsError),
-    ({"block_id": -1}, DescriptorError),
-    ({"uid": -1}, DescriptorError),
+    ({"size": -1}, DescriptorError),
+    ({"offset": -4096}, DescriptorError),
+    ({"capacity": -BLOCK}, DescriptorError),
+    ({"generation": -1}, DescriptorError),
     ({"owner_pid": -1}, DescriptorError),
-    ({"ack_slot": -1}, DescriptorError),
-    ({"size": 2**80}, ExportBoundsError),
-    ({"device": "d" * 100}, DescriptorError),
+    ({"peer_slot": -1}, DescriptorError),
+    ({"size": 2**80}, DescriptorError),
     ({"kind": -3}, DescriptorError),
+    ({"session": "abc"}, DescriptorError),
+    ({"offset": 1.5}, DescriptorError),
 ])
 def test_values_the_wire_cannot_carry_are_refused_by_the_backend(changes, expected):
     """Negative and over-wide values (a Python object can hold them; CDR cannot)."""
@@ -277,7 +266,7 @@ def test_a_foreign_publisher_and_a_wrong_type_are_refused():
     frame, good = good_frame(0)
     foreign = EndpointInfo(**{**{f: getattr(PUBLISHER, f) for f in (
         "gid", "node_name", "node_namespace", "topic_name", "topic_type", "endpoint_type",
-        "process_id")}, "host_id": "elsewhere", "user_id": os.getuid()})
+        "process_id")}, "gid": bytes(16), "host_id": "elsewhere", "user_id": os.getuid()})
     with pytest.raises(ForeignExportError):
         BACKEND.from_descriptor_with_endpoint(good, foreign)
     with pytest.raises(DescriptorError):
@@ -288,20 +277,16 @@ def test_a_foreign_publisher_and_a_wrong_type_are_refused():
 # --------------------------------------------------------------------------- fuzzing
 FIELD_VALUES = {
     "version": st.integers(0, 255), "kind": st.integers(0, 255),
+    "peer_slot": st.integers(0, 2**16 - 1),
     "size": st.integers(0, 2**64 - 1) | st.integers(0, BLOCK + 1),
-    "offset": st.integers(0, 2**64 - 1) | st.integers(0, BLOCK + 1),
+    "offset": st.integers(0, 2**64 - 1) | st.integers(0, 1 << 30),
     "capacity": st.integers(0, 2**64 - 1) | st.sampled_from([0, 2048, 4096, 8192, 1 << 40]),
-    "block_id": st.integers(0, 2**32 - 1), "uid": st.integers(0, 2**64 - 1),
-    "generation": st.integers(0, 2**64 - 1), "ack_slot": st.integers(0, 2**16 - 1),
+    "generation": st.integers(0, 2**64 - 1) | st.integers(0, 50),
+    "sequence": st.integers(0, 2**64 - 1),
     "owner_pid": st.integers(0, 2**32 - 1), "session": st.integers(0, 2**64 - 1),
-    "user_id": st.integers(0, 2**32 - 1),
-    "host_id": st.text(max_size=255).filter(lambda s: "\0" not in s
-                                            and len(s.encode()) <= 255),
-    "device": st.text(max_size=32).filter(lambda s: "\0" not in s and len(s.encode()) <= 32),
-    "device_pci_bus_id": st.text(max_size=32).filter(
-        lambda s: "\0" not in s and len(s.encode()) <= 32),
+    "device_pci_bus_id": st.integers(0, 2**64 - 1),
 }
-_NAME = re.compile(r"^warp_buffer\.\d+\.\d+-[0-9a-f]{16}\.b\d+$")
+_NAME = re.compile(rb"^\0warp_buffer\.\d+\.\d+\.[0-9a-f]{16}$")
 
 
 def fuzz_settings(examples: int) -> settings:
@@ -312,40 +297,41 @@ def fuzz_settings(examples: int) -> settings:
 
 @pytest.fixture
 def exported(monkeypatch):
-    """One exported good frame, and a spy on every export path the importer builds."""
+    """One exported good frame, and a spy on every socket name the importer builds."""
     frame, good = good_frame(0)
-    paths: list[str] = []
-    real = shm.block_path
+    names: list[bytes] = []
+    real = handoff.socket_name
 
-    def spy(pid: int, session: int, block_id: int) -> str:
-        paths.append(real(pid, session, block_id))
-        return paths[-1]
+    def spy(uid: int, pid: int, session: int) -> bytes:
+        names.append(real(uid, pid, session))
+        return names[-1]
 
-    monkeypatch.setattr(shm, "block_path", spy)
-    held = [frame, good, paths]
+    monkeypatch.setattr(handoff, "socket_name", spy)
+    held = [frame, good, names]
     yield held
     held.clear()  # pytest keeps the fixture value until the end of the teardown
 
 
-def decode_checked(payload: bytes, good: Any, paths: list[str]) -> None:
-    """Decode + import: a typed error, or exactly the good export's bytes. Every path the
-    importer built is under our prefix, with no separator of its own."""
+def decode_checked(payload: bytes, good: Any, names: list[bytes]) -> None:
+    """Decode + import: a typed error, or exactly the good export's bytes. Every socket name the
+    importer built is the numbers-only abstract name of this user."""
     try:
         msg = deserialize_message(payload, TENSOR, backends={"warp": BACKEND},
                                   endpoint_info=PUBLISHER)
     except RosidlBufferError:
         msg = None
-    for path in paths:
-        assert path.startswith(shm.shm_prefix()) and _NAME.match(os.path.basename(path)), path
-    paths.clear()
+    for name in names:
+        assert _NAME.match(name) and name.split(b".")[1] == str(os.getuid()).encode(), name
+    names.clear()
     if msg is None or msg.data.get_backend_type() != "warp":
         return  # an error, or a mutation that turned the field into plain CPU bytes
     impl = msg.data.get_impl()
-    record = impl._import
-    assert (record.owner_pid, record.session, record.block_id, record.uid) == (
-        good.owner_pid, good.session, good.block_id, good.uid), "imported another block"
-    expected = pattern(9, 0, BLOCK)[record.offset:record.offset + record.size]
+    got = impl._import
+    assert (got.owner_pid, got.session, got.offset, got.generation) == (
+        good.owner_pid, good.session, good.offset, good.generation), "imported another block"
+    expected = pattern(9, 0, BLOCK)[:got.size]
     assert np.array_equal(msg.data.to_numpy(), expected), "imported the wrong bytes"
+    msg.data.release()
 
 
 def _fuzz_fields(exported, data) -> None:

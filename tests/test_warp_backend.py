@@ -24,6 +24,7 @@ from rosidl_buffer import (
 )
 from rosidl_buffer.messages import deserialize_message, get_message_type, serialize_message
 from tests._warp_helpers import Child, checksum, expected_pattern, fill_pattern
+from warp_buffer import descriptor as wire_layout
 from warp_buffer import (
     DescriptorError,
     ExportBoundsError,
@@ -50,8 +51,11 @@ pytestmark = pytest.mark.usefixtures("warp_pool_drained")
 
 
 @pytest.fixture
-def backend() -> WarpBufferBackend:
-    return registry.create_backend_instance("warp")  # type: ignore[return-value]
+def backend():
+    instance = registry.create_backend_instance("warp")
+    yield instance
+    for gid in list(instance._peers):  # as the transport reports departures: slots go back
+        instance.on_endpoint_gone(_info(gid=gid))
 
 
 def _info(kind=EndpointType.SUBSCRIPTION, supported=None, **changes) -> EndpointInfo:
@@ -82,7 +86,7 @@ def test_plugin_is_discoverable(backend):
 
 def test_metadata_says_what_a_peer_needs(backend, monkeypatch):
     meta = parse_metadata(backend.get_backend_metadata())
-    assert meta.version == 1 and meta.host_id == local_host_id() and meta.user_id == os.getuid()
+    assert meta.version == 2 and meta.host_id == local_host_id() and meta.user_id == os.getuid()
     assert "shm" in meta.ipc and meta.devices[0] == "cpu"
     monkeypatch.setenv("WARP_BUFFER_DISABLE_IPC", "1")
     assert parse_metadata(backend.get_backend_metadata()).ipc == frozenset()
@@ -100,7 +104,7 @@ def test_same_host_same_user_warp_subscriber_is_served(backend):
     buffer = _written()
     descriptor = backend.create_descriptor_with_endpoint(buffer.get_impl(), sub)
     assert isinstance(descriptor, backend.get_descriptor_type())
-    assert descriptor.size == 4096 and descriptor.kind == descriptor.KIND_HOST_SHM
+    assert descriptor.size == 4096 and descriptor.kind == descriptor.KIND_HOST
     assert buffer.get_impl().is_published
     with pytest.raises(warp_buffer.WriteHandleError):
         from_output_buffer(buffer)
@@ -119,7 +123,7 @@ def _refusals(backend):
         "metadata: another host": _info(supported={"warp": other(host_id="elsewhere")}),
         "metadata: another user": _info(supported={"warp": other(user_id=os.getuid() + 1)}),
         "metadata: IPC disabled there": _info(supported={"warp": other(ipc=frozenset())}),
-        "metadata: unknown version": _info(supported={"warp": other(version=2)}),
+        "metadata: unknown version": _info(supported={"warp": other(version=1)}),
         "metadata: unreadable": _info(supported={"warp": "garbage"}),
     }
 
@@ -165,41 +169,50 @@ def test_decisions_are_cached_per_peer(backend):
 
 
 def _worst_case_descriptor(backend):
-    cls = backend.get_descriptor_type()
     top = (1 << 64) - 1
-    return cls(version=255, kind=255, size=top, offset=top, capacity=top, block_id=(1 << 32) - 1,
-               uid=top, generation=top, ack_slot=65535, owner_pid=(1 << 32) - 1, session=top,
-               user_id=(1 << 32) - 1, host_id="h" * 255, device="d" * 32,
-               device_pci_bus_id="p" * 32, cuda_ipc_mem_handle=np.full(64, 255, np.uint8),
-               cuda_ipc_event_handle=np.full(64, 255, np.uint8))
+    values = [255, 255, 65535, (1 << 32) - 1] + [top] * (len(wire_layout.FIELDS) - 4)
+    return wire_layout.make(tuple(values))
 
 
-def test_descriptor_round_trips_through_cdr_within_the_bound(backend):
+def test_descriptor_is_one_fixed_struct_byte_identical_to_the_cdr_codec(backend):
     Image = get_message_type(IMAGE)
     sub = _subscriber(backend)
     buffer = _written(640 * 480 * 3 // 4 * 4)
     real = backend.create_descriptor_with_endpoint(buffer.get_impl(), sub)
     for descriptor in (real, _worst_case_descriptor(backend)):
         data = serialize_message(descriptor)
-        assert len(data) - 4 <= MAX_BUFFER_DESCRIPTOR_SIZE
+        assert bytes(data[4:]) == wire_layout.pack(descriptor)  # the precompiled layout
+        assert len(data) - 4 == wire_layout.LAYOUT.size <= MAX_BUFFER_DESCRIPTOR_SIZE
         assert deserialize_message(data, DESCRIPTOR_TYPE) == descriptor
+        assert wire_layout.unpack(data[4:]) == descriptor
         # Inline in a message, through the buffer-field route, as a transport sends it.
         msg = Image(height=1, width=len(buffer), encoding="mono8", step=len(buffer), data=buffer)
         wire = serialize_message(msg, route=lambda b, d=descriptor: ("warp", d))
         assert len(wire) < 4096 + 200  # the payload did not travel
-    worst = len(serialize_message(_worst_case_descriptor(backend))) - 4
-    assert worst <= MAX_BUFFER_DESCRIPTOR_SIZE
-    with pytest.raises(RosidlBufferError):  # a longer host id cannot be serialized
-        desc = _worst_case_descriptor(backend)
-        desc.host_id = "h" * 256
-        serialize_message(desc)
+    with pytest.raises(RosidlBufferError):  # a value the layout cannot carry
+        serialize_message(wire_layout.make((256,) + wire_layout.values_of(real)[1:]))
+    with pytest.raises(DescriptorError):
+        wire_layout.pack(wire_layout.make((256,) + wire_layout.values_of(real)[1:]))
+
+
+def test_departed_peers_are_forgotten_so_the_cache_stays_bounded(backend):
+    baseline = backend.known_peers
+    for _ in range(3000):
+        sub = _subscriber(backend)
+        backend.on_discovering_endpoint(sub, [], sub.supported_backends)
+        buffer = _written(64)
+        assert backend.create_descriptor_with_endpoint(buffer.get_impl(), sub) is not None
+        backend.on_endpoint_gone(sub)
+    assert backend.known_peers == baseline
+    del buffer
+    gc.collect()
+    assert warp_buffer.pool_stats()["cpu"]["free_blocks"] >= 1  # nothing left pinned
 
 
 def test_descriptor_made_here_is_imported_in_another_process_with_zero_copies(backend):
     Image = get_message_type(IMAGE)
     nbytes = 1 << 20
     buffer = _written(nbytes, seed=77)
-    block_path = buffer.get_impl()._block.path
     msg = Image(height=1024, width=1024, encoding="mono8", step=1024, data=buffer)
     sub = _subscriber(backend)
     wire = serialize_message(msg, route=lambda b: ("warp", backend.create_descriptor_with_endpoint(
@@ -214,7 +227,7 @@ def test_descriptor_made_here_is_imported_in_another_process_with_zero_copies(ba
         result = child.result()
         assert result["backend"] == "warp" and result["size"] == nbytes
         assert result["crc"] == checksum(expected_pattern(nbytes, 77))
-        assert result["mapping"] == block_path  # the child reads the publisher's own pages
+        assert result["mapping"].startswith("/memfd:warp_buffer")  # the publisher's own pages
         assert child.finish() == 0
 
 
@@ -228,31 +241,31 @@ def test_bad_descriptors_raise_typed_errors(backend, monkeypatch):
     buffer, good = _descriptor(backend)
 
     def changed(**fields):
-        d = backend.descriptor_to_record(good)
-        descriptor = backend.record_to_descriptor(d)
-        for name, value in fields.items():
-            setattr(descriptor, name, value)
-        return descriptor
+        values = dict(zip(wire_layout.FIELDS, wire_layout.values_of(good)))
+        values.update(fields)
+        return wire_layout.make(tuple(values[name] for name in wire_layout.FIELDS))
 
     cases = [
-        (ForeignExportError, changed(host_id="another-host"), publisher),
-        (ForeignExportError, changed(user_id=os.getuid() + 1), publisher),
         (ForeignExportError, good, _info(EndpointType.PUBLISHER, host_id="another-host")),
-        (StaleBufferError, changed(block_id=good.block_id + 500), publisher),
-        (StaleBufferError, changed(uid=good.uid ^ 0xFF), publisher),
+        (ForeignExportError, good, _info(EndpointType.PUBLISHER, user_id=os.getuid() + 1)),
+        (StaleBufferError, changed(generation=good.generation + 500), publisher),
+        (StaleBufferError, changed(session=good.session ^ 0xFF), publisher),
         (ExportBoundsError, changed(size=good.capacity + 1), publisher),
-        (ExportBoundsError, changed(capacity=good.capacity * 4, size=good.capacity * 2), publisher),
+        (ExportBoundsError, changed(capacity=good.capacity * 3), publisher),
+        (ExportBoundsError, changed(offset=good.offset + 1), publisher),
         (DescriptorError, changed(kind=9), publisher),
-        (DescriptorError, changed(version=2), publisher),
-        (DescriptorError, changed(kind=1), publisher),  # CUDA IPC without handles
+        (DescriptorError, changed(version=1), publisher),
+        (DescriptorError, changed(size="large"), publisher),
+        (DescriptorError, changed(size=-1), publisher),
+        (ExportUnavailableError, changed(kind=1), publisher),  # CUDA IPC: no such GPU here
         (DescriptorError, get_message_type(IMAGE)(), publisher),
     ]
     for error, descriptor, info in cases:
         with pytest.raises(error):
             backend.from_descriptor_with_endpoint(descriptor, info)
     monkeypatch.setenv("WARP_BUFFER_DISABLE_IPC", "1")
-    with pytest.raises(ExportUnavailableError):
-        backend.from_descriptor_with_endpoint(good, publisher)
+    with pytest.raises(ExportUnavailableError):  # judged once per publisher: a new one
+        backend.from_descriptor_with_endpoint(good, _info(EndpointType.PUBLISHER))
 
 
 def test_recycled_export_raises_stale(backend):
@@ -277,6 +290,20 @@ def test_an_imported_buffer_is_republished_from_a_local_copy(backend):
     imported = backend.from_descriptor_with_endpoint(
         backend.create_descriptor_with_endpoint(buffer.get_impl(), sub), publisher)
     again = backend.create_descriptor_with_endpoint(imported, sub)
-    assert again is not None and again.block_id != buffer.get_impl()._block.block_id
+    assert again is not None and again.offset != buffer.get_impl()._block.offset
     relayed = backend.from_descriptor_with_endpoint(again, publisher)
     np.testing.assert_array_equal(relayed.to_cpu().view(), expected_pattern(2048, 4))
+
+
+def test_cuda_fields_round_trip_through_the_fixed_layout():
+    """What a CUDA IPC descriptor carries (no GPU needed): Warp's PCI bus id and the 64-byte
+    memory and event handles, as words."""
+    for pci in ("00000000:01:00", "0000ABCD:FF:1F"):
+        assert wire_layout.pci_from_int(wire_layout.pci_to_int(pci)) == pci
+    assert wire_layout.pci_to_int("") == 0
+    with pytest.raises(DescriptorError):
+        wire_layout.pci_to_int("not-a-bus-id")
+    handle = bytes(range(64))
+    assert wire_layout.handle_bytes(wire_layout.handle_words(handle)) == handle
+    with pytest.raises(DescriptorError):
+        wire_layout.handle_words(bytes(65))

@@ -21,6 +21,7 @@ from warp_buffer import (
     HandleReleasedError,
     SizeMismatchError,
     WarpBufferError,
+    UnsupportedSourceError,
     WarpBufferImpl,
     WriteHandleError,
     allocate_buffer,
@@ -166,19 +167,23 @@ def test_release_is_idempotent_and_released_handles_refuse_access():
         reader.array  # noqa: B018
 
 
-def test_garbage_collected_write_handle_records_the_generation_stamp():
+def test_a_garbage_collected_write_handle_ends_the_write_and_seal_closes_an_open_one():
     buffer = allocate_buffer(64, "cpu")
-    impl = buffer.get_impl()
     handle = from_output_buffer(buffer)
     handle.array.fill_(9)
-    assert impl._generation == 0
     del handle
     gc.collect()
-    assert impl._generation != 0
-    # The stamp was written by the sync kernel into the block header that importers check.
-    assert impl._block.header.generation == impl._generation
     with from_input_buffer(buffer) as view:
         assert (view.array.numpy() == 9).all()
+    sealed = allocate_buffer(64, "cpu")
+    open_handle = from_output_buffer(sealed)
+    open_handle.array.fill_(4)
+    sealed.seal()  # what the transport does on every publish route
+    with pytest.raises(WriteHandleError):
+        open_handle.array  # noqa: B018
+    with pytest.raises(WriteHandleError):
+        from_output_buffer(sealed)
+    assert (sealed.to_numpy() == 4).all() and sealed.get_impl().is_published
 
 
 def test_output_handle_promotes_a_cpu_buffer_without_copying():
@@ -233,6 +238,12 @@ def test_to_buffer_takes_dlpack_sources_and_checks_sizes():
             to_buffer(values, out)
         with pytest.raises(TypeError):
             to_buffer(object(), out)
+        reader = from_input_buffer(_written(values.nbytes + 1))
+        for wrong in ([1, 2, 3], "abc", (1, 2), reader, out):
+            with pytest.raises(UnsupportedSourceError) as info:
+                to_buffer(wrong, out)
+            assert isinstance(info.value, TypeError) and isinstance(info.value, WarpBufferError)
+        reader.release()
     assert issubclass(SizeMismatchError, WarpBufferError) and issubclass(SizeMismatchError, ValueError)
 
 
@@ -249,59 +260,50 @@ def test_steady_state_publishing_reuses_one_block():
         buffer = allocate_buffer(3000, "cpu")
         with from_output_buffer(buffer) as out:
             out.array.fill_(i)
-        received = ipc.import_export(ipc.export_buffer(buffer))  # the peer's import acknowledges
-        assert received.to_cpu().view()[0] == i
+        with Buffer(ipc.import_buffer(ipc.export_buffer(buffer))) as received:
+            assert received.to_numpy()[0] == i
         del buffer, out, received
     after = pool.stats()
     assert after["created"] - before["created"] == 1
     assert after["reused"] - before["reused"] == 49
 
 
-def test_an_exported_block_is_not_reused_while_its_descriptor_may_be_in_flight(monkeypatch):
-    monkeypatch.setenv("WARP_BUFFER_INFLIGHT_GRACE_S", "60")
-    first = allocate_buffer(100, "cpu")
-    ipc.export_buffer(first)  # issued, never imported
-    first_block = first.get_impl()._block
-    del first
-    gc.collect()
-    second = allocate_buffer(100, "cpu")
-    assert second.get_impl()._block is not first_block
-    monkeypatch.setenv("WARP_BUFFER_INFLIGHT_GRACE_S", "0")
-    del second
-    gc.collect()
-    third = allocate_buffer(100, "cpu")
-    assert third.get_impl()._block is first_block  # the oldest free block, now reclaimable
+def _arena_pages() -> int:
+    from warp_buffer.arena import current_arena
+
+    return os.fstat(current_arena().fd).st_blocks  # 512-byte units the arena really holds
 
 
 def test_idle_memory_goes_back_without_an_explicit_trim(monkeypatch):
     monkeypatch.setenv("WARP_BUFFER_POOL_IDLE_S", "0.2")
-    buffer = allocate_buffer(10_000, "cpu")
-    path = buffer.get_impl()._block.path
-    assert os.path.exists(path)
-    del buffer
+    buffer = allocate_buffer(1 << 20, "cpu")
+    with from_output_buffer(buffer) as out:
+        out.array.fill_(1)  # touch every page
+    block = buffer.get_impl()._block
+    touched = _arena_pages()
+    del buffer, out
     gc.collect()
     deadline = time.monotonic() + 10
-    while os.path.exists(path) and time.monotonic() < deadline:
+    while block.arena is not None and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert not os.path.exists(path), "the janitor never gave the idle block back"
+    assert block.arena is None, "the janitor never gave the idle block back"
+    assert touched - _arena_pages() >= (1 << 20) // 512  # its pages went back to the system
 
 
 def test_idle_bytes_beyond_the_cap_are_freed_at_once(monkeypatch):
     monkeypatch.setenv("WARP_BUFFER_POOL_MAX_IDLE_BYTES", str(8192))
     buffers = [allocate_buffer(8192, "cpu") for _ in range(4)]
-    paths = [b.get_impl()._block.path for b in buffers]
+    blocks = [b.get_impl()._block for b in buffers]
     del buffers
     gc.collect()
     allocate_buffer(10, "cpu")  # any pool operation enforces the cap
-    assert sum(os.path.exists(p) for p in paths) == 1
+    assert sum(b.arena is not None for b in blocks) == 1
 
 
 def test_disabled_ipc_uses_private_memory(monkeypatch):
     monkeypatch.setenv("WARP_BUFFER_DISABLE_IPC", "1")
-    before = set(ipc.list_exports(os.getpid()))
     buffer = allocate_buffer(5000, "cpu")
-    assert not buffer.get_impl().is_exportable
-    assert set(ipc.list_exports(os.getpid())) == before
+    assert not buffer.get_impl().is_exportable and not buffer.get_impl()._block.shared
     with pytest.raises(warp_buffer.ExportUnavailableError):
         ipc.export_buffer(buffer)
     with from_output_buffer(allocate_buffer(8, "cpu")) as out:

@@ -1,219 +1,341 @@
-"""warp_buffer.ipc: exports in /dev/shm, imports with zero copies, holds, recycling, staleness,
-foreign and hostile records, permissions, orphan sweep; with real second processes."""
+"""warp_buffer.ipc, the IPC core: one sealed memfd arena per process handed over an abstract
+socket, reads in place, OFD read locks as holds, generation-checked recycling, typed failures;
+with real second processes (SIGKILL, SIGTERM, clean exit, holds, outrun, shrink attempts, and
+``ulimit -n 1024`` on both sides)."""
 
 from __future__ import annotations
 
-import dataclasses
+import errno
+import fcntl
 import gc
 import os
 import signal
-import stat
+import tempfile
+import time
 
 import numpy as np
 import pytest
 import warp as wp
 
-import warp_buffer
 from rosidl_buffer import Buffer
-from tests._warp_helpers import Child, checksum, expected_pattern, fill_pattern, mapping_of
+from tests._warp_helpers import Child, checksum, expected_pattern, fill_pattern
 from warp_buffer import (
     DescriptorError,
     ExportBoundsError,
-    ForeignExportError,
+    HandleReleasedError,
     StaleBufferError,
     WriteHandleError,
     allocate_buffer,
+    attach,
+    descriptor,
     from_input_buffer,
     from_output_buffer,
+    handoff,
     ipc,
 )
+from warp_buffer.arena import SEALS, current_arena
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.usefixtures("warp_pool_drained")]
 
 
-
-def _published(nbytes: int = 8192, seed: int = 7):
+def _published(nbytes: int = 8192, seed: int = 7, peer=None):
     buffer = allocate_buffer(nbytes, "cpu")
     with from_output_buffer(buffer) as out:
         fill_pattern(out.array, seed)
-    return buffer, ipc.export_buffer(buffer)
+    return buffer, ipc.export_buffer(buffer, peer=peer)
 
 
-def test_record_names_a_0600_file_under_the_user_prefix():
-    buffer, record = _published()
-    assert record.kind is ipc.ExportKind.HOST_SHM
-    assert record.path.startswith(ipc.shm_prefix()) and record.owner_pid == os.getpid()
-    assert ipc.shm_prefix() == f"/dev/shm/warp_buffer.{os.getuid()}."
-    mine = ipc.list_exports(os.getpid())
-    assert record.path in [f.path for f in mine]
-    for f in mine:  # block files and the session lock file
-        st = os.lstat(f.path)
-        assert stat.S_ISREG(st.st_mode) and stat.S_IMODE(st.st_mode) == 0o600
-        assert st.st_uid == os.getuid()
-    assert 0 < record.size <= record.capacity and record.uid != 0
+def _with(desc, **changes):
+    values = dict(zip(descriptor.FIELDS, descriptor.values_of(desc)))
+    values.update(changes)
+    return descriptor.make(tuple(values[name] for name in descriptor.FIELDS))
 
 
-def test_import_in_process_maps_the_same_file_copy_on_write():
-    buffer, record = _published(8192, seed=3)
-    imported = ipc.import_export(record)
+def _ours_in_dev_shm(pid: int) -> list[str]:
+    return [n for n in os.listdir("/dev/shm") if n.startswith("warp_buffer") and f".{pid}" in n]
+
+
+def _memfd_fds() -> int:
+    count = 0
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            count += os.readlink(f"/proc/self/fd/{fd}").startswith("/memfd:warp_buffer")
+        except OSError:
+            pass
+    return count
+
+
+# --------------------------------------------------------------------------- in one process
+def test_descriptor_names_the_arena_by_numbers_and_its_layout_is_one_struct():
+    buffer, desc = _published()
+    arena = current_arena()
+    assert desc.owner_pid == os.getpid() and desc.session == arena.session
+    assert desc.kind == descriptor.KIND_HOST and 0 < desc.size <= desc.capacity
+    assert arena.geometry.check_block(desc.offset, desc.capacity) is None
+    assert fcntl.fcntl(arena.fd, fcntl.F_GET_SEALS) & SEALS == SEALS
+    assert os.readlink(f"/proc/self/fd/{arena.fd}").startswith("/memfd:warp_buffer")
+    assert descriptor.unpack(descriptor.pack(desc)) == desc
+    assert not _ours_in_dev_shm(os.getpid())  # nothing has a name
+
+
+def test_import_in_process_reads_the_same_bytes_read_only_and_release_ends_access():
+    buffer, desc = _published(8192, seed=3)
+    imported = ipc.import_buffer(desc)
     assert imported.is_imported and imported.device == "cpu"
-    assert mapping_of(imported.array.ptr) == record.path  # zero copies: the export's own pages
+    assert imported.array.ptr == buffer.get_impl().array.ptr  # zero copies: the same pages
     np.testing.assert_array_equal(imported.to_cpu().view(), expected_pattern(8192, 3))
     with pytest.raises(WriteHandleError):  # imports are read-only through the API
         from_output_buffer(Buffer(imported))
-    # A stray write by a reader changes only its private copy of that page.
-    imported.array.numpy()[:16] = 0
-    np.testing.assert_array_equal(buffer.to_numpy(), expected_pattern(8192, 3))
+    received = Buffer(imported)
+    with received:
+        assert received.to_numpy()[0] == expected_pattern(8, 3)[0]
+    assert imported.is_released
+    with pytest.raises(HandleReleasedError):
+        from_input_buffer(received)
+    with pytest.raises(HandleReleasedError):
+        imported.to_cpu()
 
 
 def test_a_held_block_is_never_recycled_and_is_reused_once_released():
-    buffer, record = _published(5000)
+    buffer, desc = _published(5000)
     block = buffer.get_impl()._block
-    imported = ipc.import_export(record)  # holds LOCK_SH and acknowledges
+    imported = ipc.import_buffer(desc)  # a read lock on the block
     del buffer
     gc.collect()
     other = allocate_buffer(5000, "cpu")
     assert other.get_impl()._block is not block
     np.testing.assert_array_equal(imported.to_cpu().view(), expected_pattern(5000, 7))
-    del imported, other
+    imported.release()  # the hold goes now, not at garbage collection
+    del other
     gc.collect()
     again = allocate_buffer(5000, "cpu")
     assert again.get_impl()._block is block
-    with pytest.raises(StaleBufferError):  # the old record now names a recycled block
-        ipc.import_export(record)
+    with pytest.raises(StaleBufferError):  # the old descriptor names a recycled block
+        ipc.import_buffer(desc)
 
 
-def test_missing_export_is_stale():
-    buffer, record = _published()
-    with pytest.raises(StaleBufferError):
-        ipc.import_export(dataclasses.replace(record, block_id=record.block_id + 1000))
-    with pytest.raises(StaleBufferError):
-        ipc.import_export(dataclasses.replace(record, session=record.session ^ 1))
+def test_a_descriptor_on_its_way_pins_its_block_until_that_peer_imports_it_or_a_later_one():
+    peer = ipc.peer_slot(b"peer-in-flight", os.getpid())
+    try:
+        first, d1 = _published(3000, peer=peer)
+        block = first.get_impl()._block
+        del first
+        gc.collect()
+        second = allocate_buffer(3000, "cpu")  # d1 not imported yet: its block is not reused
+        assert second.get_impl()._block is not block
+        d2 = ipc.export_buffer(second)  # not for that peer: no accounting
+        d3 = ipc.export_buffer(allocate_buffer(3000, "cpu"), peer=peer)
+        ipc.import_buffer(d3).release()  # a later delivery imported: d1 was dropped (keep-last)
+        del second, d2
+        gc.collect()
+        third = allocate_buffer(3000, "cpu")
+        assert third.get_impl()._block is block
+        with pytest.raises(StaleBufferError):
+            ipc.import_buffer(d1)
+    finally:
+        ipc.forget_peer(b"peer-in-flight")
+
+
+def test_a_forgotten_peer_pins_nothing():
+    peer = ipc.peer_slot(b"peer-gone", os.getpid())
+    buffer, _desc = _published(3000, peer=peer)
+    block = buffer.get_impl()._block
     del buffer
     gc.collect()
-    warp_buffer.trim_pools(0.0, inflight_grace=0.0)
-    assert not os.path.exists(record.path)
-    with pytest.raises(StaleBufferError):
-        ipc.import_export(record)
+    assert allocate_buffer(3000, "cpu").get_impl()._block is not block
+    ipc.forget_peer(b"peer-gone")  # the transport reports the subscription's departure
+    gc.collect()
+    assert allocate_buffer(3000, "cpu").get_impl()._block is block
 
 
-def test_truncated_export_is_stale_and_oversize_records_are_bounds_errors():
-    buffer, record = _published(4096)
-    with pytest.raises(ExportBoundsError):
-        ipc.import_export(dataclasses.replace(record, size=record.capacity + 1))
-    with pytest.raises(ExportBoundsError):
-        ipc.import_export(dataclasses.replace(record, offset=record.capacity - 10, size=20))
-    with pytest.raises(ExportBoundsError):
-        ipc.import_export(dataclasses.replace(record, capacity=1 << 30, size=1 << 29))
-    with pytest.raises(ExportBoundsError):
-        ipc.import_export(dataclasses.replace(record, capacity=12345))
-    os.truncate(record.path, 4096 + 100)  # a damaged file must not SIGBUS the importer
-    with pytest.raises(StaleBufferError):
-        ipc.import_export(record)
+def test_a_peer_whose_process_died_pins_nothing():
+    dead = 4_000_000
+    while os.path.exists(f"/proc/{dead}"):
+        dead -= 1
+    peer = ipc.peer_slot(b"peer-dead", dead)
+    try:
+        buffer, _desc = _published(3000, peer=peer)
+        block = buffer.get_impl()._block
+        del buffer
+        gc.collect()
+        time.sleep(0.15)  # liveness is checked at most every 100 ms
+        first = allocate_buffer(3000, "cpu")  # finds the block pinned, forgets the dead peer
+        again = first if first.get_impl()._block is block else allocate_buffer(3000, "cpu")
+        assert again.get_impl()._block is block
+    finally:
+        ipc.forget_peer(b"peer-dead")
 
 
-def test_malformed_records_raise_descriptor_errors():
-    buffer, record = _published()
-    bad = [dict(version=2), dict(owner_pid=0), dict(block_id=0), dict(uid=0), dict(session=0),
-           dict(ack_slot=100), dict(host_id=""), dict(device="x" * 40),
-           dict(kind=ipc.ExportKind.CUDA_IPC)]
-    for change in bad:
+def test_out_of_bounds_and_malformed_descriptors_raise_typed_errors():
+    buffer, desc = _published(4096)
+    bounds = [dict(size=desc.capacity + 1), dict(size=0), dict(offset=desc.offset + 100),
+              dict(capacity=12345), dict(capacity=1 << 50), dict(offset=1 << 60)]
+    for change in bounds:
+        with pytest.raises(ExportBoundsError):
+            ipc.import_buffer(_with(desc, **change))
+    malformed = [dict(version=1), dict(kind=9), dict(owner_pid=0), dict(session=0),
+                 dict(generation=0), dict(peer_slot=5000)]
+    for change in malformed:
         with pytest.raises(DescriptorError):
-            ipc.import_export(dataclasses.replace(record, **change))
+            ipc.import_buffer(_with(desc, **change))
     with pytest.raises(DescriptorError):
-        ipc.ExportRecord.from_dict({"kind": 9})
+        ipc.import_buffer(_with(desc, size="big"))
+    with pytest.raises(DescriptorError):
+        ipc.import_buffer(object())
+    with pytest.raises(StaleBufferError):
+        ipc.import_buffer(_with(desc, generation=desc.generation + 1))
 
 
-def test_foreign_exports_raise(tmp_path):
-    buffer, record = _published()
-    with pytest.raises(ForeignExportError):
-        ipc.import_export(dataclasses.replace(record, host_id="another-host"))
-    with pytest.raises(ForeignExportError):
-        ipc.import_export(dataclasses.replace(record, user_id=record.user_id + 1))
-    os.chmod(record.path, 0o644)
-    try:
-        with pytest.raises(ForeignExportError):
-            ipc.import_export(record)
-    finally:
-        os.chmod(record.path, 0o600)
-    if os.getuid() == 0:  # as root, make the file another user's
-        os.chown(record.path, 12345, -1)
-        try:
-            with pytest.raises(ForeignExportError):
-                ipc.import_export(record)
-        finally:
-            os.chown(record.path, 0, -1)
-    # A symbolic link planted at an export's name is never followed.
-    fake = dataclasses.replace(record, block_id=record.block_id + 999)
-    target = tmp_path / "elsewhere"
-    target.write_bytes(b"\0" * 8192)
-    os.symlink(target, fake.path)
-    try:
-        with pytest.raises(ForeignExportError):
-            ipc.import_export(fake)
-    finally:
-        os.unlink(fake.path)
+def test_an_unknown_or_dead_session_is_stale():
+    buffer, desc = _published()
+    with pytest.raises(StaleBufferError):
+        ipc.import_buffer(_with(desc, session=desc.session ^ 1))
+    with pytest.raises(StaleBufferError):
+        ipc.import_buffer(_with(desc, owner_pid=os.getpid() + 1 if os.getpid() < 4000000 else 2))
 
 
-def test_second_process_sees_kernel_bytes_holds_the_block_and_is_sigkilled_without_leaking():
+# --------------------------------------------------------------------------- other processes
+def test_second_process_reads_in_place_holds_the_block_and_is_sigkilled_without_leaking():
     nbytes = 1 << 20
-    buffer, record = _published(nbytes, seed=42)
+    buffer, desc = _published(nbytes, seed=42)
     block = buffer.get_impl()._block
-    with Child("import", {"record": record.to_dict()}) as child:
+    arena = current_arena()
+    with Child("import", {"descriptors": [descriptor.pack(desc).hex()]}) as child:
         result = child.result()
         assert result["backend"] == "warp" and result["size"] == nbytes
         assert result["crc"] == checksum(expected_pattern(nbytes, 42))
-        assert result["mapping"] == record.path  # zero payload copies: the same shm pages
-        # The publisher drops its buffer and tries to recycle: the held block is refused.
+        assert result["mapping"].startswith("/memfd:warp_buffer")  # the publisher's pages
         del buffer
         gc.collect()
-        for _ in range(3):
+        for _ in range(3):  # the publisher tries to recycle: the held block is refused
             other = allocate_buffer(nbytes, "cpu")
             assert other.get_impl()._block is not block
             with from_output_buffer(other) as out:
                 out.array.zero_()
-        warp_buffer.trim_pools(0.0, inflight_grace=0.0)
-        assert os.path.exists(record.path)  # nor freed while held
-        with open(record.path, "rb") as f:
-            f.seek(4096)
-            assert checksum(np.frombuffer(f.read(nbytes), np.uint8)) == result["crc"]
+        assert not block.try_reclaim()
         child.process.send_signal(signal.SIGKILL)
         child.process.wait(timeout=30)
-    # The kernel dropped the dead reader's lock: the block is reclaimed and nothing leaks.
-    reused = allocate_buffer(nbytes, "cpu")
-    assert reused.get_impl()._block is block
-    del reused, other, out
+    # The kernel dropped the dead reader's lock: the block is reclaimed.
+    assert block.try_reclaim() or block.generation == 0
+    assert arena.pending_pids() == set()
+    del other, out
     gc.collect()
-    warp_buffer.trim_pools(0.0, inflight_grace=0.0)
-    # Only this process's exports: a concurrent test run may own live ones of its own.
-    assert not [f for f in ipc.list_exports() if f.block_id is not None and f.owner_pid == os.getpid()]
 
 
-def test_sigkilled_publisher_leaves_files_that_the_sweep_removes():
-    with Child("publish", {"nbytes": 10000, "seed": 9}) as child:
-        result = child.result()
-        record = ipc.ExportRecord.from_dict(result["record"])
-        imported = ipc.import_export(record)  # a reader of the dying publisher
-        assert checksum(imported.to_cpu().view()) == result["crc"]
-        assert not ipc.sweep_orphans()  # the owner is alive: nothing to sweep
-        child.process.send_signal(signal.SIGKILL)
+def test_sigterm_of_a_holding_subscriber_frees_its_holds():
+    buffer, desc = _published(4096, seed=5)
+    block = buffer.get_impl()._block
+    with Child("import", {"descriptors": [descriptor.pack(desc).hex()]}) as child:
+        assert child.result()["crc"] == checksum(expected_pattern(4096, 5))
+        assert not block.try_reclaim()
+        child.process.send_signal(signal.SIGTERM)
         child.process.wait(timeout=30)
-    assert ipc.list_exports(child.process.pid)
-    removed = ipc.sweep_orphans()
-    assert record.path in removed
-    assert not ipc.list_exports(child.process.pid)
-    # The reader keeps its mapping: the bytes stay valid after the owner died and was swept.
-    assert checksum(imported.to_cpu().view()) == result["crc"]
-    with from_input_buffer(Buffer(imported)) as view:
+    del buffer
+    gc.collect()
+    assert block.try_reclaim()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
+def test_a_killed_publisher_leaves_nothing_and_held_frames_stay_readable(sig):
+    with Child("publish", {"nbytes": 10000, "seed": 9, "count": 3}) as child:
+        result = child.result()
+        descs = [descriptor.unpack(bytes.fromhex(h)) for h in result["descriptors"]]
+        held = [ipc.import_buffer(d) for d in descs[:2]]  # attaches once, holds two
+        pid = child.process.pid
+        child.process.send_signal(sig)
+        child.process.wait(timeout=30)
+    assert not _ours_in_dev_shm(pid)
+    for impl, crc in zip(held, result["crcs"]):  # our mapping keeps the memory alive
+        assert checksum(impl.to_cpu().view()) == crc
+    with from_input_buffer(Buffer(held[0])) as view:
         np.testing.assert_array_equal(view.array.numpy()[:8], expected_pattern(8, 9))
+    # The third was queued, never imported: the mapping still has it, intact.
+    late = ipc.import_buffer(descs[2])
+    assert checksum(late.to_cpu().view()) == result["crcs"][2]
+    for impl in [*held, late]:
+        impl.release()
+    assert attach.forget_idle() >= 1  # nothing held, owner gone: the mapping goes, and with it
+    assert not [a for a in attach.attached_sessions() if a.owner_pid == pid]  # the memory
 
 
-def test_clean_shutdown_removes_every_file():
-    with Child("publish", {"nbytes": 4096, "seed": 1}) as child:
-        record = ipc.ExportRecord.from_dict(child.result()["record"])
-        assert os.path.exists(record.path)
-        assert child.finish() == 0
-    assert not ipc.list_exports(child.process.pid)
+def test_a_publisher_that_exits_cleanly_leaves_every_queued_frame_readable():
+    argument = {"nbytes": 6000, "seed": 11, "count": 20, "peer_pid": os.getpid(), "exit": True}
+    with Child("publish", argument) as child:
+        result = child.result()
+        descs = [descriptor.unpack(bytes.fromhex(h)) for h in result["descriptors"]]
+        # Nothing imported yet: the exiting publisher lingers until this peer attached.
+        first = ipc.import_buffer(descs[0])
+        assert child.process.wait(timeout=30) == 0
+    rest = [ipc.import_buffer(d) for d in descs[1:]]  # after the publisher exited
+    got = [checksum(impl.to_cpu().view()) for impl in [first, *rest]]
+    assert got == result["crcs"]
+    for impl in [first, *rest]:
+        impl.release()
+    attach.forget_idle()
+
+
+def test_another_process_cannot_shrink_the_arena_under_a_reader_or_the_publisher():
+    buffer, desc = _published(1 << 16, seed=12)
+    reader = ipc.import_buffer(desc)
+    with Child("shrink", {"owner_pid": os.getpid(), "session": desc.session}) as child:
+        result = child.result()
+    outcomes = result["outcomes"]
+    for attempt in ("shrink_to_0", "shrink_by_a_page", "grow", "seal_writes"):
+        assert outcomes[attempt] == result["eperm"], (attempt, outcomes)
+    assert outcomes["size_after"] == result["size"]
+    # Reader and publisher read every byte: no SIGBUS, nothing changed.
+    np.testing.assert_array_equal(reader.to_cpu().view(), expected_pattern(1 << 16, 12))
+    np.testing.assert_array_equal(buffer.to_numpy(), expected_pattern(1 << 16, 12))
+    reader.release()
+
+
+def test_a_peer_cannot_shrink_or_reseal_the_arena():
+    buffer, desc = _published(4096, seed=2)
+    fd, geometry = handoff.fetch_arena(os.getpid(), desc.session)  # what a peer receives
+    try:
+        for size in (0, 4096, geometry.file_size + 4096):
+            with pytest.raises(OSError) as info:
+                os.ftruncate(fd, size)
+            assert info.value.errno == errno.EPERM
+        with pytest.raises(OSError) as info:
+            fcntl.fcntl(fd, fcntl.F_ADD_SEALS, fcntl.F_SEAL_WRITE)
+        assert info.value.errno == errno.EPERM
+    finally:
+        os.close(fd)
+    # No SIGBUS here or at any reader: the bytes are all there.
+    np.testing.assert_array_equal(buffer.to_numpy(), expected_pattern(4096, 2))
+    np.testing.assert_array_equal(ipc.import_buffer(desc).to_cpu().view(),
+                                  expected_pattern(4096, 2))
+
+
+def test_under_ulimit_1024_a_publisher_runs_10000_ahead_and_a_subscriber_holds_10000():
+    count, more = 10_000, 2_000
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "descriptors")
+        with Child("holdall", {"path": path}, nofile=1024) as sub:
+            pub = Child("flood", {"path": path, "count": count, "peer_pid": sub.process.pid,
+                                  "nbytes": 4096}, nofile=1024)
+            with pub:
+                ahead = pub.result(timeout=120)  # published with nobody reading yet
+                assert ahead["published"] == count
+                assert ahead["pool"]["created"] >= count  # none recycled under the peer
+                assert ahead["fds"] - ahead["fds_before"] <= 3  # arena + listener: O(1)
+                sub.send("")  # holdall starts reading once its stdin says so
+                held = sub.result(timeout=120)
+                assert held["held"] == count and held["intact"] == count
+                assert held["fds"] - held["fds_before"] <= 2  # one arena fd, whatever is held
+                assert held["maps"] <= 3  # the arena mapped once (header + data)
+                pub.send(f"more {more}")  # it would recycle now if holds did not stop it
+                after = pub.result(timeout=120)
+                assert after["published"] == count + more
+                assert after["pool"]["created"] >= count + more
+                sub.send("check")
+                again = sub.result(timeout=120)
+                assert again["intact"] == count
+                pub.send("exit")
+                assert pub.process.wait(timeout=30) == 0
+            sub.send("exit")
+            assert sub.process.wait(timeout=30) == 0
 
 
 # --------------------------------------------------------------------------- CUDA paths
@@ -224,15 +346,43 @@ def test_cuda_ipc_and_staging_exports_reach_another_process():  # pragma: no cov
     with from_output_buffer(buffer) as out:
         fill_pattern(out.array, 8)
     expected = checksum(expected_pattern(1 << 16, 8))
-    kinds = [ipc.ExportKind.CUDA_STAGING]
+    kinds = [descriptor.KIND_CUDA_STAGING]
     if device.is_ipc_supported:
-        kinds.append(ipc.ExportKind.CUDA_IPC)
+        kinds.append(descriptor.KIND_CUDA_IPC)
     for kind in kinds:
-        record = ipc.export_buffer(buffer, kind)
-        assert record.kind is kind
-        with Child("import", {"record": record.to_dict()}) as child:
+        desc = ipc.export_buffer(buffer, kind)
+        assert desc.kind == kind
+        with Child("import", {"descriptors": [descriptor.pack(desc).hex()]}) as child:
             result = child.result()
             assert result["crc"] == expected
-            assert result["device"] == ("cpu" if kind is ipc.ExportKind.CUDA_STAGING
+            assert result["device"] == ("cpu" if kind == descriptor.KIND_CUDA_STAGING
                                         else device.alias)
             child.finish()
+
+
+# --------------------------------------------------------------------------- the benchmark
+def test_the_ipc_core_benchmark_measures_every_figure():
+    """``python -m benchmarks.ipc_core`` runs end to end (small) and reports what the issue asks,
+    with the O(1) and nothing-left figures it measured itself."""
+    import json
+    import subprocess
+    import sys
+
+    from tests._warp_helpers import ROOT
+
+    done = subprocess.run([sys.executable, "-m", "benchmarks.ipc_core", "--quick", "--sizes",
+                           "4K", "--flood", "2000", "--json"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=240)
+    assert done.returncode == 0, done.stderr[-2000:]
+    text, raw = done.stdout.rstrip().rsplit("\n", 1)
+    report = json.loads(raw)
+    for needle in ("descriptor build", "descriptor import", "messages in flight", "views held",
+                   "after SIGTERM", "to_cpu"):
+        assert needle in text
+    assert report["descriptor"]["build_us"] > 0 and report["descriptor"]["import_us"] > 0
+    flight = report["in_flight"]
+    assert flight["sub_held"] == 2000
+    assert flight["pub_fds_in_flight"] - flight["pub_fds_before"] <= 3
+    assert flight["sub_fds_holding"] - flight["sub_fds_before"] <= 2
+    assert report["dev_shm"] == {"SIGTERM": 0, "SIGKILL": 0}
+    assert [row["nbytes"] for row in report["copies"]] == [4096]

@@ -5,29 +5,28 @@ a Warp device (``cuda:N`` where a GPU exists, ``cpu`` otherwise; the default fol
 
 - :func:`allocate_buffer` makes one from a size-classed pool (:mod:`warp_buffer.pool`);
 - :func:`from_output_buffer` / :func:`from_input_buffer` give write / read handles, ordered by a
-  CUDA event or, on cpu, a generation stamp written by a Warp kernel after the write;
+  CUDA event (cpu work is synchronous);
 - :func:`to_buffer` copies any DLPack-capable source (wp.array, torch, NumPy) into a handle;
-- :mod:`warp_buffer.ipc` exports a buffer to a same-host process with zero payload copies
-  (shared memory, CUDA IPC) and imports such exports.
+- :mod:`warp_buffer.ipc` exports a buffer to a same-host process with zero payload copies (one
+  sealed memfd arena per process, CUDA IPC) and imports such exports.
 
 Environment switches
 --------------------
 ``WARP_BUFFER_DISABLE_IPC=1``
     No exports: the warp backend serves every peer by CPU fallback, and cpu blocks are private
-    memory instead of /dev/shm files.
+    memory instead of arena ranges.
 ``WARP_BUFFER_TEST_HOST_ID`` / ``WARP_BUFFER_TEST_USER_ID`` (tests only)
     The backend pretends its own host id / user id is this value, so peers look foreign and the
-    fallback paths can be tested on one machine. File ownership checks keep using the real uid.
+    fallback paths can be tested on one machine. The kernel's credential checks keep the real uid.
+``WARP_BUFFER_ARENA_GIB`` (default 64)
+    Virtual size of a process's arena (address space only: pages exist once touched).
+``WARP_BUFFER_EXIT_LINGER_S`` (default 2)
+    A cleanly exiting publisher keeps serving its arena this long at most, and only to live peers
+    it sent descriptors to that never attached to it (so their queued messages stay readable).
 ``WARP_BUFFER_POOL_IDLE_S`` (default 10)
     Free pool blocks unused this long are given back to the system.
 ``WARP_BUFFER_POOL_MAX_IDLE_BYTES`` (default 1 GiB)
     Free pool memory beyond this, per device, is given back at once.
-``WARP_BUFFER_INFLIGHT_GRACE_S`` (default 2)
-    An exported block whose descriptors were not all imported (a peer dropped the message) may
-    be recycled this long after the last one was issued. Blocks a reader holds are never
-    recycled, whatever the time.
-``WARP_BUFFER_SYNC_TIMEOUT_S`` (default 2)
-    How long an importer waits for the writer's completion stamp.
 """
 
 from __future__ import annotations
@@ -55,7 +54,7 @@ from .errors import (
     InvalidSizeError,
     SizeMismatchError,
     StaleBufferError,
-    SyncTimeoutError,
+    UnsupportedSourceError,
     WarpBufferError,
     WriteHandleError,
 )
@@ -77,7 +76,7 @@ __all__ = [
     "ReadHandle",
     "SizeMismatchError",
     "StaleBufferError",
-    "SyncTimeoutError",
+    "UnsupportedSourceError",
     "WarpBufferError",
     "WarpBufferImpl",
     "WriteHandle",

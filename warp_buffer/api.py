@@ -13,8 +13,8 @@ and a read::
         wp.launch(consume, dim=n, inputs=[view.view(wp.float32, (n,))], device=view.device)
 
 Handles release on ``with`` exit, on :meth:`release` and on garbage collection. Releasing a write
-handle records the write's completion (a CUDA event on its stream, or a generation stamp on cpu);
-a read handle orders its stream after that record.
+handle records the write's completion (a CUDA event on its stream; cpu work is synchronous); a
+read handle orders its stream after that record.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ from .errors import (
     HandleError,
     HandleReleasedError,
     SizeMismatchError,
+    UnsupportedSourceError,
     WriteHandleError,
 )
 
@@ -273,7 +274,7 @@ def from_input_buffer(buffer: Buffer, stream: Any = None) -> ReadHandle:
     """A read handle on ``buffer``, ordered after the buffer's write.
 
     On CUDA the handle's ``stream`` waits on the writer's event (an interprocess event for an
-    import); on cpu the writer's generation stamp is checked. Reading ends the buffer's
+    import); on cpu the write is complete once its handle was released. Reading ends the buffer's
     writable life (an open write handle is sealed). A buffer of another backend is promoted by
     copying it into a new warp buffer (kept by :meth:`get_promoted_buffer`).
     """
@@ -304,6 +305,13 @@ def _as_bytes(src: Any) -> np.ndarray | wp.array:
             return impl._array
         return np.ascontiguousarray(impl.view() if isinstance(impl, CpuBufferImpl)
                                     else src.to_numpy()).view(np.uint8).reshape(-1)
+    if isinstance(src, _Handle):
+        raise UnsupportedSourceError(
+            f"to_buffer copies data, not a {type(src).__name__}: pass its buffer or its array")
+    if isinstance(src, (str, list, tuple)):
+        raise UnsupportedSourceError(
+            f"to_buffer takes array data (a wp.array, a DLPack tensor, a NumPy array, bytes or a "
+            f"Buffer), not a {type(src).__name__}; wrap a sequence in np.asarray first")
     if isinstance(src, (bytes, bytearray, memoryview)):
         return np.frombuffer(src, dtype=np.uint8)
     if isinstance(src, np.ndarray):
@@ -319,9 +327,10 @@ def _as_bytes(src: Any) -> np.ndarray | wp.array:
             try:
                 return np.ascontiguousarray(np.from_dlpack(src)).reshape(-1).view(np.uint8)
             except Exception as exc:
-                raise TypeError(f"cannot read {type(src).__name__} through DLPack: {exc}") from None
+                raise UnsupportedSourceError(
+                    f"cannot read {type(src).__name__} through DLPack: {exc}") from None
     else:
-        raise TypeError(
+        raise UnsupportedSourceError(
             f"to_buffer takes a wp.array, a DLPack-capable tensor, a NumPy array, bytes or a "
             f"Buffer, not {type(src).__name__}"
         )
@@ -340,6 +349,16 @@ def _copy_into(impl: WarpBufferImpl, src: np.ndarray | wp.array, stream: Any) ->
         raise SizeMismatchError(
             f"source has {nbytes} bytes, the destination buffer {dst.shape[0]}"
         )
+    if impl._host is not None:  # cpu: a plain host copy runs at memory speed
+        if isinstance(src, wp.array):
+            if src.device.is_cpu:
+                src = src.numpy()
+            else:
+                wp.copy(dst, src, stream=stream)
+                wp.synchronize_stream(src.device)  # a device-to-host copy is done when we return
+                return
+        np.copyto(impl._host, src)
+        return
     if isinstance(src, np.ndarray):
         src = wp.array(ptr=src.ctypes.data, dtype=wp.uint8, shape=(nbytes,), device="cpu",
                        deleter=_KeepAlive(src))  # type: ignore[arg-type]
@@ -356,9 +375,10 @@ def to_buffer(src: Any, write_handle: WriteHandle, stream: Any = None) -> None:
     """Copy ``src`` (a ``wp.array``, a torch tensor or anything with ``__dlpack__``, a NumPy
     array, bytes, or a Buffer) into the storage of ``write_handle``.
 
-    The byte sizes must match exactly (:class:`SizeMismatchError` otherwise). A same-device copy
-    runs the copy kernel; a cross-device one (host to GPU) is a Warp copy on ``stream`` (default:
-    the handle's stream).
+    The byte sizes must match exactly (:class:`SizeMismatchError` otherwise). Anything else (a
+    list, a str, a read handle) raises :class:`UnsupportedSourceError` (a ``TypeError``). A copy
+    into cpu memory is a plain host copy; one between CUDA buffers runs the copy kernel; a
+    cross-device one (host to GPU) is a Warp copy on ``stream`` (default: the handle's stream).
     """
     if not isinstance(write_handle, WriteHandle):
         raise TypeError(f"to_buffer needs a WriteHandle, got {type(write_handle).__name__}")

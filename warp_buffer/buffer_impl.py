@@ -2,22 +2,23 @@
 
 The storage is a 1-D ``wp.array`` of uint8 on a Warp device, over a block leased from the
 device's pool (:mod:`warp_buffer.pool`) or over memory imported from another process
-(:mod:`warp_buffer.ipc`). The array's ``deleter`` owns the lease (or the import's hold), so the
-memory is recycled, or the hold dropped, exactly when the last array over it, views and DLPack
-consumers included, is collected.
+(:mod:`warp_buffer.ipc`). The lease (or the import's hold) is owned by the impl and is the
+``deleter`` of its array, so the memory is recycled, or the hold dropped, exactly when the impl
+and the last array over it, views and DLPack consumers included, are gone;
+:meth:`WarpBufferImpl.release` drops an import's hold at once. On cpu the ``wp.array`` is made
+lazily (on first use), so allocating and importing cost no Warp call, and host copies
+(``to_cpu``, ``clone``, ``to_buffer``) are plain NumPy copies at memory speed.
 
-Write ordering lives here too. A buffer takes one write handle, ever; when the write ends (the
-handle is released, or the buffer is published or read while the handle is still open) the impl
-records the completion: on CUDA an event on the writer's stream, on the cpu device a generation
-stamp written into the block header after the writer's work (cpu kernels are synchronous, so a
-plain store once they returned is ordered after them).
+Write ordering lives here too. A buffer takes one write handle, ever; its write ends when the
+handle is released, or the buffer is sealed (published) or read while the handle is still open.
+On CUDA the end of the write is an event recorded on the writer's stream; on the cpu device Warp
+kernels are synchronous, so the write is complete when the handle is released and nothing needs
+recording.
 """
 
 from __future__ import annotations
 
-import itertools
 import threading
-import time
 from typing import Any
 
 import numpy as np
@@ -26,14 +27,12 @@ import warp as wp
 from rosidl_buffer.buffer_impl import BufferImplBase, CpuBufferImpl
 
 from . import kernels
-from .errors import DeviceUnavailableError, EmptyBufferError, SyncTimeoutError, WriteHandleError
-from .pool import get_pool, size_class
+from .errors import DeviceUnavailableError, EmptyBufferError, HandleReleasedError, WriteHandleError
+from .pool import get_pool
 
 __all__ = ["WARP_BACKEND", "WarpBufferImpl", "WriteState", "resolve_device"]
 
 WARP_BACKEND = "warp"
-
-_generations = itertools.count(1)
 
 
 def resolve_device(device: Any = None) -> Any:
@@ -71,21 +70,30 @@ class WarpBufferImpl(BufferImplBase):
     (``from_output_buffer`` / ``from_input_buffer``) to write and read it in order.
     """
 
-    def __init__(self, array: wp.array, device: Any, *, block: Any = None,
-                 imported: Any = None) -> None:
-        self._array = array
+    # State every impl starts with, as class attributes: an import builds no more than it needs
+    # (an instance attribute shadows one when it changes).
+    _event: Any = None  # CUDA event recorded when the last write completed
+    _writer: WriteState | None = None  # the open write, if any
+    _write_opened = False
+    _published = False
+    _read = False
+    _released = False
+    _staging: Any = None  # host staging copy for CUDA exports
+    _reexport: WarpBufferImpl | None = None  # local copy of an import, to re-publish
+
+    def __init__(self, array: wp.array | None, device: Any, *, block: Any = None,
+                 imported: Any = None, hold: Any = None, ptr: int = 0, size: int = 0,
+                 host: np.ndarray | None = None, owner: Any = None) -> None:
+        self._arr = array
+        self._owner = owner if owner is not None else hold  # deleter of the lazy array
         self._device = device
+        self._ptr = array.ptr if array is not None else ptr
+        self._size = array.shape[0] if array is not None else size
         self._block = block  # the leased pool block, None for imports
-        self._import = imported  # the ExportRecord this buffer was imported from
+        self._import = imported  # the descriptor this buffer was imported from
+        self._hold = hold  # an import's hold on the publisher's block
+        self._host = host  # NumPy view of host storage, for plain host copies
         self._lock = threading.RLock()
-        self._generation = 0  # stamp value written when the last write completed (cpu)
-        self._event: Any = None  # CUDA event recorded when the last write completed
-        self._writer: WriteState | None = None  # the open write, if any
-        self._write_opened = False
-        self._published = False
-        self._read = False
-        self._staging: Any = None  # (host array, block) staging copy for CUDA exports
-        self._reexport: WarpBufferImpl | None = None  # local copy of an import, to re-publish
 
     @classmethod
     def allocate(cls, nbytes: int, device: Any = None) -> WarpBufferImpl:
@@ -93,43 +101,92 @@ class WarpBufferImpl(BufferImplBase):
         if nbytes <= 0:
             raise EmptyBufferError(f"a warp buffer holds at least one byte, not {nbytes}")
         device = resolve_device(device)
-        size_class(nbytes)  # validates the size before touching the pool
-        lease = get_pool(device).acquire(nbytes)
-        array = wrap_bytes(lease.block.data_ptr, nbytes, device, lease)
-        return cls(array, device, block=lease.block)
+        lease = get_pool(device).acquire(nbytes)  # validates the size first
+        block = lease.block
+        host = block.host
+        if host is None:  # CUDA: the array now (its users are Warp calls anyway)
+            return cls(wrap_bytes(block.data_ptr, nbytes, device, lease), device, block=block)
+        # cpu: the wp.array is made on first use; the lease returns the block when both this
+        # impl and that array are gone.
+        return cls(None, device, block=block, ptr=block.data_ptr, size=nbytes,
+                   host=host[:nbytes], owner=lease)
+
+    @classmethod
+    def imported(cls, ptr: int, size: int, device: Any, hold: Any, descriptor: Any,
+                 host: np.ndarray | None) -> WarpBufferImpl:
+        """An impl over imported memory; its ``wp.array`` is made on first use."""
+        return cls(None, device, imported=descriptor, hold=hold, ptr=ptr, size=size, host=host)
+
+    @property
+    def _array(self) -> wp.array:
+        array = self._arr
+        if array is None:
+            if self._released:
+                raise HandleReleasedError("this buffer was released; its memory is no longer "
+                                          "accessible through it")
+            with self._lock:
+                if self._arr is None:
+                    self._arr = wrap_bytes(self._ptr, self._size, self._device, self._owner)
+                array = self._arr
+        return array
 
     # -- BufferImplBase ------------------------------------------------------------------------
     def get_backend_type(self) -> str:
         return WARP_BACKEND
 
     def size(self) -> int:
-        return self._array.shape[0]
+        return self._size
+
+    def _check_live(self) -> None:
+        if self._released:
+            raise HandleReleasedError("this buffer was released; its memory is no longer "
+                                      "accessible through it")
 
     def to_cpu(self) -> CpuBufferImpl:
-        """A CPU copy, made by the copy kernel (cpu) or a device-to-host copy (CUDA), after the
-        writer's pending work."""
-        n = self.size()
+        """A CPU copy: a plain host copy on the cpu device (memory speed), a device-to-host copy
+        after the writer's pending work on CUDA."""
+        host = self._host
+        if host is not None and not self._released:
+            return CpuBufferImpl.wrap(host.copy())
+        self._check_live()
+        n = self._size
         out = np.empty(n, dtype=np.uint8)
-        host = wp.array(ptr=out.ctypes.data, dtype=wp.uint8, shape=(n,), device="cpu")
-        if self._device.is_cpu:
-            self._wait_for_writer(None)
-            kernels.copy_bytes(host, self._array)
-        else:
-            stream = wp.get_stream(self._device)
-            self._wait_for_writer(stream)
-            wp.copy(host, self._array, stream=stream)
-            wp.synchronize_stream(stream)
+        dst = wp.array(ptr=out.ctypes.data, dtype=wp.uint8, shape=(n,), device="cpu")
+        stream = wp.get_stream(self._device)
+        self._wait_for_writer(stream)
+        wp.copy(dst, self._array, stream=stream)
+        wp.synchronize_stream(stream)
         return CpuBufferImpl.wrap(out)
 
     def clone(self) -> WarpBufferImpl:
-        """A deep copy on the same device, by the copy kernel; the copy is a fresh buffer (one
-        write handle allowed, not published)."""
-        other = WarpBufferImpl.allocate(self.size(), self._device)
+        """A deep copy on the same device (a host copy on cpu, the copy kernel on CUDA); the copy
+        is a fresh buffer (one write handle allowed, not published)."""
+        self._check_live()
+        other = WarpBufferImpl.allocate(self._size, self._device)
+        if self._host is not None and other._host is not None:
+            np.copyto(other._host, self._host)
+            return other
         stream = None if self._device.is_cpu else wp.get_stream(self._device)
         self._wait_for_writer(stream)
         kernels.copy_bytes(other._array, self._array, stream)
         other._complete_write(stream)
         return other
+
+    def seal(self) -> None:
+        """End the write now (the transport calls it on every publish route): an open write
+        handle is closed and its completion recorded; no write afterwards."""
+        self._mark_published()
+
+    def release(self) -> None:
+        """Drop an import's hold on the publisher's block now (idempotent); the imported buffer
+        is unusable afterwards (:class:`HandleReleasedError`). A local buffer holds nothing to
+        give back early (its memory returns to the pool when it and its views are collected,
+        and an intra-process message shares it with its publisher): a no-op."""
+        hold = self._hold
+        if hold is None:
+            return
+        self._released = True  # a plain store: later accesses check it
+        hold.release()
 
     # -- public properties ---------------------------------------------------------------------
     @property
@@ -156,6 +213,10 @@ class WarpBufferImpl(BufferImplBase):
         return self._read
 
     @property
+    def is_released(self) -> bool:
+        return self._released
+
+    @property
     def is_exportable(self) -> bool:
         """Can this buffer be shared with a same-host process without a CPU copy?"""
         if self._import is not None:
@@ -166,11 +227,13 @@ class WarpBufferImpl(BufferImplBase):
 
     def __repr__(self) -> str:
         origin = "imported" if self._import is not None else "local"
-        return f"WarpBufferImpl(size={self.size()}, device={self.device!r}, {origin})"
+        state = ", released" if self._released else ""
+        return f"WarpBufferImpl(size={self.size()}, device={self.device!r}, {origin}{state})"
 
     # -- write / read ordering (used by the handles and the IPC layer) --------------------------
     def _open_writer(self, stream: Any) -> WriteState:
         with self._lock:
+            self._check_live()
             if self._import is not None:
                 raise WriteHandleError(
                     "this buffer was imported from another process and is read-only; "
@@ -208,49 +271,28 @@ class WarpBufferImpl(BufferImplBase):
 
     def _mark_read(self) -> None:
         with self._lock:
+            self._check_live()
             self._seal("read")
             self._read = True
 
     def _complete_write(self, stream: Any) -> None:
-        """Record that every write enqueued so far has completed (event or stamp)."""
+        """Record that every write enqueued so far has completed (CUDA: an event; cpu kernels
+        are synchronous, so there is nothing to record)."""
         if self._device.is_cpu:
-            generation = next(_generations)
-            block = self._block
-            if block is not None:
-                # cpu kernels run synchronously, so every write enqueued so far has completed
-                # by now: a plain store orders the stamp after them exactly as the stamp kernel
-                # did, without a ~20 us kernel launch per write.
-                block.header.generation = generation
-            self._generation = generation
-        else:
-            stream = stream if stream is not None else wp.get_stream(self._device)
-            event = self._block.event if self._block is not None else wp.Event(self._device)
-            stream.record_event(event)
-            self._event = event
+            return
+        stream = stream if stream is not None else wp.get_stream(self._device)
+        event = self._block.event if self._block is not None else wp.Event(self._device)
+        stream.record_event(event)
+        self._event = event
 
     def _wait_for_writer(self, stream: Any) -> None:
-        """Order work on ``stream`` (CUDA) after the writer's; check the stamp on cpu."""
+        """Order work on ``stream`` (CUDA) after the writer's; nothing to wait for on cpu."""
+        if self._device.is_cpu:
+            return
         with self._lock:
             writer = self._writer
-            if self._device.is_cpu:
-                if writer is None:
-                    self._check_stamp()
-                return  # cpu work is synchronous: an open writer's work is already done
             if writer is not None:
                 if writer.stream is not stream:
                     stream.wait_stream(writer.stream)
             elif self._event is not None:
                 stream.wait_event(self._event)
-
-    def _check_stamp(self, timeout: float = 2.0) -> None:
-        block = self._block
-        if block is None or self._generation == 0:
-            return
-        deadline = time.monotonic() + timeout
-        while block.header.generation != self._generation:
-            if time.monotonic() > deadline:  # pragma: no cover - a stamp kernel never ran
-                raise SyncTimeoutError(
-                    f"the writer's stamp {self._generation} did not arrive "
-                    f"(header has {block.header.generation})"
-                )
-            time.sleep(0.0005)

@@ -12,17 +12,20 @@ and keep running. Errors that also describe a standard condition inherit the mat
     ├── InvalidSizeError            a buffer size that cannot be allocated
     │   └── EmptyBufferError        zero-byte buffers are rejected (as the backend guide says)
     ├── SizeMismatchError           to_buffer source and destination sizes differ
-    ├── SyncTimeoutError            a writer's completion stamp never arrived
+    ├── UnsupportedSourceError      to_buffer got something that is not array data (a list, a
+    │                               str, a handle); also a TypeError
     ├── HandleError                 misuse of a read or write handle
     │   ├── WriteHandleError        a second write handle, a write after publish or read, or a
     │   │                           write into an imported (read-only) buffer
     │   └── HandleReleasedError     a released handle was used
     └── ExportError                 shared-memory / CUDA IPC export and import failures
         ├── ExportUnavailableError  this buffer cannot be exported (private memory, no IPC)
-        ├── DescriptorError         a malformed export record or descriptor
-        ├── ForeignExportError      the export belongs to another host, user or owner
+        ├── DescriptorError         a malformed descriptor
+        ├── ForeignExportError      the export belongs to another host or user, or its memory
+        │                           is not sealed against shrinking
         ├── ExportBoundsError       size or offset beyond the block (an oversize export)
-        └── StaleBufferError        the export was recycled, removed or truncated
+        └── StaleBufferError        the data is gone: the block was recycled, or its publisher
+                                    exited before this process attached to its memory
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ __all__ = [
     "InvalidSizeError",
     "EmptyBufferError",
     "SizeMismatchError",
-    "SyncTimeoutError",
+    "UnsupportedSourceError",
     "HandleError",
     "WriteHandleError",
     "HandleReleasedError",
@@ -68,8 +71,8 @@ class SizeMismatchError(WarpBufferError, ValueError):
     """A copy whose source and destination byte counts differ."""
 
 
-class SyncTimeoutError(WarpBufferError, TimeoutError):
-    """A reader waited for the writer's completion stamp and it did not arrive in time."""
+class UnsupportedSourceError(WarpBufferError, TypeError):
+    """``to_buffer`` was given something that is not array data (a list, a str, a handle)."""
 
 
 class HandleError(WarpBufferError, RuntimeError):
@@ -94,11 +97,12 @@ class ExportUnavailableError(ExportError):
 
 
 class DescriptorError(ExportError, ValueError):
-    """An export record or descriptor is malformed (unknown version or kind, bad field)."""
+    """A descriptor is malformed (unknown version or kind, bad field)."""
 
 
 class ForeignExportError(ExportError, PermissionError):
-    """The export belongs to another host or user, or its file is not owned by this user."""
+    """The export belongs to another host or user (by the kernel's credentials), or its memory
+    is not sealed against shrinking."""
 
 
 class ExportBoundsError(ExportError, ValueError):
@@ -107,5 +111,6 @@ class ExportBoundsError(ExportError, ValueError):
 
 
 class StaleBufferError(ExportError):
-    """The export no longer holds the published bytes: its block was recycled for a later publish,
-    removed (the owner exited), truncated, or is being recycled right now."""
+    """The export no longer holds the published bytes: its block was recycled for a later publish
+    (or is being recycled right now), or its publisher exited before this process attached to
+    its memory."""

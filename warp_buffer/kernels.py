@@ -1,4 +1,4 @@
-"""Warp kernels of warp_buffer: the byte-copy kernel and the generation-stamp kernel.
+"""Warp kernels of warp_buffer: the byte-copy kernel.
 
 Kept in this one module, under a stable name, so Warp's kernel cache (keyed by module name and
 source) is built once per machine and reused by every process, children included.
@@ -23,7 +23,7 @@ from __future__ import annotations
 import warp as wp
 
 __all__ = ["NT_THRESHOLD", "CPU_CHUNK", "CUDA_CHUNK", "MAX_LAUNCH_THREADS", "copy_bytes",
-           "launch_slices", "stamp_generation"]
+           "launch_slices"]
 
 #: Copies of at least this many bytes use non-temporal stores on the cpu device.
 NT_THRESHOLD = 4 << 20
@@ -99,12 +99,6 @@ def copy_bytes_kernel(
     _copy_range(dst, src, wp.tid(), base, chunk, count, mode)
 
 
-@wp.kernel
-def stamp_generation_kernel(stamp: wp.array(dtype=wp.uint64), value: wp.uint64):
-    """Write the writer's generation into a block header once the work before it completed."""
-    stamp[0] = value
-
-
 def copy_bytes(dst: wp.array, src: wp.array, stream: wp.Stream | None = None) -> None:
     """Copy all of ``src`` into ``dst``: two contiguous 1-D uint8 arrays on the same device.
 
@@ -142,11 +136,3 @@ def launch_slices(nbytes: int, chunk: int) -> list[tuple[int, int]]:
     return [(first * chunk, min(per_launch, threads - first))
             for first in range(0, threads, per_launch)]
 
-
-def stamp_generation(stamp: wp.array, value: int, stream: wp.Stream | None = None) -> None:
-    """Enqueue the generation stamp: it lands after all earlier work on the same stream."""
-    device = stamp.device
-    wp.launch(
-        stamp_generation_kernel, dim=1, inputs=[stamp, wp.uint64(value)], device=device,
-        stream=None if device.is_cpu else stream,
-    )

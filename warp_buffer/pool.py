@@ -4,41 +4,43 @@ Blocks come in power-of-two size classes (at least 4 KiB). A buffer leases one b
 buffer and every array viewing it are gone the block returns to its class's free list, and the
 next allocation of that class reuses it, so steady-state publishing creates no memory at all.
 
-- ``cpu`` blocks are files in ``/dev/shm`` (a 4 KiB header, then the data), so a same-host peer
-  can map the very bytes: exporting costs nothing. Where shared memory cannot be had (IPC
-  disabled, /dev/shm full) a block falls back to private memory and is simply not exportable.
+- ``cpu`` blocks are ranges of this process's arena (:mod:`warp_buffer.arena`: one sealed memfd
+  per process, mapped once here and once per peer process), so a same-host peer reads the very
+  bytes: exporting costs nothing and no block has an fd or a mapping of its own. Where the arena
+  cannot serve (IPC disabled, the arena full) a block is private memory and not exportable.
 - CUDA blocks are device allocations made with the default (non-mempool) allocator, the one CUDA
-  IPC handles work with; their header (uid, acknowledgements, the readers' locks) is a
-  header-only shm file created on first export.
+  IPC handles work with; on first export each also gets a 4 KiB range of the arena (never
+  touched, so it costs no memory) whose first byte carries the readers' locks and generation.
 
-Reuse of an exported block waits until (a) every descriptor issued for it was acknowledged by an
-import, or ``WARP_BUFFER_INFLIGHT_GRACE_S`` passed since the last one was issued (a descriptor
-the peer dropped is never imported), and (b) no reader holds it: the pool takes ``LOCK_EX |
-LOCK_NB`` on the block file, which fails while any reader's ``LOCK_SH`` is held, and the kernel
-drops a reader's lock when the reader dies. Blocks are tried oldest-released first.
+An exported block is reused or freed only when (a) every peer it was sent to imported it, or a
+later descriptor (it dropped this one: keep-last), or is gone (:meth:`warp_buffer.arena.Arena.
+delivered`), and (b) no reader holds it: the pool's write-lock probe on the block's lock byte
+fails while any reader's read lock is held, and the kernel drops a reader's lock when it dies.
+No timer is involved. At most :data:`PROBES` candidates are probed per allocation (oldest first,
+the busy ones move to the back), so a subscriber holding thousands of blocks does not make
+allocation slow.
 
 Memory goes back to the system when idle: free blocks unused for ``WARP_BUFFER_POOL_IDLE_S``
-seconds (default 10) are destroyed by a janitor thread, and free memory beyond
-``WARP_BUFFER_POOL_MAX_IDLE_BYTES`` (default 1 GiB per pool) is destroyed at once, oldest first.
+seconds (default 10) are destroyed by a janitor thread (their arena pages punched out), and free
+memory beyond ``WARP_BUFFER_POOL_MAX_IDLE_BYTES`` (default 1 GiB per pool) at once, oldest first.
 """
 
 from __future__ import annotations
 
 import atexit
 import collections
-import ctypes
-import fcntl
 import logging
 import os
-import secrets
 import sys
 import threading
 import time
 from typing import Any
 
+import numpy as np
 import warp as wp
 
-from . import shm
+from . import arena as _arena
+from . import handoff
 from .errors import EmptyBufferError, InvalidSizeError
 
 __all__ = [
@@ -57,8 +59,9 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
-MIN_BLOCK = 4096
+MIN_BLOCK = _arena.MIN_BLOCK
 MAX_BLOCK = 1 << 40
+PROBES = 8
 
 
 def _env_float(name: str, default: float) -> float:
@@ -83,178 +86,110 @@ def size_class(nbytes: int) -> int:
 
 
 class Block:
-    """One allocation of a pool, with the state of its current export."""
+    """One allocation of a pool, with the state of its current export.
+
+    ``offset`` is the block's file offset in the arena (0: not in the arena); ``generation`` the
+    current export's (0: not exported since leased); ``pending`` maps each peer slot the block
+    was sent to onto the delivery sequence of the last descriptor it was sent with.
+    """
 
     device: Any  # wp.Device
     capacity: int
     data_ptr: int
-    block_id: int
-    header: shm.BlockHeader | None
     shared: bool
 
     def __init__(self) -> None:
-        self.uid = 0  # uid of the current export, 0 when not exported
-        self.issued = 0  # descriptors issued for the current uid
-        self.last_issue = 0.0
-        self.path: str | None = None
-        self.fd: int | None = None
+        self.arena: _arena.Arena | None = None
+        self.offset = 0
+        self.generation = 0
+        self.pending: dict[int, int] = {}
 
     # -- export bookkeeping (called with the owning impl's lock held) --------------------------
     def begin_export(self) -> int:
-        """The uid of the current export, drawn on the first export of the leased buffer."""
-        if self.uid == 0:
-            header = self.ensure_header()
-            self.uid = secrets.randbits(64) or 1
-            self.issued = 0
-            ctypes.memset(ctypes.addressof(header.acks), 0, shm.ACK_SLOTS)
-            header.uid = self.uid
-        return self.uid
+        """The generation of the current export, started on the first export of the lease."""
+        if self.generation == 0:
+            self.ensure_arena_range()
+            self.generation = self.arena.new_generation(self.offset)  # type: ignore[union-attr]
+        return self.generation
 
-    def issue_slot(self) -> int:
-        """A fresh acknowledgement slot for one descriptor (NO_ACK_SLOT past the 64th)."""
-        slot = self.issued if self.issued < shm.ACK_SLOTS else shm.NO_ACK_SLOT
-        self.issued += 1
-        self.last_issue = time.monotonic()
-        return slot
-
-    def _acks_complete(self) -> bool:
-        if self.issued > shm.ACK_SLOTS:
-            return False
-        acks = self.header.acks  # type: ignore[union-attr]
-        return all(acks[i] for i in range(self.issued))
-
-    def try_reclaim(self, now: float, grace: float) -> bool:
-        """May the block be reused or freed now? Invalidates its export if so."""
-        if self.uid == 0:
+    def try_reclaim(self) -> bool:
+        """May the block be reused or freed now? Ends its export if so."""
+        if self.generation == 0:
             return True
-        if not self._acks_complete() and now - self.last_issue < grace:
-            return False  # a descriptor may still be in flight
-        try:
-            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # type: ignore[arg-type]
-        except BlockingIOError:
+        arena = self.arena
+        if self.pending and not arena.delivered(self.pending):  # type: ignore[union-attr]
+            return False  # a descriptor is still on its way to a live peer
+        if not arena.try_retire(self.offset):  # type: ignore[union-attr]
             return False  # a reader holds it
-        try:
-            # Under LOCK_EX no reader is inside; later ones see uid 0 and raise StaleBufferError.
-            self.header.uid = 0  # type: ignore[union-attr]
-            self.uid = 0
-            self.issued = 0
-        finally:
-            fcntl.flock(self.fd, fcntl.LOCK_UN)  # type: ignore[arg-type]
+        self.generation = 0
+        self.pending = {}
         return True
 
-    def ensure_header(self) -> shm.BlockHeader:
-        raise NotImplementedError
+    def ensure_arena_range(self) -> None:
+        """Give the block its arena range (host blocks have one from the start)."""
 
-    def reset_for_lease(self) -> None:
-        """Called when the block is handed to a new buffer."""
+    @property
+    def host(self) -> np.ndarray | None:
+        """A NumPy view of the data (host blocks), for plain host copies."""
+        return None
 
     def destroy(self) -> None:
         raise NotImplementedError
 
-    def _init_header(self, header: shm.BlockHeader, session: shm.Session, kind: int) -> None:
-        header.magic = shm.MAGIC
-        header.version = shm.HEADER_VERSION
-        header.header_size = shm.HEADER_SIZE
-        header.capacity = self.capacity
-        header.session = session.session
-        header.owner_pid = session.pid
-        header.block_id = self.block_id
-        header.kind = kind
-
 
 class HostBlock(Block):
-    """A block on the cpu device: shared (header + data in a /dev/shm file) or private."""
+    """A block on the cpu device: a range of the arena (shared) or private memory."""
 
     def __init__(self, capacity: int, shared: bool) -> None:
         super().__init__()
         self.device = wp.get_device("cpu")
         self.capacity = capacity
         self.shared = False
-        self._map: tuple[int, int] | None = None
         self._private: Any = None
         if shared:
             try:
-                self._create_shared()
+                arena = _arena.current_arena()
+                offset = arena.alloc(capacity)
             except OSError as exc:
-                _log.warning("no shared memory for a %d-byte block (%s): using private memory; "
-                             "buffers in it travel as CPU bytes", capacity, exc)
+                _log.warning("no shared arena (%s): using private memory; buffers in it "
+                             "travel as CPU bytes", exc)
+            else:
+                if offset is None:
+                    _log.warning("the arena has no %d-byte range left: using private memory",
+                                 capacity)
+                else:
+                    self.arena, self.offset, self.shared = arena, offset, True
+                    self.data_ptr = arena.base + offset
+                    self._host = arena.host[offset:offset + capacity]
         if not self.shared:
-            self.block_id = 0
-            # Private memory: a header-sized prefix keeps the layout (and the stamp) identical.
-            raw = wp.empty(shm.HEADER_SIZE + capacity, dtype=wp.uint8, device="cpu")
-            self._private = raw
-            base = raw.ptr
-            self.header = shm.BlockHeader.from_address(base)
-            self.data_ptr = base + shm.HEADER_SIZE
-        self.stamp_array = wp.array(
-            ptr=ctypes.addressof(self.header) + shm.GENERATION_OFFSET, dtype=wp.uint64,
-            shape=(1,), device="cpu",
-        )
+            self._private = wp.empty(capacity, dtype=wp.uint8, device="cpu")
+            self.data_ptr = self._private.ptr
+            self._host = self._private.numpy()
 
-    def _create_shared(self) -> None:
-        total = shm.HEADER_SIZE + self.capacity
-        session, self.block_id, self.path, self.fd, addr = _create_mapped_block_file(total)
-        self._map = (addr, total)
-        self.header = shm.BlockHeader.from_address(addr)
-        self._init_header(self.header, session, shm.KIND_HOST_DATA)
-        self.data_ptr = addr + shm.HEADER_SIZE
-        self.shared = True
-
-    def ensure_header(self) -> shm.BlockHeader:
-        return self.header
-
-    def reset_for_lease(self) -> None:
-        self.header.generation = 0
+    @property
+    def host(self) -> np.ndarray:
+        return self._host
 
     def destroy(self) -> None:
-        self.stamp_array = None
-        self.header = None  # type: ignore[assignment]
-        if self._map is not None:
-            shm.unmap(*self._map)
-            self._map = None
-        _close_block_file(self.fd, self.path)
-        self.fd = self.path = None
+        self._host = None  # type: ignore[assignment]
+        if self.shared and self.arena is not None:
+            self.arena.free(self.offset, self.capacity)
+            self.arena = None
         self._private = None
-
-
-def _create_mapped_block_file(nbytes: int) -> tuple[Any, int, str, int, int]:
-    """Create a block file of ``nbytes`` and map it: ``(session, block_id, path, fd, address)``.
-    On failure the file is closed and removed again."""
-    session, block_id, path, fd = shm.create_block_file(nbytes)
-    try:
-        addr = shm.map_fd(fd, nbytes)
-    except BaseException:
-        os.close(fd)
-        session.remove_file(path)
-        raise
-    return session, block_id, path, fd, addr
-
-
-def _close_block_file(fd: int | None, path: str | None) -> None:
-    """Close a block's fd and remove its /dev/shm file from this process's session."""
-    if fd is not None:
-        os.close(fd)
-    if path is not None:
-        with shm._session_lock:
-            session = shm._session
-            if session is not None and path in session.files:
-                session.remove_file(path)
 
 
 _mempool_lock = threading.Lock()
 
 
 class CudaBlock(Block):
-    """A block of CUDA device memory; its shm header file is made on first export."""
+    """A block of CUDA device memory; its arena range (lock byte, generation) comes with its
+    first export."""
 
     def __init__(self, device: Any, capacity: int) -> None:
         super().__init__()
         self.device = device
         self.capacity = capacity
         self.shared = True
-        self.header = None
-        self.block_id = 0
-        self._header_map: tuple[int, int] | None = None
         self._ipc_mem_handle: bytes | None = None
         self._event: Any = None
         with _mempool_lock:
@@ -269,15 +204,13 @@ class CudaBlock(Block):
     def ipc_supported(self) -> bool:
         return bool(self.device.is_ipc_supported)
 
-    def ensure_header(self) -> shm.BlockHeader:
-        if self.header is None:
-            session, self.block_id, self.path, self.fd, addr = _create_mapped_block_file(
-                shm.HEADER_SIZE)
-            self._header_map = (addr, shm.HEADER_SIZE)
-            header = shm.BlockHeader.from_address(addr)
-            self._init_header(header, session, shm.KIND_HEADER_ONLY)
-            self.header = header
-        return self.header
+    def ensure_arena_range(self) -> None:
+        if self.arena is None:
+            arena = _arena.current_arena()
+            offset = arena.alloc(MIN_BLOCK)
+            if offset is None:
+                raise OSError("the arena has no range left for a CUDA block's lock")
+            self.arena, self.offset = arena, offset
 
     @property
     def event(self) -> Any:
@@ -295,19 +228,16 @@ class CudaBlock(Block):
         return self.event.ipc_handle()
 
     def destroy(self) -> None:
-        if self._header_map is not None:
-            shm.unmap(*self._header_map)
-            self._header_map = None
-        self.header = None
-        _close_block_file(self.fd, self.path)
-        self.fd = self.path = None
+        if self.arena is not None:
+            self.arena.free(self.offset, MIN_BLOCK)
+            self.arena = None
         self.storage = None
         self._event = None
 
 
 class Lease:
-    """One buffer's use of one block. Used as the ``deleter`` of the buffer's base ``wp.array``,
-    so the block returns to the pool exactly when the last array over it is collected."""
+    """One buffer's use of one block, owned by the impl and used as the ``deleter`` of its
+    ``wp.array``: the block returns to the pool exactly when both are collected."""
 
     __slots__ = ("pool", "block", "_done", "__weakref__")
 
@@ -320,6 +250,9 @@ class Lease:
         if not self._done:
             self._done = True
             self.pool._give_back(self.block)
+
+    def __del__(self) -> None:  # the impl went before any array was made over the block
+        self()
 
 
 class BlockPool:
@@ -346,10 +279,9 @@ class BlockPool:
     # -- allocation ----------------------------------------------------------------------------
     def acquire(self, nbytes: int) -> Lease:
         capacity = size_class(nbytes)
-        grace = _env_float("WARP_BUFFER_INFLIGHT_GRACE_S", 2.0)
         with self._lock:
-            self._drain()
-            block = self._take_free(capacity, time.monotonic(), grace)
+            drained = self._drain()
+            block = self._take_free(capacity)
             if block is not None:
                 self.reused += 1
             self._leased += 1
@@ -362,20 +294,24 @@ class BlockPool:
                 raise
             with self._lock:
                 self.created += 1
-        block.reset_for_lease()
         _janitor.ensure_running()
-        self._enforce_idle_cap()
+        if drained:  # free memory grew since the last allocation: hold it to the cap
+            self._enforce_idle_cap()
         return Lease(self, block)
 
-    def _take_free(self, capacity: int, now: float, grace: float) -> Block | None:
+    def _take_free(self, capacity: int) -> Block | None:
         queue = self._free.get(capacity)
         if not queue:
             return None
-        for index, (block, _released) in enumerate(queue):
-            if block.try_reclaim(now, grace):
-                del queue[index]
-                self.free_bytes -= block.capacity
-                return block
+        for _ in range(min(PROBES, len(queue))):
+            entry = queue.popleft()
+            if entry[0].try_reclaim():
+                self.free_bytes -= capacity
+                return entry[0]
+            queue.append(entry)  # busy: try the others first next time
+        arena = queue[0][0].arena
+        if arena is not None:
+            arena.forget_dead_peers()  # a dead peer's pending deliveries pin nothing
         return None
 
     def _create(self, capacity: int) -> Block:
@@ -388,13 +324,16 @@ class BlockPool:
         if not self._defunct and not sys.is_finalizing():
             self._returned.append((block, time.monotonic()))
 
-    def _drain(self) -> None:
-        """Move returned blocks onto the free lists (call with the lock held)."""
+    def _drain(self) -> int:
+        """Move returned blocks onto the free lists (call with the lock held); returns how
+        many."""
+        moved = 0
         while True:
             try:
                 block, released = self._returned.popleft()
             except IndexError:
-                return
+                return moved
+            moved += 1
             self._leased -= 1
             self._free.setdefault(block.capacity, collections.deque()).append((block, released))
             self.free_bytes += block.capacity
@@ -405,16 +344,15 @@ class BlockPool:
             self.trim(max_free_bytes=cap)
 
     # -- giving memory back ---------------------------------------------------------------------
-    def trim(self, idle_s: float = 0.0, max_free_bytes: int | None = None,
-             inflight_grace: float | None = None) -> int:
+    def trim(self, idle_s: float = 0.0, max_free_bytes: int | None = None) -> int:
         """Destroy free blocks idle for ``idle_s`` seconds or more (all with 0), or, with
         ``max_free_bytes``, the oldest ones until free memory fits. Blocks a reader still holds
-        are kept, and so are exported blocks whose descriptors may still be in flight
-        (``inflight_grace``, default ``WARP_BUFFER_INFLIGHT_GRACE_S``). Returns the bytes given
-        back."""
+        are kept, and so are exported blocks whose descriptors are still on their way to a live
+        peer. Returns the bytes given back."""
         now = time.monotonic()
-        grace = (_env_float("WARP_BUFFER_INFLIGHT_GRACE_S", 2.0) if inflight_grace is None
-                 else inflight_grace)
+        arena = _arena.existing_arena()
+        if arena is not None:
+            arena.forget_dead_peers()  # what a dead peer never imported pins nothing
         victims: list[Block] = []
         with self._lock:
             self._drain()
@@ -429,7 +367,7 @@ class BlockPool:
                         break
                 elif now - released < idle_s:
                     continue
-                if block.try_reclaim(now, grace):
+                if block.try_reclaim():
                     self._free[block.capacity].remove((block, released))
                     free -= block.capacity
                     victims.append(block)
@@ -439,8 +377,6 @@ class BlockPool:
         for block in victims:
             freed += block.capacity
             block.destroy()
-        if victims:
-            shm.close_session_if_empty()
         return freed
 
     def is_idle(self) -> bool:
@@ -462,12 +398,17 @@ class BlockPool:
             }
 
     def close(self) -> None:
-        """Destroy every free block now (leased ones are left to their buffers)."""
+        """Destroy every free block no reader holds now (leased ones are left to their
+        buffers, held ones to their readers)."""
         with self._lock:
             self._drain()
-            blocks = [block for queue in self._free.values() for block, _ in queue]
-            self._free.clear()
-            self.free_bytes = 0
+            blocks = []
+            for queue in self._free.values():
+                for entry in list(queue):
+                    if entry[0].try_reclaim():
+                        queue.remove(entry)
+                        blocks.append(entry[0])
+                        self.free_bytes -= entry[0].capacity
             self.destroyed += len(blocks)
         for block in blocks:
             try:
@@ -535,27 +476,35 @@ def pool_stats() -> dict[str, dict[str, int]]:
     return {name: pool.stats() for name, pool in pools.items()}
 
 
-def trim_pools(idle_s: float = 0.0, inflight_grace: float | None = None) -> int:
+def trim_pools(idle_s: float = 0.0) -> int:
     """Give back the free blocks of every pool idle for ``idle_s`` seconds (all with 0); see
     :meth:`BlockPool.trim`. Returns the bytes given back."""
     with _pools_lock:
         pools = list(_pools.values())
-    return sum(pool.trim(idle_s=idle_s, inflight_grace=inflight_grace) for pool in pools)
+    return sum(pool.trim(idle_s=idle_s) for pool in pools)
 
 
 def shutdown() -> None:
-    """Clean shutdown: free every idle block and remove every shared-memory file of this
-    process (buffers still alive keep their mappings; peers holding them keep theirs)."""
+    """Free every idle block now (buffers still alive keep theirs; peers holding blocks keep
+    their mappings). The arena itself goes with the process: nothing is left to remove."""
     with _pools_lock:
         pools = list(_pools.values())
     for pool in pools:
         pool.close()
-    shm.close_session()
 
 
 def _at_exit() -> None:
-    if shm._session is not None and shm._session.pid == os.getpid():
-        shm.close_session()
+    """A clean exit: let peers that were sent descriptors but never attached fetch the arena
+    (bounded by ``WARP_BUFFER_EXIT_LINGER_S``), then stop serving it."""
+    arena = _arena.existing_arena()
+    if arena is None or arena.server is None:
+        return
+    try:
+        pids = arena.pending_pids()
+        if pids:
+            arena.server.linger(pids, handoff.linger_s())
+    finally:
+        arena.server.close()
 
 
 atexit.register(_at_exit)

@@ -1,43 +1,38 @@
 """``WarpBufferBackend``: the ``"warp"`` rosidl_buffer backend plugin.
 
 Thin by design: the memory domain, the exports and the imports live in :mod:`warp_buffer`; this
-module negotiates with peers and converts export records to and from the descriptor message
-``warp_buffer_backend_msgs/msg/WarpBufferDescriptor`` (``msg/WarpBufferDescriptor.msg``).
+module negotiates with peers. Its descriptor message is
+``warp_buffer_backend_msgs/msg/WarpBufferDescriptor`` (``msg/WarpBufferDescriptor.msg``), built
+and read by :mod:`warp_buffer.ipc` (the descriptor is the export record: one form).
 
-Who is served (decided once per peer gid, in ``on_discovering_endpoint`` or on first publish):
-a subscription that advertises ``warp``, on this host, under this user, whose metadata says it
-can import by shared memory, while IPC is enabled here. Everyone else gets ``None`` from
-``create_descriptor_with_endpoint``, i.e. CPU bytes. See the README next to this file for the
-transport-support matrix.
+Who is served (judged once per peer gid, in ``on_discovering_endpoint`` or on first publish, and
+cached until ``on_endpoint_gone``): a subscription that advertises ``warp``, on this host, under
+this user, whose metadata says it can import by shared memory, while IPC is enabled here.
+Everyone else gets ``None`` from ``create_descriptor_with_endpoint``, i.e. CPU bytes. See the
+README next to this file for the transport-support matrix.
 """
 
 from __future__ import annotations
 
-import collections
 import logging
 import os
 import threading
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from rosidl_buffer import BufferBackend, BufferImplBase, EndpointInfo, EndpointType
-from rosidl_buffer.messages import get_message_type
 from warp_buffer import WARP_BACKEND, WarpBufferImpl
-from warp_buffer import shm as _shm
-from warp_buffer.errors import DescriptorError, ExportUnavailableError, ForeignExportError
+from warp_buffer import descriptor as _desc
+from warp_buffer.errors import ExportUnavailableError, ForeignExportError
 from warp_buffer.ipc import (
-    DEVICE_MAX,
-    HOST_ID_MAX,
-    ExportKind,
-    ExportRecord,
     export_buffer,
-    import_export,
+    forget_peer,
+    import_buffer,
     ipc_disabled,
     local_host_id,
     local_user_id,
+    peer_slot,
 )
 
 __all__ = [
@@ -52,12 +47,12 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
-DESCRIPTOR_TYPE = "warp_buffer_backend_msgs/msg/WarpBufferDescriptor"
-METADATA_VERSION = 1
+DESCRIPTOR_TYPE = _desc.DESCRIPTOR_TYPE
+METADATA_VERSION = 2
 IPC_SHM = "shm"
 IPC_CUDA = "cuda_ipc"
-_PEER_CACHE_SIZE = 4096
-_HANDLE_SIZE = 64
+_PEER_CACHE_SIZE = 4096  # a bound even if the transport never reports departures
+HOST_ID_MAX = 255
 
 
 # ------------------------------------------------------------------------------------ metadata
@@ -77,7 +72,7 @@ class PeerMetadata:
 
 
 def format_metadata(meta: PeerMetadata) -> str:
-    """``v=1;host=<host id>;uid=<uid>;ipc=shm+cuda_ipc;dev=cpu+cuda:0@<pci>``: no ``/``, ``,``,
+    """``v=2;host=<host id>;uid=<uid>;ipc=shm+cuda_ipc;dev=cpu+cuda:0@<pci>``: no ``/``, ``,``,
     spaces or quotes of its own (the transport percent-encodes it anyway)."""
     return (f"v={meta.version};host={meta.host_id};uid={meta.user_id};"
             f"ipc={'+'.join(sorted(meta.ipc))};dev={'+'.join(meta.devices)}")
@@ -115,14 +110,23 @@ def _refuse(reason: str) -> PeerDecision:
     return PeerDecision(False, reason)
 
 
+@dataclass
+class _Peer:
+    decision: PeerDecision
+    pid: int
+    slot: Any = field(default=None)  # its delivery slot in our arena, on first descriptor
+
+
 # ------------------------------------------------------------------------------------ backend
 class WarpBufferBackend(BufferBackend):
     """The ``warp`` buffer backend: same-host zero-copy delivery of warp buffers."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._peers: collections.OrderedDict[bytes, PeerDecision] = collections.OrderedDict()
-        self._local: dict[bytes, EndpointInfo] = {}
+        self._peers: dict[bytes, _Peer] = {}
+        # Publishers judged on the import side: gid -> None (served) or (error class, message):
+        # a fresh error per refusal (a raised one would keep its traceback's frames alive).
+        self._publishers: dict[bytes, tuple[type[Exception], str] | None] = {}
         self._devices: tuple[str, ...] | None = None
         self._cuda_ipc = False
 
@@ -156,46 +160,62 @@ class WarpBufferBackend(BufferBackend):
         return format_metadata(self.local_metadata())
 
     def get_descriptor_type(self) -> type:
-        return get_message_type(DESCRIPTOR_TYPE)
+        return _desc.descriptor_type()
 
     # -- discovery -----------------------------------------------------------------------------
-    def on_creating_endpoint(self, endpoint_info: EndpointInfo) -> None:
-        """Remember the local endpoint; the first one sweeps exports of dead processes."""
-        _shm.sweep_once()
-        with self._lock:
-            self._local[endpoint_info.gid] = endpoint_info
-
     def on_discovering_endpoint(
         self,
         endpoint_info: EndpointInfo,
         existing_endpoints: Sequence[EndpointInfo],
         endpoint_supported_backends: Mapping[str, str],
     ) -> tuple[bool, list[set[int]]]:
-        """Serve the peer by IPC? Decided (and cached per gid) from its advertised backends, its
-        locality and its metadata. No endpoint groups."""
+        """Serve the peer by IPC? Judged once (and cached per gid) from its advertised backends,
+        its locality and its metadata. No endpoint groups."""
         decision = self._decide(endpoint_info, endpoint_supported_backends)
-        self._remember(endpoint_info.gid, decision)
+        self._remember(endpoint_info, decision)
         return decision.accepted, []
 
-    def peer_decision(self, endpoint_info: EndpointInfo) -> PeerDecision:
-        """The cached decision for a peer (made now from its info if not seen before)."""
+    def on_endpoint_gone(self, endpoint_info: EndpointInfo) -> None:
+        """Forget a departed peer: its cached decision, and its delivery slot (what was sent to
+        it no longer pins any block)."""
         with self._lock:
-            decision = self._peers.get(endpoint_info.gid)
-            if decision is not None:
-                self._peers.move_to_end(endpoint_info.gid)
-                return decision
-        decision = self._decide(endpoint_info, endpoint_info.supported_backends)
-        self._remember(endpoint_info.gid, decision)
-        return decision
+            peer = self._peers.pop(endpoint_info.gid, None)
+            self._publishers.pop(endpoint_info.gid, None)
+        if peer is not None and peer.slot is not None:
+            forget_peer(endpoint_info.gid)
 
-    def _remember(self, gid: bytes, decision: PeerDecision) -> None:
+    def peer_decision(self, endpoint_info: EndpointInfo) -> PeerDecision:
+        """The cached decision for a peer (judged now from its info if not seen before)."""
+        return self._peer(endpoint_info).decision
+
+    def _peer(self, info: EndpointInfo) -> _Peer:
+        peer = self._peers.get(info.gid)
+        if peer is None:
+            peer = self._remember(info, self._decide(info, info.supported_backends))
+        return peer
+
+    def _remember(self, info: EndpointInfo, decision: PeerDecision) -> _Peer:
+        evicted = []
         with self._lock:
-            self._peers[gid] = decision
-            self._peers.move_to_end(gid)
+            peer = self._peers.get(info.gid)
+            if peer is None or peer.decision != decision:
+                if peer is not None and peer.slot is not None:
+                    evicted.append(info.gid)
+                peer = self._peers[info.gid] = _Peer(decision, info.process_id)
             while len(self._peers) > _PEER_CACHE_SIZE:
-                self._peers.popitem(last=False)
+                gid = next(iter(self._peers))
+                if self._peers.pop(gid).slot is not None:
+                    evicted.append(gid)
+        for gid in evicted:
+            forget_peer(gid)
         if not decision.accepted:
-            _log.debug("warp backend serves peer %s by CPU: %s", gid.hex(), decision.reason)
+            _log.debug("warp backend serves peer %s by CPU: %s", info.gid.hex(), decision.reason)
+        return peer
+
+    @property
+    def known_peers(self) -> int:
+        """Peers with a cached decision (bounded; departed ones are forgotten)."""
+        return len(self._peers)
 
     def _decide(self, info: EndpointInfo, supported: Mapping[str, str]) -> PeerDecision:
         if ipc_disabled():
@@ -235,93 +255,62 @@ class WarpBufferBackend(BufferBackend):
         self, impl: BufferImplBase, endpoint_info: EndpointInfo
     ) -> Any | None:
         """A descriptor of ``impl`` for the subscription ``endpoint_info``, or None (CPU bytes)
-        when the peer cannot be served. A warp buffer is marked published either way."""
+        when the peer cannot be served. A warp buffer is sealed either way."""
         if not isinstance(impl, WarpBufferImpl):
             return None
-        impl._mark_published()
-        decision = self.peer_decision(endpoint_info)
-        if not decision.accepted or ipc_disabled():
+        impl.seal()
+        peer = self._peers.get(endpoint_info.gid) or self._peer(endpoint_info)
+        if not peer.decision.accepted or not impl.is_exportable:
             return None
-        if not impl.is_exportable:
-            return None
+        slot = peer.slot
+        if slot is None:
+            slot = peer.slot = peer_slot(endpoint_info.gid, endpoint_info.process_id)
+            if slot is None:
+                _log.warning("every delivery slot of this process is taken: peer %s is served "
+                             "by CPU", endpoint_info.gid.hex())
+                return None
         try:
-            record = export_buffer(impl, peer_pci_bus_ids=decision.cuda_pci_bus_ids)
+            return export_buffer(impl, peer=slot,
+                                 peer_pci_bus_ids=peer.decision.cuda_pci_bus_ids)
         except ExportUnavailableError as exc:
             _log.debug("warp backend falls back to CPU for %s: %s", endpoint_info.gid.hex(), exc)
             return None
-        return self.record_to_descriptor(record)
 
     def from_descriptor_with_endpoint(
         self, descriptor: Any, endpoint_info: EndpointInfo
     ) -> WarpBufferImpl:
-        """Import the export ``descriptor`` names (the publisher is ``endpoint_info``) as a
-        read-only :class:`WarpBufferImpl` over the shared memory, with zero payload copies.
+        """Read the export ``descriptor`` names (the publisher is ``endpoint_info``) in place, as
+        a read-only :class:`WarpBufferImpl` with zero payload copies; release it with
+        ``Buffer.release()`` (or ``with``) or let it be collected.
 
-        Raises the typed errors of :func:`warp_buffer.ipc.import_export`, plus
+        Raises the typed errors of :func:`warp_buffer.ipc.import_buffer`, plus
         :class:`ForeignExportError` for a publisher on another host or user and
-        :class:`ExportUnavailableError` when IPC is disabled here.
+        :class:`ExportUnavailableError` when IPC is disabled here (both judged once per
+        publisher, on its first descriptor).
         """
-        if ipc_disabled():
-            raise ExportUnavailableError("IPC is disabled here (WARP_BUFFER_DISABLE_IPC)")
-        host, user = local_host_id(), local_user_id()
-        if endpoint_info.host_id != host or endpoint_info.user_id != user:
-            raise ForeignExportError(
-                f"descriptor from a publisher on host {endpoint_info.host_id!r} as user "
-                f"{endpoint_info.user_id}; this is host {host!r}, user {user}"
-            )
-        return import_export(self.descriptor_to_record(descriptor))
-
-    # -- conversions ---------------------------------------------------------------------------
-    def record_to_descriptor(self, record: ExportRecord) -> Any:
-        cls = self.get_descriptor_type()
-        return cls(
-            version=record.version, kind=int(record.kind), size=record.size,
-            offset=record.offset, capacity=record.capacity, block_id=record.block_id,
-            uid=record.uid, generation=record.generation, ack_slot=record.ack_slot,
-            owner_pid=record.owner_pid, session=record.session, user_id=record.user_id,
-            host_id=record.host_id, device=record.device,
-            device_pci_bus_id=record.device_pci_bus_id,
-            cuda_ipc_mem_handle=_handle_array(record.cuda_ipc_mem_handle),
-            cuda_ipc_event_handle=_handle_array(record.cuda_ipc_event_handle),
-        )
-
-    def descriptor_to_record(self, descriptor: Any) -> ExportRecord:
-        if not isinstance(descriptor, self.get_descriptor_type()):
-            raise DescriptorError(f"expected a {DESCRIPTOR_TYPE}, got {type(descriptor).__name__}")
+        gid = endpoint_info.gid
         try:
-            kind = ExportKind(int(descriptor.kind))
-        except ValueError:
-            raise DescriptorError(f"unknown export kind {descriptor.kind}") from None
-        if len(descriptor.device) > DEVICE_MAX:
-            raise DescriptorError("device name too long")
-        cuda = kind is ExportKind.CUDA_IPC
-        record = ExportRecord(
-            kind=kind, size=int(descriptor.size), offset=int(descriptor.offset),
-            capacity=int(descriptor.capacity), block_id=int(descriptor.block_id),
-            uid=int(descriptor.uid), generation=int(descriptor.generation),
-            ack_slot=int(descriptor.ack_slot), owner_pid=int(descriptor.owner_pid),
-            session=int(descriptor.session), user_id=int(descriptor.user_id),
-            host_id=descriptor.host_id, device=descriptor.device,
-            device_pci_bus_id=descriptor.device_pci_bus_id,
-            cuda_ipc_mem_handle=_handle_bytes(descriptor.cuda_ipc_mem_handle) if cuda else b"",
-            cuda_ipc_event_handle=_handle_bytes(descriptor.cuda_ipc_event_handle) if cuda else b"",
-            version=int(descriptor.version),
-        )
-        record.validate()
-        return record
+            refusal = self._publishers[gid]
+        except KeyError:
+            refusal = self._judge_publisher(endpoint_info)
+        if refusal is not None:
+            raise refusal[0](refusal[1])
+        return import_buffer(descriptor)
+
+    def _judge_publisher(self, info: EndpointInfo) -> tuple[type[Exception], str] | None:
+        refusal: tuple[type[Exception], str] | None = None
+        if ipc_disabled():
+            refusal = (ExportUnavailableError, "IPC is disabled here (WARP_BUFFER_DISABLE_IPC)")
+        elif info.host_id != local_host_id() or info.user_id != local_user_id():
+            refusal = (ForeignExportError,
+                       f"descriptor from a publisher on host {info.host_id!r} as user "
+                       f"{info.user_id}; this is host {local_host_id()!r}, user "
+                       f"{local_user_id()}")
+        with self._lock:
+            self._publishers[info.gid] = refusal
+            while len(self._publishers) > _PEER_CACHE_SIZE:
+                self._publishers.pop(next(iter(self._publishers)))
+        return refusal
 
     def __repr__(self) -> str:
         return f"WarpBufferBackend(pid={os.getpid()})"
-
-
-def _handle_array(handle: bytes) -> np.ndarray:
-    if len(handle) > _HANDLE_SIZE:
-        raise DescriptorError(f"a CUDA IPC handle is {_HANDLE_SIZE} bytes, not {len(handle)}")
-    return np.frombuffer(handle.ljust(_HANDLE_SIZE, b"\0"), dtype=np.uint8).copy()
-
-
-def _handle_bytes(array: Any) -> bytes:
-    data = np.asarray(array, dtype=np.uint8)
-    if data.shape != (_HANDLE_SIZE,):
-        raise DescriptorError(f"a CUDA IPC handle is {_HANDLE_SIZE} bytes, not {data.shape}")
-    return data.tobytes()

@@ -1,0 +1,241 @@
+"""The importer's side of a session: the arena mapped once per (this process, publisher session),
+and the reader holds on its blocks.
+
+:func:`attach` returns the cached :class:`AttachedArena` of a session, fetching and mapping it on
+first use (:mod:`warp_buffer.handoff`). It is kept while the process lives (imports are then a
+dict lookup plus a lock), and let go once its owner is gone and nothing here holds a block of it.
+Its mapping keeps the memory alive: frames held or queued here stay readable after the publisher
+exits or dies.
+
+A hold is a read lock (OFD, on the block's first byte) taken on this process's own open file
+description of the arena, counted per block so that several imports of one block in one process
+share one lock. The kernel drops the lock if the process dies.
+"""
+
+from __future__ import annotations
+
+import collections
+import ctypes
+import os
+import threading
+from typing import Any
+
+import numpy as np
+
+from . import handoff, memory
+from .arena import (
+    ACKS_OFFSET,
+    GENS_OFFSET,
+    MAX_PEERS,
+    SLOT_STRIDE,
+    Arena,
+    Geometry,
+    alive,
+    existing_arena,
+    host_view,
+)
+from .errors import ExportError, StaleBufferError
+
+__all__ = ["AttachedArena", "Hold", "attach", "attached_sessions", "forget_idle"]
+
+
+class AttachedArena:
+    """A publisher session's arena as this process sees it."""
+
+    def __init__(self, owner_pid: int, session: int, geometry: Geometry, fd: int,
+                 base: int, data_base: int, mappings: list[tuple[int, int]]) -> None:
+        self.owner_pid = owner_pid
+        self.session = session
+        self.geometry = geometry
+        self.fd = fd  # our own open file description: our locks
+        self.base = base
+        self._mappings = mappings  # what we unmap when let go (empty for our own arena)
+        self.data_offset = geometry.data_offset
+        self.gens = (ctypes.c_uint64 * (geometry.data_bytes // 4096)).from_address(
+            base + GENS_OFFSET)
+        self.acks = (ctypes.c_uint64 * (MAX_PEERS * SLOT_STRIDE // 8)).from_address(
+            base + ACKS_OFFSET)
+        self._data_base = data_base
+        self.data = host_view(data_base, geometry.data_bytes)
+        self.data.flags.writeable = False  # views of imports are read-only
+        self._holds: dict[int, int] = {}
+        self._lock = threading.Lock()
+        self._deferred: collections.deque[int] = collections.deque()
+
+    @classmethod
+    def fetch(cls, owner_pid: int, session: int) -> AttachedArena:
+        received, geometry = handoff.fetch_arena(owner_pid, session)
+        try:
+            fd = memory.reopen(received)
+        except OSError as exc:
+            raise ExportError(f"cannot open the arena of process {owner_pid}: {exc}") from None
+        finally:
+            os.close(received)  # it shares the publisher's description (and its locks)
+        try:
+            size = geometry.file_size
+            # Header, acknowledgement slots and generations writable (we acknowledge imports);
+            # the data read-only: a reader can never change the publisher's bytes by mistake.
+            head = memory.map_fd(fd, geometry.data_offset)
+            try:
+                    data = memory.map_fd(fd, size - geometry.data_offset, geometry.data_offset,
+                                     writable=False)
+            except BaseException:
+                memory.unmap(head, geometry.data_offset)
+                raise
+        except OSError as exc:
+            os.close(fd)
+            raise ExportError(f"cannot map the arena of process {owner_pid}: {exc}") from None
+        return cls(owner_pid, session, geometry, fd, head, data,
+                   [(head, geometry.data_offset), (data, size - geometry.data_offset)])
+
+    @classmethod
+    def local(cls, arena: Arena) -> AttachedArena:
+        """Our own session, imported in this very process: our mapping, a new description."""
+        fd = memory.reopen(arena.fd)
+        return cls(arena.pid, arena.session, arena.geometry, fd, arena.base,
+                   arena.base + arena.data_offset, [])
+
+    def address(self, offset: int) -> int:
+        """Address of file offset ``offset`` (in the data region) in this process."""
+        return self._data_base + (offset - self.data_offset)
+
+    def host_array(self, offset: int, nbytes: int) -> np.ndarray:
+        """A read-only NumPy view of ``nbytes`` at file offset ``offset`` (no copy)."""
+        rel = offset - self.data_offset
+        return self.data[rel:rel + nbytes]
+
+    # -- holds ------------------------------------------------------------------------------
+    def hold(self, offset: int, slot: int = -1, sequence: int = 0) -> None:
+        """Take (or share) this process's read lock on the block at ``offset``; raises
+        :class:`StaleBufferError` while the publisher is recycling it. With a peer ``slot``,
+        then record that this process imported delivery ``sequence`` of that peer (also when the
+        lock fails: the descriptor was consumed either way). The lock comes first: once the
+        publisher sees the acknowledgement, its write-lock probe meets our lock."""
+        with self._lock:
+            self._flush_deferred()
+            try:
+                count = self._holds.get(offset, 0)
+                if count == 0:
+                    try:
+                        memory.try_lock(self.fd, offset, exclusive=False)
+                    except memory.LockBusy:
+                        raise StaleBufferError(f"block {offset:#x} of process {self.owner_pid} "
+                                               "is being recycled") from None
+                self._holds[offset] = count + 1
+            finally:
+                if slot >= 0:
+                    index = slot * (SLOT_STRIDE // 8)
+                    if self.acks[index] < sequence:
+                        self.acks[index] = sequence
+
+    def drop(self, offset: int) -> None:
+        """Give one hold back (the lock goes with the last one). Safe from a finalizer: if the
+        lock is busy (another thread, or a collection inside our own critical section) the drop
+        is queued and done by the next hold or drop."""
+        if not self._lock.acquire(blocking=False):
+            self._deferred.append(offset)
+            return
+        try:
+            self._drop(offset)
+            self._flush_deferred()
+        finally:
+            self._lock.release()
+
+    def _flush_deferred(self) -> None:
+        while self._deferred:
+            self._drop(self._deferred.popleft())
+
+    def _drop(self, offset: int) -> None:
+        count = self._holds.get(offset, 0)
+        if count <= 1:
+            self._holds.pop(offset, None)
+            if count == 1:
+                memory.unlock(self.fd, offset)
+        else:
+            self._holds[offset] = count - 1
+
+    @property
+    def held(self) -> int:
+        with self._lock:
+            self._flush_deferred()
+            return len(self._holds)
+
+    def close(self) -> None:
+        for addr, length in self._mappings:
+            memory.unmap(addr, length)
+        self._mappings = []
+        os.close(self.fd)
+
+
+class Hold:
+    """One import's hold on a block: released by :meth:`release`, as the deleter of the array
+    over the block, or when collected, whichever comes first."""
+
+    __slots__ = ("arena", "offset", "live", "__weakref__")
+
+    def __init__(self, arena: AttachedArena, offset: int) -> None:
+        self.arena = arena
+        self.offset = offset
+        self.live = True
+
+    def release(self, *_args: Any) -> None:
+        if self.live:
+            self.live = False
+            self.arena.drop(self.offset)
+
+    __call__ = release  # as a wp.array deleter: (ptr, size)
+
+    def __del__(self) -> None:
+        try:
+            self.release()
+        except Exception:  # pragma: no cover - interpreter shutdown
+            pass
+
+
+_sessions: dict[tuple[int, int], AttachedArena] = {}
+_sessions_lock = threading.Lock()
+
+
+def attach(owner_pid: int, session: int) -> AttachedArena:
+    """The arena of session ``(owner_pid, session)`` in this process (fetched once)."""
+    key = (owner_pid, session)
+    arena = _sessions.get(key)
+    if arena is not None:
+        return arena
+    with _sessions_lock:
+        arena = _sessions.get(key)
+        if arena is None:
+            own = existing_arena()
+            if own is not None and own.pid == owner_pid and own.session == session:
+                arena = AttachedArena.local(own)
+            else:
+                forget_idle()
+                arena = AttachedArena.fetch(owner_pid, session)
+            _sessions[key] = arena
+        return arena
+
+
+def forget_idle() -> int:
+    """Unmap sessions whose owner is gone and of which nothing is held here; returns how many
+    (called when a new session is attached, so the address space stays bounded)."""
+    dropped = 0
+    for key, arena in list(_sessions.items()):
+        if arena.held == 0 and not alive(arena.owner_pid):
+            _sessions.pop(key, None)
+            arena.close()
+            dropped += 1
+    return dropped
+
+
+def attached_sessions() -> list[AttachedArena]:
+    return list(_sessions.values())
+
+
+def _after_fork_in_child() -> None:
+    # Inherited descriptions are shared with the parent (so are their locks): start afresh.
+    global _sessions_lock
+    _sessions.clear()
+    _sessions_lock = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)

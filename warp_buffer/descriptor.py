@@ -1,0 +1,134 @@
+"""The descriptor of an export, in its one form: the ``WarpBufferDescriptor`` message.
+
+The message (``warp_buffer_backend_msgs/msg/WarpBufferDescriptor``, shipped by the backend
+package) has fixed-size fields only, so its CDR encoding is one fixed struct, :data:`LAYOUT`
+(little endian, the natural alignment needs no padding at an 8-byte boundary): the generic CDR
+codec writes and reads it as one primitive run, and a transport that carries descriptors outside
+CDR (a shared-memory lane) can :func:`pack` and :func:`unpack` it directly. Tests check that the
+bytes are those of the generic codec.
+"""
+
+from __future__ import annotations
+
+import operator
+import struct
+from typing import Any
+
+from rosidl_buffer.messages import get_message_type
+
+from .errors import DescriptorError
+
+__all__ = [
+    "DESCRIPTOR_TYPE",
+    "VERSION",
+    "KIND_HOST",
+    "KIND_CUDA_IPC",
+    "KIND_CUDA_STAGING",
+    "FIELDS",
+    "LAYOUT",
+    "descriptor_type",
+    "make",
+    "pack",
+    "unpack",
+    "handle_words",
+    "handle_bytes",
+    "pci_to_int",
+    "pci_from_int",
+]
+
+DESCRIPTOR_TYPE = "warp_buffer_backend_msgs/msg/WarpBufferDescriptor"
+VERSION = 2
+KIND_HOST = 0
+KIND_CUDA_IPC = 1
+KIND_CUDA_STAGING = 2
+KINDS = (KIND_HOST, KIND_CUDA_IPC, KIND_CUDA_STAGING)
+HANDLE_WORDS = 8
+
+FIELDS = ("version", "kind", "peer_slot", "owner_pid", "session", "offset", "capacity", "size",
+          "generation", "sequence", "device_pci_bus_id",
+          *(f"mem_handle_{i}" for i in range(HANDLE_WORDS)),
+          *(f"event_handle_{i}" for i in range(HANDLE_WORDS)))
+#: CDR layout of the descriptor starting at an 8-byte boundary of the stream.
+LAYOUT = struct.Struct("<BBHIQQQQQQQ" + "Q" * 2 * HANDLE_WORDS)
+NO_HANDLES = (0,) * (2 * HANDLE_WORDS)
+
+_type: Any = None
+_setters: list[Any] = []  # the slots' own setters, in FIELDS order (the fastest way to fill one)
+
+
+def descriptor_type() -> type:
+    """The generated descriptor class (looked up once)."""
+    global _type
+    if _type is None:
+        cls = get_message_type(DESCRIPTOR_TYPE)
+        if tuple(cls.__slots__) != FIELDS:  # pragma: no cover - the .msg and this disagree
+            raise DescriptorError(f"{DESCRIPTOR_TYPE} fields {cls.__slots__} != {FIELDS}")
+        _setters[:] = [cls.__dict__[name].__set__ for name in FIELDS]
+        _type = cls
+    return _type
+
+
+def make(values: tuple[int, ...]) -> Any:
+    """A descriptor from its field values in :data:`FIELDS` order (no per-field validation:
+    the values come from this process's own bookkeeping, or from :data:`LAYOUT`)."""
+    cls = _type or descriptor_type()
+    message = cls.__new__(cls)
+    for setter, value in zip(_setters, values):
+        setter(message, value)
+    return message
+
+
+_get_fields = operator.attrgetter(*FIELDS)
+
+
+def values_of(descriptor: Any) -> tuple[int, ...]:
+    """The field values of ``descriptor``, checked to be what the wire can carry (a forged or
+    hand-made one may hold anything): integers in each field's range, else
+    :class:`DescriptorError`. The check is the layout itself (one C call)."""
+    try:
+        values = _get_fields(descriptor)
+        LAYOUT.pack(*values)
+    except AttributeError as exc:
+        raise DescriptorError(f"not a {DESCRIPTOR_TYPE}: {exc}") from None
+    except struct.error as exc:
+        raise DescriptorError(f"a descriptor field the wire cannot carry: {exc}") from None
+    return values
+
+
+def pack(descriptor: Any) -> bytes:
+    """The descriptor's CDR bytes (as at an 8-byte boundary of a CDR stream)."""
+    values = values_of(descriptor)
+    return LAYOUT.pack(*values)
+
+
+def unpack(data: bytes | bytearray | memoryview) -> Any:
+    """Inverse of :func:`pack`."""
+    if len(data) != LAYOUT.size:
+        raise DescriptorError(f"a descriptor is {LAYOUT.size} bytes, not {len(data)}")
+    return make(LAYOUT.unpack(data))
+
+
+def handle_words(handle: bytes) -> tuple[int, ...]:
+    """A 64-byte CUDA IPC handle as eight little-endian words."""
+    if len(handle) > 8 * HANDLE_WORDS:
+        raise DescriptorError(f"a CUDA IPC handle is {8 * HANDLE_WORDS} bytes, not {len(handle)}")
+    return struct.unpack("<8Q", handle.ljust(8 * HANDLE_WORDS, b"\0"))
+
+
+def handle_bytes(words: tuple[int, ...] | list[int]) -> bytes:
+    return struct.pack("<8Q", *words)
+
+
+def pci_to_int(pci_bus_id: str | None) -> int:
+    """Warp's ``"DDDDDDDD:BB:DD"`` PCI bus id as ``domain << 16 | bus << 8 | device`` (0: none)."""
+    if not pci_bus_id:
+        return 0
+    try:
+        domain, bus, device = (int(part, 16) for part in pci_bus_id.split(".")[0].split(":"))
+    except ValueError:
+        raise DescriptorError(f"unreadable PCI bus id {pci_bus_id!r}") from None
+    return domain << 16 | bus << 8 | device
+
+
+def pci_from_int(value: int) -> str:
+    return f"{value >> 16:08X}:{value >> 8 & 0xFF:02X}:{value & 0xFF:02X}"
