@@ -16,7 +16,7 @@ import warp as wp
 from . import _api
 from . import image as _image
 from . import pointcloud as _pointcloud
-from .dlpack import TensorView, warp_dtype
+from .dlpack import TensorView, import_warp, warp_dtype
 from .dtypes import DType, dtype_from_name
 from .errors import UnsupportedDTypeError, UnsupportedValueError
 
