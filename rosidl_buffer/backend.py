@@ -1,7 +1,8 @@
 """``BufferBackend``: the plugin interface a memory domain implements (the six methods).
 
 Mirrors ``rosidl::BufferBackend``. A transport calls :meth:`on_creating_endpoint` for each local
-endpoint, :meth:`on_discovering_endpoint` for each peer, and then, per publish and peer,
+endpoint, :meth:`on_discovering_endpoint` for each peer, :meth:`on_endpoint_gone` when either
+goes away, and then, per publish and peer,
 :meth:`create_descriptor_with_endpoint` on the publisher side and
 :meth:`from_descriptor_with_endpoint` on the subscriber side.
 """
@@ -74,3 +75,7 @@ class BufferBackend(abc.ABC):
         serve several endpoints with one export; most return an empty list.
         """
         return self.get_backend_type() in endpoint_supported_backends, []
+
+    def on_endpoint_gone(self, endpoint_info: EndpointInfo) -> None:
+        """An endpoint this backend was told about (through :meth:`on_creating_endpoint` or
+        :meth:`on_discovering_endpoint`) is gone: drop what is kept for it. Default: nothing."""
