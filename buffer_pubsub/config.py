@@ -32,11 +32,6 @@ ROUTER_ENV = "WARP_BUFFER_ZENOH_ROUTER"
 CONFIG_URI_ENV = "ZENOH_SESSION_CONFIG_URI"
 DOMAIN_ENV = "ROS_DOMAIN_ID"
 
-#: Largest message a node accepts (Zenoh's own default, 1 GiB, is a few bytes short of a 1 GiB
-#: payload once CDR framing is added, and such a sample vanished without a trace). Publishing a
-#: larger message raises PayloadTooLargeError; a CDR buffer field caps at 4 GiB anyway.
-MAX_MESSAGE_SIZE = 1 << 31
-
 #: The embedded default (no router): loopback-only peer discovery by multicast scouting.
 DEFAULT_CONFIG: dict[str, Any] = {
     "mode": "peer",
@@ -44,8 +39,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "scouting": {"multicast": {"enabled": True, "interface": "lo"}, "gossip": {"enabled": True}},
     # Zenoh's SHM transport made CPU-fallback samples slower here (its buffers have no Python
     # buffer protocol, so Python copies in and out); same-host zero copy is the backends' job.
-    "transport": {"shared_memory": {"enabled": False},
-                  "link": {"rx": {"max_message_size": MAX_MESSAGE_SIZE}}},
+    "transport": {"shared_memory": {"enabled": False}},
 }
 
 

@@ -225,8 +225,9 @@ class Publisher:
             else:
                 individual.append((peer, None))  # the shared CPU serialization
         if need_cpu_channel or need_base or any(p is None for _, p in individual):
-            cpu_payload = self._out = self._checked(
-                serialize_message(msg, out=self._out))
+            if sum(len(b) for b in iter_buffers(msg)) > self.node.max_message_size:
+                self._checked(None, msg)  # hopeless: raise before copying a huge payload
+            cpu_payload = self._out = self._checked(serialize_message(msg, out=self._out))
         self._publish_intra(msg, backends, attachment)
         encoded = attachment.encode()
         with typed_zenoh_errors(f"publish on {self.topic_name}"):
@@ -237,12 +238,17 @@ class Publisher:
             if need_base:
                 self._base.put(cpu_payload, attachment=encoded, encoding=_BUFFER_AWARE_ENCODING)
 
-    def _checked(self, payload: bytearray) -> bytearray:
+    def _checked(self, payload: bytearray | None, msg: Message | None = None) -> bytearray:
+        """``payload`` if Zenoh carries it, else PayloadTooLargeError (None: always raise,
+        for ``msg`` whose buffers alone exceed the limit)."""
         limit = self.node.max_message_size
-        if len(payload) > limit:
+        if payload is None or len(payload) > limit:
+            size = (f"{len(payload)} bytes" if payload is not None else
+                    f"more than its {sum(len(b) for b in iter_buffers(msg))} buffer bytes")
             raise PayloadTooLargeError(
-                f"a {self.msg_type.__msgtype__} message serializes to {len(payload)} bytes, over "
-                f"the transport's limit of {limit} (transport/link/rx/max_message_size)")
+                f"a {self.msg_type.__msgtype__} message serializes to {size}, over the "
+                f"{limit}-byte limit of the transport (Zenoh carries at most 1 GiB per message; "
+                "see transport/link/rx/max_message_size); split it, or use a buffer backend")
         return payload
 
     def _publish_intra(self, msg: Message, backends: set[str],

@@ -268,17 +268,19 @@ def test_manual_executor_runs_callbacks_on_the_spinning_thread(domain, topic, ba
 # --------------------------------------------------------------------------- 5. payload limit
 def test_payload_over_the_limit_is_a_typed_error(domain, topic, backends):
     config = json.loads(json.dumps(DEFAULT_CONFIG))
-    config["transport"]["link"]["rx"]["max_message_size"] = 64 * 1024
+    config["transport"].setdefault("link", {}).setdefault("rx", {})["max_message_size"] = 65536
     sub = Child("sub", domain=domain, topic=topic, accept="cpu", expect=1)
     try:
         with Node("limited", zenoh.Config.from_json5(json.dumps(config)), domain_id=domain,
                   backends=backends) as node:
-            assert node.max_message_size == 64 * 1024
+            assert node.max_message_size < 65536
             pub = node.create_publisher(TENSOR, topic)
             sub.wait_ready()
             assert pub.wait_for_subscriptions(1, timeout=10)
             with pytest.raises(PayloadTooLargeError):
                 pub.publish(make_frame(0, 0, 100 * 1024, "cpu"))
+            with pytest.raises(PayloadTooLargeError):  # just over: caught after serializing
+                pub.publish(make_frame(0, 2, node.max_message_size - 8, "cpu"))
             pub.publish(make_frame(0, 1, 1024, "cpu"))
             time.sleep(0.3)
             result = sub.stop()
@@ -287,20 +289,46 @@ def test_payload_over_the_limit_is_a_typed_error(domain, topic, backends):
     assert [r["index"] for r in result["records"]] == [1]
 
 
-def test_one_gib_cpu_payload_arrives(domain, topic, backends):
-    n = 1 << 30
+def _one_gib_message(n: int, pattern: bool = True):
+    # zeros are calloc'ed: pages untouched until read, so the error test costs no memory
+    data = np.resize(np.arange(251, dtype=np.uint8), n) if pattern else np.zeros(n, np.uint8)
+    tensor = get_message_type(TENSOR)
+    return tensor(dtype_code=1, dtype_bits=8, dtype_lanes=1, shape=np.array([n]), data=data)
+
+
+def test_one_gib_cpu_payload_is_a_typed_error_at_publish(domain, topic, backends):
+    """Zenoh carries at most 1 GiB per message: a 1 GiB CPU payload (plus CDR framing) raises
+    PayloadTooLargeError at publish() instead of vanishing with every counter at 0."""
+    sub = Child("sub", domain=domain, topic=topic, accept="cpu", expect=1)
+    try:
+        with Node("gib_pub", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic, depth=1)
+            sub.wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            msg = _one_gib_message(1 << 30, pattern=False)
+            with pytest.raises(PayloadTooLargeError, match="1 GiB"):
+                pub.publish(msg)
+            del msg
+            pub.publish(make_frame(0, 3, 1024, "cpu"))  # the publisher goes on
+            time.sleep(0.3)
+            result = sub.stop()
+    finally:
+        sub.close()
+    assert [r["index"] for r in result["records"]] == [3]
+
+
+@pytest.mark.slow
+def test_largest_cpu_payload_arrives(domain, topic, backends):
+    """Just under the limit (~1 GiB) arrives intact (about 5 GiB of memory, ~15 s)."""
     big = Child("big", module=HELPERS, domain=domain, topic=topic, count=1, timeout=90)
     try:
         with Node("big_pub", domain_id=domain, backends=backends) as node:
-            pub = node.create_publisher(TENSOR, topic, depth=1)
+            n = node.max_message_size - 256
+            pub = node.create_publisher(TENSOR, topic, depth=1, history="keep_all")
             big.wait_ready()
             assert pub.wait_for_subscriptions(1, timeout=10)
-            data = np.resize(np.arange(251, dtype=np.uint8), n)
-            crc = zlib.crc32(data)
-            tensor = get_message_type(TENSOR)
-            msg = tensor(dtype_code=1, dtype_bits=8, dtype_lanes=1, shape=np.array([n]),
-                         data=data)
-            del data
+            msg = _one_gib_message(n)
+            crc = zlib.crc32(msg.data.to_numpy())
             pub.publish(msg)
             del msg
             result = big.stop(timeout=90)  # the child waits for the frame first
