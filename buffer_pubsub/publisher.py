@@ -25,33 +25,48 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from rosidl_buffer import Buffer, EndpointInfo
-from rosidl_buffer.messages import (
-    Message,
-    deserialize_message,
-    iter_buffers,
-    seal_buffers,
-    serialize_message,
-)
+from rosidl_buffer.messages import Message, deserialize_message, iter_buffers, serialize_message
+from rosidl_buffer.messages._schema import FieldKind
 
 from . import _process, wire
 from ._info import endpoint_gone, endpoint_info
 from ._validation import validate_message
-from ._zenoh import typed_zenoh_errors, undeclare_quietly
-from .errors import InvalidEndpointError, NodeClosedError, PayloadTooLargeError
+from ._zenoh import undeclare_quietly
+from .errors import InvalidEndpointError, NodeClosedError, PayloadTooLargeError, TransportError
 
 if TYPE_CHECKING:
     from .node import Node
 
-__all__ = ["Publisher", "buffer_backends_of"]
+__all__ = ["Publisher", "seal_and_list_backends"]
 
 _log = logging.getLogger(__name__)
 
 _BUFFER_AWARE_ENCODING = zenoh.Encoding.APPLICATION_CDR.with_schema(wire.BUFFER_AWARE_SCHEMA)
 
 
-def buffer_backends_of(message: Message) -> set[str]:
-    """Backend names of every buffer in ``message``, nested messages included."""
-    return {buffer.get_backend_type() for buffer in iter_buffers(message)}
+def _flat_buffer_fields(msg_type: type[Message]) -> tuple[str, ...] | None:
+    """The buffer fields of a message type without nested messages (the common case: one
+    getattr each per publish), or None when nested messages need the full walk."""
+    if any(spec.kind is FieldKind.MESSAGE for spec in msg_type._schema.fields):
+        return None
+    return tuple(sorted(msg_type._buffer_fields))
+
+
+def seal_and_list_backends(msg: Message, flat: tuple[str, ...] | None) -> frozenset[str]:
+    """Seal every buffer of ``msg`` (once per publish, every route) and return the backend
+    names they live in, in one walk."""
+    if flat is not None:
+        buffers: Any = [getattr(msg, name) for name in flat]
+    else:
+        buffers = list(iter_buffers(msg))
+    if not buffers:
+        return _NO_BACKENDS
+    for buffer in buffers:
+        buffer.seal()
+    return frozenset(buffer.get_backend_type() for buffer in buffers)
+
+
+_NO_BACKENDS: frozenset[str] = frozenset()
 
 
 def cpu_copy(message: Message) -> Message:
@@ -111,8 +126,8 @@ class Publisher:
         # 16 MiB). The lock keeps concurrent publish() calls from sharing it.
         self._out: bytearray | None = None
         self._out_lock = threading.Lock()
-        self._has_buffers = bool(msg_type._buffer_fields) or any(
-            spec.kind.value == "message" for spec in msg_type._schema.fields)
+        self._flat_buffers = _flat_buffer_fields(msg_type)
+        self._remote: tuple[_Peer, ...] = ()  # peers in other processes, rebuilt on change
         self._backends = tuple(node.backends.values())
         for backend in self._backends:
             backend.on_creating_endpoint(self.info)
@@ -136,6 +151,7 @@ class Publisher:
         if not appeared:
             with self._lock:
                 peer = self._peers.pop(gid, None)
+                self._update_remote()
             if peer is not None:
                 peer.close()
                 endpoint_gone(self._backends, peer.info)
@@ -162,8 +178,16 @@ class Publisher:
                     keep = not self._closed and gid not in self._peers
                     if keep:
                         self._peers[gid] = peer
+                        self._update_remote()
         if not keep:
             endpoint_gone(self._backends, info)
+
+    def _update_remote(self) -> None:
+        """Rebuild the peers publish() serves through Zenoh; call with ``self._lock`` held.
+        Subscriptions of this process are served in-process (they register there before their
+        token is declared, so discovery already knows them as local)."""
+        self._remote = tuple(peer for gid, peer in self._peers.items()
+                             if not _process.is_local_subscription(gid))
 
     def get_subscription_count(self) -> int:
         """Matched subscriptions (local and remote) currently known through discovery."""
@@ -188,34 +212,28 @@ class Publisher:
             raise InvalidEndpointError(
                 f"publisher of {self.msg_type.__msgtype__} got {type(msg).__name__}")
         validate_message(msg)
-        if self._has_buffers:
-            seal_buffers(msg)  # the write ends here, on every route
-            backends = buffer_backends_of(msg)
-        else:
-            backends = set()
+        backends = seal_and_list_backends(msg, self._flat_buffers)  # the write ends here
         with self._lock:
             if self._closed:
                 raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
             self._sequence += 1
             sequence = self._sequence
-            peers = list(self._peers.values()) if self._peers else ()
+            remote = self._remote
         attachment = wire.Attachment(sequence, time.time_ns(), self.gid)
-        if not peers:
+        if not remote:
             self._publish_intra(msg, backends, attachment)
             return
         with self._out_lock:
-            self._publish_remote(msg, backends, attachment, peers)
+            self._publish_remote(msg, backends, attachment, remote)
 
-    def _publish_remote(self, msg: Message, backends: set[str], attachment: wire.Attachment,
-                        peers: Any) -> None:
+    def _publish_remote(self, msg: Message, backends: frozenset[str],
+                        attachment: wire.Attachment, peers: tuple[_Peer, ...]) -> None:
         # Everything is serialized (and size-checked) before anything leaves, so a message too
         # large for the transport reaches nobody rather than some.
         cpu_payload: bytearray | None = None
         individual: list[tuple[_Peer, bytearray | None]] = []
         need_cpu_channel = need_base = False
         for peer in peers:
-            if _process.is_local_subscription(peer.token.gid):
-                continue
             if not peer.token.buffer_aware:
                 need_base = True
             elif not peer.individual:
@@ -230,13 +248,15 @@ class Publisher:
             cpu_payload = self._out = self._checked(serialize_message(msg, out=self._out))
         self._publish_intra(msg, backends, attachment)
         encoded = attachment.encode()
-        with typed_zenoh_errors(f"publish on {self.topic_name}"):
+        try:
             for peer, payload in individual:
                 self._put_individual(peer, cpu_payload if payload is None else payload, encoded)
             if need_cpu_channel:
                 self._cpu.put(cpu_payload, attachment=encoded)
             if need_base:
                 self._base.put(cpu_payload, attachment=encoded, encoding=_BUFFER_AWARE_ENCODING)
+        except zenoh.ZError as exc:
+            raise TransportError(f"publish on {self.topic_name}: {exc}") from exc
 
     def _checked(self, payload: bytearray | None, msg: Message | None = None) -> bytearray:
         """``payload`` if Zenoh carries it, else PayloadTooLargeError (None: always raise,
@@ -251,7 +271,7 @@ class Publisher:
                 "see transport/link/rx/max_message_size); split it, or use a buffer backend")
         return payload
 
-    def _publish_intra(self, msg: Message, backends: set[str],
+    def _publish_intra(self, msg: Message, backends: frozenset[str],
                        attachment: wire.Attachment) -> None:
         subscriptions = _process.local_subscriptions(self._intra_key)
         if not subscriptions:
@@ -308,6 +328,7 @@ class Publisher:
             self._closed = True
             peers = list(self._peers.values())
             self._peers.clear()
+            self._remote = ()
         _process.remove_publisher(self.gid)
         for peer in peers:
             peer.close()
