@@ -185,6 +185,13 @@ def format_table(report: dict[str, Any]) -> str:
                                                  f"{r['target']:g}{unit})"
         detail = f"  [{r['detail']}]" if r.get("detail") else ""
         out.append(f"  {r['verdict']:<5} {r['description']}: {value}{target}{detail}")
+    stages = report.get("stages")
+    if stages and stages.get("status") == "ok":
+        from benchmarks.stages import format_stages
+
+        out += ["", format_stages(stages)]
+    elif stages:
+        out += ["", f"Stages: {stages.get('status')}: {stages.get('reason', '')}"]
     bandwidth = report.get("copy_bandwidth", {})
     if bandwidth.get("status") == "ok" and bandwidth.get("text"):
         out += ["", "Copy kernels (benchmarks.copy_bandwidth --quick):", bandwidth["text"]]
