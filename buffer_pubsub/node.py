@@ -41,8 +41,8 @@ __all__ = ["Node"]
 
 _log = logging.getLogger(__name__)
 
-#: Upper bound of :meth:`Node.close` on a frozen or vanished peer (each blocking Zenoh step).
-CLOSE_TIMEOUT_S = 2.0
+#: Budget of :meth:`Node.close` on a frozen or vanished peer (all blocking steps together).
+CLOSE_TIMEOUT_S = 3.0
 #: Tokens of publishers that left, kept so their last samples still find their info.
 RECENTLY_GONE = 256
 EXECUTOR_MODES = ("thread", "manual")
@@ -139,8 +139,9 @@ class Node:
     def close(self) -> None:
         """Undeclare every endpoint and token, stop the executor and close the Zenoh session.
 
-        Bounded: each step that may block on a frozen peer gets at most ``CLOSE_TIMEOUT_S``
-        seconds (left to finish in the background); Zenoh failures are logged, never raised.
+        Bounded: the steps that may block on a frozen peer share ``CLOSE_TIMEOUT_S`` seconds
+        (what is not done by then finishes in the background); Zenoh failures are logged, never
+        raised.
         """
         with self._lock:
             if self._closed:
@@ -151,16 +152,20 @@ class Node:
             self._subscriptions.clear()
             self._graph_cond.notify_all()
         self._executor.stop()
+        deadline = time.monotonic() + CLOSE_TIMEOUT_S
+
+        def left() -> float:  # every step shares one budget; the last still gets a moment
+            return max(0.2, deadline - time.monotonic())
 
         def undeclare() -> None:
             for endpoint in endpoints:
                 endpoint._undeclare()
             undeclare_quietly(self._graph_subscriber, self._node_token)
 
-        run_bounded(undeclare, CLOSE_TIMEOUT_S, f"undeclaring node {self.name}")
+        run_bounded(undeclare, left(), f"undeclaring node {self.name}")
         if self._thread is not None and threading.current_thread() is not self._thread:
-            self._thread.join(timeout=CLOSE_TIMEOUT_S)
-        run_bounded(self.session.close, CLOSE_TIMEOUT_S, f"closing node {self.name}'s session")
+            self._thread.join(timeout=left())
+        run_bounded(self.session.close, left(), f"closing node {self.name}'s session")
 
     def _check_open(self) -> None:
         if self._closed:
