@@ -52,18 +52,21 @@ def _flat_buffer_fields(msg_type: type[Message]) -> tuple[str, ...] | None:
     return tuple(sorted(msg_type._buffer_fields))
 
 
-def seal_and_list_backends(msg: Message, flat: tuple[str, ...] | None) -> frozenset[str]:
-    """Seal every buffer of ``msg`` (once per publish, every route) and return the backend
-    names they live in, in one walk."""
+def seal_and_list_backends(msg: Message,
+                           flat: tuple[str, ...] | None) -> tuple[frozenset[str], int]:
+    """Seal every buffer of ``msg`` (once per publish, every route); return the backend names
+    they live in and their total size in bytes, in one walk."""
     if flat is not None:
         buffers: Any = [getattr(msg, name) for name in flat]
     else:
         buffers = list(iter_buffers(msg))
     if not buffers:
-        return _NO_BACKENDS
+        return _NO_BACKENDS, 0
+    nbytes = 0
     for buffer in buffers:
         buffer.seal()
-    return frozenset(buffer.get_backend_type() for buffer in buffers)
+        nbytes += len(buffer)
+    return frozenset(buffer.get_backend_type() for buffer in buffers), nbytes
 
 
 _NO_BACKENDS: frozenset[str] = frozenset()
@@ -212,7 +215,7 @@ class Publisher:
             raise InvalidEndpointError(
                 f"publisher of {self.msg_type.__msgtype__} got {type(msg).__name__}")
         validate_message(msg)
-        backends = seal_and_list_backends(msg, self._flat_buffers)  # the write ends here
+        backends, nbytes = seal_and_list_backends(msg, self._flat_buffers)  # the write ends
         with self._lock:
             if self._closed:
                 raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
@@ -224,9 +227,9 @@ class Publisher:
             self._publish_intra(msg, backends, attachment)
             return
         with self._out_lock:
-            self._publish_remote(msg, backends, attachment, remote)
+            self._publish_remote(msg, backends, nbytes, attachment, remote)
 
-    def _publish_remote(self, msg: Message, backends: frozenset[str],
+    def _publish_remote(self, msg: Message, backends: frozenset[str], nbytes: int,
                         attachment: wire.Attachment, peers: tuple[_Peer, ...]) -> None:
         # Everything is serialized (and size-checked) before anything leaves, so a message too
         # large for the transport reaches nobody rather than some.
@@ -243,8 +246,8 @@ class Publisher:
             else:
                 individual.append((peer, None))  # the shared CPU serialization
         if need_cpu_channel or need_base or any(p is None for _, p in individual):
-            if sum(len(b) for b in iter_buffers(msg)) > self.node.max_message_size:
-                self._checked(None, msg)  # hopeless: raise before copying a huge payload
+            if nbytes > self.node.max_message_size:
+                self._checked(None, nbytes)  # hopeless: raise before copying a huge payload
             cpu_payload = self._out = self._checked(serialize_message(msg, out=self._out))
         self._publish_intra(msg, backends, attachment)
         encoded = attachment.encode()
@@ -258,13 +261,13 @@ class Publisher:
         except zenoh.ZError as exc:
             raise TransportError(f"publish on {self.topic_name}: {exc}") from exc
 
-    def _checked(self, payload: bytearray | None, msg: Message | None = None) -> bytearray:
-        """``payload`` if Zenoh carries it, else PayloadTooLargeError (None: always raise,
-        for ``msg`` whose buffers alone exceed the limit)."""
+    def _checked(self, payload: bytearray | None, nbytes: int = 0) -> bytearray:
+        """``payload`` if Zenoh carries it, else PayloadTooLargeError (None: always raise, for
+        a message whose buffers alone, ``nbytes``, exceed the limit)."""
         limit = self.node.max_message_size
         if payload is None or len(payload) > limit:
             size = (f"{len(payload)} bytes" if payload is not None else
-                    f"more than its {sum(len(b) for b in iter_buffers(msg))} buffer bytes")
+                    f"more than its {nbytes} buffer bytes")
             raise PayloadTooLargeError(
                 f"a {self.msg_type.__msgtype__} message serializes to {size}, over the "
                 f"{limit}-byte limit of the transport (Zenoh carries at most 1 GiB per message; "
