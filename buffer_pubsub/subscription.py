@@ -310,7 +310,7 @@ class Subscription:
             msg = payload
         else:
             try:
-                msg = self._deserialize(payload, attachment)
+                msg = self._deserialize(payload, attachment, route)
             except Exception as exc:  # typed errors expected; a backend bug is counted too
                 with self._lock:
                     self.counters.errors += 1
@@ -337,11 +337,13 @@ class Subscription:
             self.last_error = exc
             _log.exception("%r: callback raised", self)
 
-    def _deserialize(self, payload: bytes, attachment: wire.Attachment) -> Message:
+    def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str) -> Message:
         # Only a payload built for us may hold descriptors, which need the publisher's info; it
         # was parked until the token arrived. CPU payloads need no publisher info.
-        token = self.node._publisher_token(attachment.publisher_gid)
-        info = None if token is None else endpoint_info(token)
+        info = None
+        if route == ROUTE_BUFFER:
+            token = self.node._publisher_token(attachment.publisher_gid)
+            info = None if token is None else endpoint_info(token)
         return deserialize_message(payload, self.msg_type, backends=self.node.backends,
                                    endpoint_info=info)
 
