@@ -129,7 +129,8 @@ def test_unknown_publisher_samples_park_without_stalling_other_subscriptions(
             peer.close()
     assert sorted(check_frame(m)["index"] for m, _ in got) == [10, 11, 12]
     assert {i.route for _, i in got} == {"buffer"}
-    assert max(np.diff(ticks)) < 0.3, "a sample waiting for discovery stalled the executor"
+    # Before, each such sample held the node's only callback thread for 1 s.
+    assert max(np.diff(ticks)) < 0.6, "a sample waiting for discovery stalled the executor"
 
 
 # --------------------------------------------------------------------------- 2 + 3. frozen peer
@@ -237,14 +238,15 @@ def test_slow_subscriber_holds_one_pending_task_at_most(domain, topic, backends)
         watcher.start()
         try:
             pub.wait_ready()
-            assert _wait(lambda: sub.received + sub.counters.dropped >= 300, 20)
+            assert _wait(lambda: sub.received + sub.counters.dropped + sub.lost >= 300, 20)
             pub.stop()
         finally:
             stop.set()
             watcher.join()
             pub.close()
     assert peak[0] <= 1
-    assert sub.counters.dropped > 100 and sub.received + sub.counters.dropped == 300
+    assert sub.counters.dropped > 100
+    assert sub.received + sub.counters.dropped + sub.lost == 300
 
 
 def test_manual_executor_runs_callbacks_on_the_spinning_thread(domain, topic, backends):
