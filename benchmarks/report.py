@@ -95,6 +95,7 @@ def ratios(paths: dict[str, Any]) -> dict[str, dict[str, Any]]:
             "description": "warp zero-copy p50 at 64 MiB / p50 at 4 KiB (lower is better)",
             **_verdict(flat, 1.2, False, _missing(paths, (zc,), (SIZE_64M, SIZE_4K)))},
     }
+    result.update(transport_ratios(paths))
     largest = max((int(s) for s in (paths.get(zc, {}).get("latency_us") or {})), default=None)
     if largest is not None and largest > SIZE_64M:
         result[f"flatness_{format_size(largest).replace(' ', '')}_over_4KiB"] = {
@@ -102,6 +103,30 @@ def ratios(paths: dict[str, Any]) -> dict[str, dict[str, Any]]:
             "value": ratio(p50(paths, zc, largest), p50(paths, zc, SIZE_4K)),
             "target": None, "verdict": "INFO", "detail": ""}
     return result
+
+
+def transport_ratios(paths: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The transport's own goals: in-process hand-off and CPU fallback against their floors."""
+    intra, handoff, cpu, raw = "intra_prepared", "thread_handoff", "cpu_fallback", "zenoh_copy"
+    one_way = p50(paths, intra, SIZE_4K)
+    return {
+        "intra_one_way_4KiB": {
+            "description": "ours in-process one-way p50 at 4 KiB, prepared message (us)",
+            "unit": "us",
+            **_verdict(one_way, 20.0, False, _missing(paths, (intra,), (SIZE_4K,)))},
+        "intra_over_thread_handoff_4KiB": {
+            "description": "ours in-process p50 / bare thread hand-off p50 at 4 KiB",
+            **_verdict(ratio(one_way, p50(paths, handoff, SIZE_4K)), 1.5, False,
+                       _missing(paths, (intra, handoff), (SIZE_4K,)))},
+        "cpu_fallback_over_zenoh_16MiB": {
+            "description": "ours CPU fallback p50 / raw Zenoh put p50 at 16 MiB",
+            **_verdict(ratio(p50(paths, cpu, SIZE_16M), p50(paths, raw, SIZE_16M)), 1.1, False,
+                       _missing(paths, (cpu, raw), (SIZE_16M,)))},
+        "cpu_fallback_over_zenoh_4KiB": {
+            "description": "ours CPU fallback p50 / raw Zenoh put p50 at 4 KiB",
+            **_verdict(ratio(p50(paths, cpu, SIZE_4K), p50(paths, raw, SIZE_4K)), 1.3, False,
+                       _missing(paths, (cpu, raw), (SIZE_4K,)))},
+    }
 
 
 # ----------------------------------------------------------------------------------- table
@@ -151,13 +176,22 @@ def format_table(report: dict[str, Any]) -> str:
     notes += [f"  {e['label']}: {error}" for e in paths.values() for error in e.get("errors", [])]
     if notes:
         out += ["Not measured:", *notes, ""]
-    out.append("Ratios (targets for the zero-copy path):")
+    out.append("Ratios and targets:")
     for name, r in report["ratios"].items():
-        value = "n/a" if r["value"] is None else f"{r['value']:.2f}x"
+        unit = r.get("unit", "x")
+        unit = " us" if unit == "us" else unit
+        value = "n/a" if r["value"] is None else f"{r['value']:.2f}{unit}"
         target = "" if r["target"] is None else f" (target {'>=' if 'speedup' in name else '<='} "\
-                                                 f"{r['target']:g}x)"
+                                                 f"{r['target']:g}{unit})"
         detail = f"  [{r['detail']}]" if r.get("detail") else ""
         out.append(f"  {r['verdict']:<5} {r['description']}: {value}{target}{detail}")
+    stages = report.get("stages")
+    if stages and stages.get("status") == "ok":
+        from benchmarks.stages import format_stages
+
+        out += ["", format_stages(stages)]
+    elif stages:
+        out += ["", f"Stages: {stages.get('status')}: {stages.get('reason', '')}"]
     ipc_core = report.get("ipc_core", {})
     if ipc_core.get("status") == "ok" and ipc_core.get("text"):
         out += ["", ipc_core["text"]]

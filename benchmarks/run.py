@@ -22,7 +22,7 @@ from benchmarks.machine import describe, machine_info
 from benchmarks.paths import PATH_MODULES, PathSettings, load_path
 from benchmarks.processes import free_tcp_port, run_path
 from benchmarks.protocol import METHOD, progress
-from benchmarks.report import format_table, path_entry, ratios
+from benchmarks.report import format_table, path_entry, ratios, transport_ratios
 from benchmarks.stats import format_size, parse_size
 
 DEFAULT_SIZES = "4K,64K,1M,16M,64M,256M"
@@ -104,6 +104,21 @@ def _section(module: str, title: str, quick: bool, timeout_s: float) -> dict[str
     return {"status": "ok", "text": out.rstrip()}
 
 
+def _stages(timeout_s: float) -> dict[str, Any]:
+    """``benchmarks.stages`` in a child (its Zenoh sessions and threads stay out of the runs)."""
+    progress("stages: python -m benchmarks.stages --json")
+    try:
+        process = subprocess.run([sys.executable, "-m", "benchmarks.stages", "--json"],
+                                 capture_output=True, text=True, timeout=timeout_s,
+                                 cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    except subprocess.TimeoutExpired:
+        return {"status": "error", "reason": f"timed out after {timeout_s:.0f} s"}
+    if process.returncode != 0:
+        return {"status": "error",
+                "reason": (process.stderr.strip().splitlines() or ["failed"])[-1]}
+    return {"status": "ok", **json.loads(process.stdout.strip().splitlines()[-1])}
+
+
 def measure(args: argparse.Namespace) -> dict[str, Any]:
     """Run every selected path; the full report (not yet written)."""
     plan = _plan(args)
@@ -142,6 +157,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         report["ipc_core"] = _section("ipc_core", "IPC core", args.quick,
                                       120.0 if args.quick else 300.0)
     report["ratios"] = ratios(report["paths"])
+    if any(r["verdict"] == "MISS" for r in transport_ratios(report["paths"]).values()):
+        report["stages"] = _stages(60.0)  # a transport target missed: show where time goes
     report["wall_s"] = time.monotonic() - started
     return report
 

@@ -19,8 +19,10 @@ Quick start::
         node.create_subscription(Tensor, "/frames", print, acceptable_buffer_backends="any")
 
 Connectivity (no router by default; a config file or a router endpoint for multi-host use) is
-described in :mod:`buffer_pubsub.config`. QoS: keep-last ``depth``, reliable, volatile durability
-only (no late-joiner history).
+described in :mod:`buffer_pubsub.config`. QoS: keep-last ``depth`` (congestion control DROP) or
+``history="keep_all"`` (BLOCK), reliable, volatile durability only (no late-joiner history).
+Callbacks run on the node's executor thread, or on your own thread with
+``Node(..., executor="manual")`` and ``node.spin()`` / ``node.spin_once(timeout)``.
 
 buffer_pubsub knows backends only through :class:`rosidl_buffer.BufferBackend` and
 :mod:`rosidl_buffer.registry`; it imports no backend.
@@ -28,19 +30,30 @@ buffer_pubsub knows backends only through :class:`rosidl_buffer.BufferBackend` a
 
 from .config import DEFAULT_CONFIG, make_config
 from .errors import (
+    ExecutorModeError,
     InvalidEndpointError,
+    InvalidNameError,
     NodeClosedError,
+    PayloadTooLargeError,
     PubSubError,
     TransportConfigError,
+    TransportError,
     WireFormatError,
 )
+from ._waker import ThreadWaker, Waker
 from .node import Node
 from .publisher import Publisher
 from .subscription import MessageInfo, Subscription, SubscriptionCounters
 
 __all__ = [
     "DEFAULT_CONFIG",
+    "ExecutorModeError",
     "InvalidEndpointError",
+    "InvalidNameError",
+    "PayloadTooLargeError",
+    "ThreadWaker",
+    "TransportError",
+    "Waker",
     "MessageInfo",
     "Node",
     "NodeClosedError",

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
-from rosidl_buffer import EndpointInfo, EndpointType
+import logging
+from collections.abc import Iterable
+
+from rosidl_buffer import BufferBackend, EndpointInfo, EndpointType
 
 from . import wire
 
-__all__ = ["endpoint_info"]
+__all__ = ["endpoint_gone", "endpoint_info"]
+
+_log = logging.getLogger(__name__)
 
 
 def endpoint_info(token: wire.EndpointToken) -> EndpointInfo:
@@ -35,3 +40,16 @@ def _build(token: wire.EndpointToken) -> EndpointInfo:
         user_id=token.locality.user_id,
         supported_backends=token.backends,
     )
+
+
+def endpoint_gone(backends: Iterable[BufferBackend], info: EndpointInfo) -> None:
+    """Tell each backend that an endpoint it was told about (created or discovered) is gone, so
+    it can drop what it keeps for it; a failing hook is logged, never raised (teardown)."""
+    for backend in backends:
+        hook = getattr(backend, "on_endpoint_gone", None)  # older backends may lack it
+        if hook is None:
+            continue
+        try:
+            hook(info)
+        except Exception:
+            _log.exception("%s.on_endpoint_gone failed", type(backend).__name__)

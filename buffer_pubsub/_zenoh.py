@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import threading
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import zenoh
+
+from .errors import TransportError
+
+_log = logging.getLogger(__name__)
 
 
 def undeclare_quietly(*entities: Any) -> None:
@@ -15,3 +23,36 @@ def undeclare_quietly(*entities: Any) -> None:
             entity.undeclare()
         except zenoh.ZError:
             pass
+
+
+@contextlib.contextmanager
+def typed_zenoh_errors(what: str) -> Iterator[None]:
+    """Re-raise ``zenoh.ZError`` as :class:`TransportError` (a library raises its own types)."""
+    try:
+        yield
+    except zenoh.ZError as exc:
+        raise TransportError(f"{what}: {exc}") from exc
+
+
+def run_bounded(work: Callable[[], None], timeout: float, what: str) -> bool:
+    """Run ``work`` on a helper thread and wait at most ``timeout`` seconds for it.
+
+    Teardown calls into Zenoh can block on a frozen peer (a full transmit queue waits for the
+    link to close); the caller goes on after ``timeout`` and the helper finishes in the
+    background. Errors of ``work`` are logged, never raised: teardown must not replace an
+    exception already on its way out. True when ``work`` finished in time.
+    """
+    def run() -> None:
+        try:
+            work()
+        except Exception as exc:  # logged: nobody is left to handle it
+            _log.warning("%s failed: %s", what, exc)
+
+    thread = threading.Thread(target=run, name=f"buffer_pubsub:{what}", daemon=True)
+    thread.start()
+    thread.join(timeout)
+    if thread.is_alive():
+        _log.warning("%s did not finish within %.1f s; left to finish in the background",
+                     what, timeout)
+        return False
+    return True

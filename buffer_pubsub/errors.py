@@ -5,7 +5,8 @@ from __future__ import annotations
 from rosidl_buffer.errors import RosidlBufferError
 
 __all__ = ["PubSubError", "WireFormatError", "NodeClosedError", "TransportConfigError",
-           "InvalidEndpointError"]
+           "InvalidEndpointError", "InvalidNameError", "PayloadTooLargeError", "TransportError",
+           "ExecutorModeError"]
 
 
 class PubSubError(RosidlBufferError):
@@ -26,3 +27,19 @@ class TransportConfigError(PubSubError, ValueError):
 
 class InvalidEndpointError(PubSubError, ValueError):
     """Bad arguments to create_publisher / create_subscription or publish."""
+
+
+class InvalidNameError(InvalidEndpointError):
+    """A node name, namespace or topic name breaks the ROS 2 name rules."""
+
+
+class PayloadTooLargeError(InvalidEndpointError):
+    """A serialized message exceeds the largest message the transport carries."""
+
+
+class TransportError(PubSubError, RuntimeError):
+    """Zenoh failed underneath (wraps ``zenoh.ZError``; the original is the ``__cause__``)."""
+
+
+class ExecutorModeError(PubSubError, RuntimeError):
+    """``spin()`` / ``spin_once()`` on a node whose callbacks run on its own executor thread."""

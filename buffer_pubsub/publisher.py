@@ -25,36 +25,51 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from rosidl_buffer import Buffer, EndpointInfo
-from rosidl_buffer.messages import Message, deserialize_message, serialize_message
+from rosidl_buffer.messages import Message, deserialize_message, iter_buffers, serialize_message
+from rosidl_buffer.messages._schema import FieldKind
 
 from . import _process, wire
+from ._info import endpoint_gone, endpoint_info
+from ._validation import validate_message
 from ._zenoh import undeclare_quietly
-from ._info import endpoint_info
-from .errors import InvalidEndpointError, NodeClosedError
+from .errors import InvalidEndpointError, NodeClosedError, PayloadTooLargeError, TransportError
 
 if TYPE_CHECKING:
     from .node import Node
 
-__all__ = ["Publisher", "buffer_backends_of"]
+__all__ = ["Publisher", "seal_and_list_backends"]
 
 _log = logging.getLogger(__name__)
 
+_BUFFER_AWARE_ENCODING = zenoh.Encoding.APPLICATION_CDR.with_schema(wire.BUFFER_AWARE_SCHEMA)
 
-def buffer_backends_of(message: Message) -> set[str]:
-    """Backend names of every buffer in ``message``, nested messages included."""
-    found: set[str] = set()
-    stack: list[Any] = [message]
-    while stack:
-        item = stack.pop()
-        for name in item.__slots__:
-            value = getattr(item, name)
-            if isinstance(value, Buffer):
-                found.add(value.get_backend_type())
-            elif isinstance(value, Message):
-                stack.append(value)
-            elif isinstance(value, list):
-                stack.extend(v for v in value if isinstance(v, Message))
-    return found
+
+def _flat_buffer_fields(msg_type: type[Message]) -> tuple[str, ...] | None:
+    """The buffer fields of a message type without nested messages (the common case: one
+    getattr each per publish), or None when nested messages need the full walk."""
+    if any(spec.kind is FieldKind.MESSAGE for spec in msg_type._schema.fields):
+        return None
+    return tuple(sorted(msg_type._buffer_fields))
+
+
+def seal_and_list_backends(msg: Message,
+                           flat: tuple[str, ...] | None) -> tuple[frozenset[str], int]:
+    """Seal every buffer of ``msg`` (once per publish, every route); return the backend names
+    they live in and their total size in bytes, in one walk."""
+    if flat is not None:
+        buffers: Any = [getattr(msg, name) for name in flat]
+    else:
+        buffers = list(iter_buffers(msg))
+    if not buffers:
+        return _NO_BACKENDS, 0
+    nbytes = 0
+    for buffer in buffers:
+        buffer.seal()
+        nbytes += len(buffer)
+    return frozenset(buffer.get_backend_type() for buffer in buffers), nbytes
+
+
+_NO_BACKENDS: frozenset[str] = frozenset()
 
 
 def cpu_copy(message: Message) -> Message:
@@ -90,11 +105,12 @@ class Publisher:
     """Created by :meth:`Node.create_publisher`; publishes ``msg_type`` messages on a topic."""
 
     def __init__(self, node: Node, msg_type: type[Message], token: wire.EndpointToken,
-                 depth: int) -> None:
+                 depth: int, history: str = wire.KEEP_LAST) -> None:
         self.node = node
         self.msg_type = msg_type
         self.topic_name = token.topic
         self.depth = depth
+        self.history = history
         self._token = token
         self.gid = token.gid
         self.info = endpoint_info(token)
@@ -104,7 +120,19 @@ class Publisher:
         self._peers: dict[bytes, _Peer] = {}
         self._sequence = 0
         self._closed = False
-        for backend in node.backends.values():
+        # As rmw_zenoh: keep-last drops when Zenoh's queue to a peer is full (a frozen
+        # subscriber never stalls publish()), keep-all blocks (no loss, publish() waits).
+        self._congestion = (zenoh.CongestionControl.BLOCK if history == wire.KEEP_ALL
+                            else zenoh.CongestionControl.DROP)
+        # One CDR output buffer, reused while the serialized size stays the same: Zenoh copies
+        # the bytes during put(), and a fresh buffer per message costs page faults (~10 ms at
+        # 16 MiB). The lock keeps concurrent publish() calls from sharing it.
+        self._out: bytearray | None = None
+        self._out_lock = threading.Lock()
+        self._flat_buffers = _flat_buffer_fields(msg_type)
+        self._remote: tuple[_Peer, ...] = ()  # peers in other processes, rebuilt on change
+        self._backends = tuple(node.backends.values())
+        for backend in self._backends:
             backend.on_creating_endpoint(self.info)
         self._base = self._declare_channel(self.base_key)
         self._cpu = self._declare_channel(wire.cpu_channel_key(self.base_key))
@@ -126,10 +154,10 @@ class Publisher:
         if not appeared:
             with self._lock:
                 peer = self._peers.pop(gid, None)
+                self._update_remote()
             if peer is not None:
                 peer.close()
-                for name in peer.served:  # what was sent to it no longer pins backend memory
-                    self.node.backends[name].on_endpoint_gone(peer.info)
+                endpoint_gone(self._backends, peer.info)
             return
         info = endpoint_info(token)
         peer = _Peer(token, info)
@@ -143,9 +171,26 @@ class Publisher:
                     info, existing, info.supported_backends)
                 if accepted:
                     peer.served.add(name)
-        with self._lock:
-            if not self._closed:
-                self._peers.setdefault(gid, peer)
+        # Negotiation ran unlocked; keep the peer only if it is still in the graph (checked
+        # under the node's lock, which its DELETE takes before calling us), else a DELETE that
+        # overtook us would leave a ghost peer pinning a block per publish.
+        with self.node._lock:
+            keep = self.node._still_in_graph(token)
+            if keep:
+                with self._lock:
+                    keep = not self._closed and gid not in self._peers
+                    if keep:
+                        self._peers[gid] = peer
+                        self._update_remote()
+        if not keep:
+            endpoint_gone(self._backends, info)
+
+    def _update_remote(self) -> None:
+        """Rebuild the peers publish() serves through Zenoh; call with ``self._lock`` held.
+        Subscriptions of this process are served in-process (they register there before their
+        token is declared, so discovery already knows them as local)."""
+        self._remote = tuple(peer for gid, peer in self._peers.items()
+                             if not _process.is_local_subscription(gid))
 
     def get_subscription_count(self) -> int:
         """Matched subscriptions (local and remote) currently known through discovery."""
@@ -161,51 +206,85 @@ class Publisher:
 
     # -- publishing ----------------------------------------------------------------------------
     def publish(self, msg: Message) -> None:
-        """Send ``msg`` to every matched subscription, each by exactly one route."""
-        if not isinstance(msg, self.msg_type):
+        """Send ``msg`` to every matched subscription, each by exactly one route.
+
+        Field values are checked first, whoever listens (SerializationError); a payload larger
+        than the transport carries raises PayloadTooLargeError before anything is sent.
+        """
+        if type(msg) is not self.msg_type and not isinstance(msg, self.msg_type):
             raise InvalidEndpointError(
                 f"publisher of {self.msg_type.__msgtype__} got {type(msg).__name__}")
+        validate_message(msg)
+        backends, nbytes = seal_and_list_backends(msg, self._flat_buffers)  # the write ends
         with self._lock:
             if self._closed:
                 raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
             self._sequence += 1
             sequence = self._sequence
-            peers = list(self._peers.values())
+            remote = self._remote
         attachment = wire.Attachment(sequence, time.time_ns(), self.gid)
-        backends = buffer_backends_of(msg)
-        self._publish_intra(msg, backends, attachment)
+        if not remote:
+            self._publish_intra(msg, backends, attachment)
+            return
+        with self._out_lock:
+            self._publish_remote(msg, backends, nbytes, attachment, remote)
 
+    def _publish_remote(self, msg: Message, backends: frozenset[str], nbytes: int,
+                        attachment: wire.Attachment, peers: tuple[_Peer, ...]) -> None:
+        # Everything is serialized (and size-checked) before anything leaves, so a message too
+        # large for the transport reaches nobody rather than some.
         cpu_payload: bytearray | None = None
+        individual: list[tuple[_Peer, bytearray | None]] = []
         need_cpu_channel = need_base = False
-        encoded = attachment.encode()
         for peer in peers:
-            if _process.is_local_subscription(peer.token.gid):
-                continue
             if not peer.token.buffer_aware:
                 need_base = True
             elif not peer.individual:
                 need_cpu_channel = True
             elif peer.served & backends:
-                self._put_individual(peer, self._serialize_for(peer, msg), encoded)
+                individual.append((peer, self._checked(self._serialize_for(peer, msg))))
             else:
-                if cpu_payload is None:
-                    cpu_payload = serialize_message(msg)
-                self._put_individual(peer, cpu_payload, encoded)
-        if need_cpu_channel or need_base:
-            if cpu_payload is None:
-                cpu_payload = serialize_message(msg)
+                individual.append((peer, None))  # the shared CPU serialization
+        if need_cpu_channel or need_base or any(p is None for _, p in individual):
+            if nbytes > self.node.max_message_size:
+                self._checked(None, nbytes)  # hopeless: raise before copying a huge payload
+            cpu_payload = self._out = self._checked(serialize_message(msg, out=self._out))
+        self._publish_intra(msg, backends, attachment)
+        encoded = attachment.encode()
+        try:
+            for peer, payload in individual:
+                self._put_individual(peer, cpu_payload if payload is None else payload, encoded)
             if need_cpu_channel:
                 self._cpu.put(cpu_payload, attachment=encoded)
             if need_base:
-                self._base.put(cpu_payload, attachment=encoded)
+                self._base.put(cpu_payload, attachment=encoded, encoding=_BUFFER_AWARE_ENCODING)
+        except zenoh.ZError as exc:
+            raise TransportError(f"publish on {self.topic_name}: {exc}") from exc
 
-    def _publish_intra(self, msg: Message, backends: set[str],
+    def _checked(self, payload: bytearray | None, nbytes: int = 0) -> bytearray:
+        """``payload`` if Zenoh carries it, else PayloadTooLargeError (None: always raise, for
+        a message whose buffers alone, ``nbytes``, exceed the limit)."""
+        limit = self.node.max_message_size
+        if payload is None or len(payload) > limit:
+            size = (f"{len(payload)} bytes" if payload is not None else
+                    f"more than its {nbytes} buffer bytes")
+            raise PayloadTooLargeError(
+                f"a {self.msg_type.__msgtype__} message serializes to {size}, over the "
+                f"{limit}-byte limit of the transport (Zenoh carries at most 1 GiB per message; "
+                "see transport/link/rx/max_message_size); split it, or use a buffer backend")
+        return payload
+
+    def _publish_intra(self, msg: Message, backends: frozenset[str],
                        attachment: wire.Attachment) -> None:
+        subscriptions = _process.local_subscriptions(self._intra_key)
+        if not subscriptions:
+            return
         copy: Message | None = None
-        for subscription in _process.local_subscriptions(self._intra_key):
-            if subscription.node.domain_id != self.node.domain_id:
+        domain_id = self.node.domain_id
+        for subscription in subscriptions:
+            if subscription.node.domain_id != domain_id:
                 continue
-            if backends <= set(subscription.accepted):
+            if not backends or backends.issubset(subscription.accepted):
                 subscription._deliver_intra(msg, attachment)
             else:
                 if copy is None:
@@ -235,12 +314,9 @@ class Publisher:
             peer.channel.put(payload, attachment=attachment)
 
     def _declare_channel(self, key: str) -> zenoh.Publisher:
-        # Reliable QoS: block rather than drop when Zenoh's queues are full (Zenoh's default
-        # drops, which lost large messages under load). Zenoh's same-session delivery is skipped:
-        # local subscriptions are served in-process.
+        # Zenoh's same-session delivery is skipped: local subscriptions are served in-process.
         return self.node.session.declare_publisher(
-            key, allowed_destination=zenoh.Locality.REMOTE,
-            congestion_control=zenoh.CongestionControl.BLOCK)
+            key, allowed_destination=zenoh.Locality.REMOTE, congestion_control=self._congestion)
 
     # -- teardown ------------------------------------------------------------------------------
     def destroy(self) -> None:
@@ -255,7 +331,10 @@ class Publisher:
             self._closed = True
             peers = list(self._peers.values())
             self._peers.clear()
+            self._remote = ()
         _process.remove_publisher(self.gid)
         for peer in peers:
             peer.close()
+            endpoint_gone(self._backends, peer.info)
         undeclare_quietly(self._liveliness, self._base, self._cpu)
+        endpoint_gone(self._backends, self.info)

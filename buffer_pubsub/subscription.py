@@ -1,13 +1,24 @@
 """``Subscription``: receives on its channels, checks attachments, runs the callback on the
-node's executor thread.
+node's executor.
 
 A subscription listens on ``<key>/_buf/<its gid>`` (payloads built for it) when it accepts some
-backend besides CPU, else on ``<key>/_buf_cpu`` (the shared CPU stream), and on the base key,
-where it accepts samples only from discovered publishers that know nothing of buffers (see
-:mod:`.wire`). Samples
-without a valid 33-byte attachment are dropped (``rejected``); a jump in a publisher's sequence
-number counts as ``lost``; a keep-last queue of ``depth`` messages drops the oldest when the
-callback falls behind (``dropped``); a message that cannot be deserialized (a typed
+backend besides CPU, else on ``<key>/_buf_cpu`` (the shared CPU stream), and on the base key (see
+:mod:`.wire`). As rmw_zenoh, it accepts every sample with a valid 33-byte attachment from any
+publisher, whatever its gid: other ROS 2 implementations derive gids their own way. What it
+refuses is counted by reason in ``counters.refused``:
+
+- ``attachment``: no valid attachment;
+- ``duplicate``: a base-key copy written by a buffer-aware publisher (that publisher reaches us
+  on ``_buf_cpu`` / ``_buf/<gid>``);
+- ``unknown_publisher``: a payload built for us (it may hold backend descriptors, which need the
+  publisher's endpoint info) whose publisher's liveliness token did not arrive within
+  ``PUBLISHER_DISCOVERY_WAIT_S``. Such samples wait *parked* in this subscription only (at most
+  ``depth`` of them); no thread ever waits on discovery, and other subscriptions are unaffected.
+
+A jump in a publisher's sequence number counts as ``lost`` when within ``LOST_WINDOW`` (a larger
+jump, spoofed or a restarted counter, only resynchronizes and counts in ``sequence_jumps``). A
+keep-last queue of ``depth`` messages drops the oldest when the callback falls behind
+(``dropped``); keep-all keeps every message. A message that cannot be deserialized (a typed
 ``RosidlBufferError``, e.g. a stale backend buffer, or any other exception a backend raises)
 counts in ``errors`` and the subscription goes on.
 """
@@ -19,17 +30,17 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import zenoh
 
 from rosidl_buffer import RosidlBufferError
-from rosidl_buffer.messages import Message, deserialize_message
+from rosidl_buffer.messages import Message, deserialize_message, release_buffers
 
 from . import _process, wire
+from ._info import endpoint_gone, endpoint_info
 from ._zenoh import undeclare_quietly
-from ._info import endpoint_info
 from .errors import PubSubError
 
 if TYPE_CHECKING:
@@ -39,13 +50,23 @@ __all__ = ["MessageInfo", "Subscription", "SubscriptionCounters"]
 
 _log = logging.getLogger(__name__)
 
-#: How long a sample from a not-yet-discovered publisher waits for its liveliness token.
+#: How long a sample built for us waits (parked, nobody blocked) for its publisher's token.
 PUBLISHER_DISCOVERY_WAIT_S = 1.0
+#: Largest sequence gap counted as lost; a larger jump only resynchronizes.
+LOST_WINDOW = 1 << 16
+#: Publishers whose last sequence number a subscription remembers (oldest forgotten first).
+MAX_TRACKED_PUBLISHERS = 1024
 
 ROUTE_INTRA = "intra"  # same process, message object shared (or CPU copy)
 ROUTE_BUFFER = "buffer"  # <key>/_buf/<gid>: serialized for this subscription (descriptor or CPU)
 ROUTE_CPU = "cpu"  # <key>/_buf_cpu: shared CPU stream
-ROUTE_BASE = "base"  # base key, from a publisher that knows nothing of buffers
+ROUTE_BASE = "base"  # base key: plain ROS 2 publishers (rmw_zenoh or others)
+
+REFUSED_ATTACHMENT = "attachment"
+REFUSED_DUPLICATE = "duplicate"
+REFUSED_UNKNOWN_PUBLISHER = "unknown_publisher"
+
+_BUFFER_AWARE_ENCODING = zenoh.Encoding.APPLICATION_CDR.with_schema(wire.BUFFER_AWARE_SCHEMA)
 
 
 @dataclass(frozen=True)
@@ -62,11 +83,13 @@ class MessageInfo:
 @dataclass
 class SubscriptionCounters:
     received: int = 0  # callbacks delivered
-    lost: int = 0  # sequence gaps seen on arrival
+    lost: int = 0  # sequence gaps (within LOST_WINDOW) seen on arrival
     errors: int = 0  # messages that failed to deserialize
     dropped: int = 0  # overwritten in the keep-last queue before the callback ran
-    rejected: int = 0  # samples without a valid attachment, or from an unexpected route
+    rejected: int = 0  # samples refused for a reason other than "duplicate" (see refused)
     callback_errors: int = 0  # exceptions raised by the user callback
+    sequence_jumps: int = 0  # sequence jumps beyond LOST_WINDOW (resynchronized, not counted)
+    refused: dict[str, int] = field(default_factory=dict)  # reason -> samples not delivered
 
 
 class Subscription:
@@ -74,11 +97,12 @@ class Subscription:
 
     def __init__(self, node: Node, msg_type: type[Message], token: wire.EndpointToken,
                  callback: Callable[..., Any], depth: int, accepted: list[str],
-                 with_info: bool) -> None:
+                 with_info: bool, history: str = wire.KEEP_LAST) -> None:
         self.node = node
         self.msg_type = msg_type
         self.topic_name = token.topic
         self.depth = depth
+        self.history = history
         self.accepted: tuple[str, ...] = tuple(accepted)
         self.gid = token.gid
         self.info = endpoint_info(token)
@@ -88,11 +112,15 @@ class Subscription:
         self._callback = callback
         self._with_info = with_info
         self._lock = threading.Lock()
-        self._queue: collections.deque[tuple[Any, ...]] = collections.deque(maxlen=depth)
+        self._queue: collections.deque[tuple[Any, ...]] = collections.deque(
+            maxlen=depth if history == wire.KEEP_LAST else None)
+        self._scheduled = False  # in the executor's ready set (at most once)
+        self._parked: collections.deque[tuple[float, tuple[Any, ...]]] = collections.deque()
         self._last_sequence: dict[bytes, int] = {}
         self._closed = False
         self.base_key = wire.data_key(node.domain_id, token.topic, msg_type.__msgtype__)
-        for backend in node.backends.values():
+        self._backends = tuple(node.backends.values())
+        for backend in self._backends:
             backend.on_creating_endpoint(self.info)
         session = node.session
         remote = zenoh.Locality.REMOTE
@@ -141,6 +169,17 @@ class Subscription:
             wire.PUBLISHER_KIND, self._token.topic, self._token.type_name,
             self._token.type_hash, count, timeout)
 
+    def _matches(self, token: wire.EndpointToken) -> bool:
+        return (token.is_publisher and token.topic == self._token.topic
+                and token.type_name == self._token.type_name)
+
+    def _refuse(self, reason: str, count: int = 1) -> None:
+        """Count ``count`` samples refused for ``reason``; call with ``self._lock`` held."""
+        refused = self.counters.refused
+        refused[reason] = refused.get(reason, 0) + count
+        if reason != REFUSED_DUPLICATE:
+            self.counters.rejected += count
+
     # -- arrival (Zenoh threads, or the publisher's thread for intra-process) -------------------
     def _on_sample(self, sample: zenoh.Sample, route: str) -> None:
         received_ns = time.time_ns()
@@ -149,42 +188,124 @@ class Subscription:
             attachment = wire.Attachment.decode(None if raw is None else raw.to_bytes())
         except PubSubError:
             with self._lock:
-                self.counters.rejected += 1
+                self._refuse(REFUSED_ATTACHMENT)
             return
         gid = attachment.publisher_gid
         if _process.is_local_publisher(gid):
             return  # delivered intra-process already
+        node = self.node
         if route == ROUTE_BASE:
-            publisher = self.node._graph.get(gid)
-            if publisher is None or publisher.buffer_aware:
-                return  # buffer-aware publishers reach us on _buf_cpu or _buf/<gid>
-        self._enqueue((sample.payload.to_bytes(), attachment, route, received_ns))
+            publisher = node._publisher_token(gid)
+            if (publisher is not None and publisher.buffer_aware) or \
+                    sample.encoding == _BUFFER_AWARE_ENCODING:
+                with self._lock:
+                    self._refuse(REFUSED_DUPLICATE)
+                return
+        # ZBytes has no buffer protocol in zenoh 1.10: to_bytes() is the one copy out of Zenoh
+        # (deserialization then aliases these bytes).
+        item = (sample.payload.to_bytes(), attachment, route, received_ns)
+        if route == ROUTE_BUFFER and node._publisher_token(gid) is None:
+            self._park(item)
+            return
+        self._enqueue(item)
 
     def _deliver_intra(self, msg: Message, attachment: wire.Attachment) -> None:
         self._enqueue((msg, attachment, ROUTE_INTRA, time.time_ns()))
 
-    def _enqueue(self, item: tuple[Any, ...]) -> None:
-        attachment: wire.Attachment = item[1]
+    def _track_sequence(self, attachment: wire.Attachment) -> None:
+        """Count gaps in the publisher's sequence; call with ``self._lock`` held."""
         gid = attachment.publisher_gid
+        sequence = attachment.sequence_number
+        last_seen = self._last_sequence
+        last = last_seen.get(gid)
+        if last is None:
+            if len(last_seen) >= MAX_TRACKED_PUBLISHERS:
+                del last_seen[next(iter(last_seen))]
+            last_seen[gid] = sequence
+            return
+        gap = sequence - last - 1
+        if gap < 0 and last - sequence < LOST_WINDOW:
+            return  # late or repeated: neither new nor a gap
+        if 0 < gap <= LOST_WINDOW:
+            self.counters.lost += gap
+        elif gap != 0:
+            self.counters.sequence_jumps += 1
+        last_seen[gid] = sequence
+
+    def _enqueue(self, item: tuple[Any, ...]) -> None:
         with self._lock:
             if self._closed:
                 return
-            last = self._last_sequence.get(gid)
-            if last is not None and attachment.sequence_number > last + 1:
-                self.counters.lost += attachment.sequence_number - last - 1
-            if last is None or attachment.sequence_number > last:
-                self._last_sequence[gid] = attachment.sequence_number
-            if len(self._queue) == self._queue.maxlen:
+            self._track_sequence(item[1])
+            queue = self._queue
+            if len(queue) == queue.maxlen:
                 self.counters.dropped += 1
-            self._queue.append(item)
-        self.node._post(self._take)
+                # The evicted item is serialized bytes (nothing imported yet) or an intra-process
+                # message object shared with the publisher and other subscriptions (not ours to
+                # release), so eviction has no buffer to release.
+            queue.append(item)
+            if self._scheduled:
+                return
+            self._scheduled = True
+        self.node._executor.schedule(self)
 
-    # -- executor thread -----------------------------------------------------------------------
-    def _take(self) -> None:
+    # -- samples waiting for their publisher's token -------------------------------------------
+    def _park(self, item: tuple[Any, ...]) -> None:
+        deadline = time.monotonic() + PUBLISHER_DISCOVERY_WAIT_S
+        with self._lock:
+            if self._closed:
+                return
+            self._parked.append((deadline, item))
+            if len(self._parked) > self.depth:
+                self._parked.popleft()
+                self._refuse(REFUSED_UNKNOWN_PUBLISHER)
+        # The token may have arrived between the lookup and the append: resume at once.
+        if self.node._publisher_token(item[1].publisher_gid) is not None:
+            self._resume(item[1].publisher_gid)
+
+    def _on_publisher(self, token: wire.EndpointToken, appeared: bool) -> None:
+        """A matching publisher appeared (resume its parked samples) or left."""
+        if appeared:
+            if self._parked:
+                self._resume(token.gid)
+        else:
+            with self._lock:
+                self._last_sequence.pop(token.gid, None)
+
+    def _resume(self, gid: bytes) -> None:
+        with self._lock:
+            ready = [item for _, item in self._parked if item[1].publisher_gid == gid]
+            if not ready:
+                return
+            self._parked = collections.deque(
+                entry for entry in self._parked if entry[1][1].publisher_gid != gid)
+        for item in ready:
+            self._enqueue(item)
+
+    def _expire_parked(self, now: float) -> None:
+        """Drop (and count) parked samples whose publisher never appeared in time."""
+        if not self._parked:
+            return
+        with self._lock:
+            parked = self._parked
+            expired = 0
+            while parked and parked[0][0] <= now:
+                parked.popleft()
+                expired += 1
+            if expired:
+                self._refuse(REFUSED_UNKNOWN_PUBLISHER, expired)
+
+    # -- executor ------------------------------------------------------------------------------
+    def _run_one(self) -> None:
         with self._lock:
             if self._closed or not self._queue:
+                self._scheduled = False
                 return
             payload, attachment, route, received_ns = self._queue.popleft()
+            again = bool(self._queue)
+            self._scheduled = again
+        if again:  # others wait: take turns with the node's other subscriptions
+            self.node._executor.schedule(self)
         if route == ROUTE_INTRA:
             msg = payload
         else:
@@ -197,6 +318,9 @@ class Subscription:
                 _log.warning("%r: dropped a message from %s: %s", self,
                              attachment.publisher_gid.hex(), exc,
                              exc_info=not isinstance(exc, RosidlBufferError))
+                return
+            if self._closed:
+                release_buffers(msg)  # imported for us alone, and nobody will read it
                 return
         with self._lock:
             self.counters.received += 1
@@ -214,13 +338,12 @@ class Subscription:
             _log.exception("%r: callback raised", self)
 
     def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str) -> Message:
-        # Only a payload built for us may hold descriptors, which need the publisher's info.
-        wait = PUBLISHER_DISCOVERY_WAIT_S if route == ROUTE_BUFFER else 0.0
-        token = self.node._publisher_token(attachment.publisher_gid, wait)
-        if token is None:
-            info = None  # CPU payloads need no publisher info; descriptors will be refused
-        else:
-            info = endpoint_info(token)
+        # Only a payload built for us may hold descriptors, which need the publisher's info; it
+        # was parked until the token arrived. CPU payloads need no publisher info.
+        info = None
+        if route == ROUTE_BUFFER:
+            token = self.node._publisher_token(attachment.publisher_gid)
+            info = None if token is None else endpoint_info(token)
         return deserialize_message(payload, self.msg_type, backends=self.node.backends,
                                    endpoint_info=info)
 
@@ -235,6 +358,9 @@ class Subscription:
             if self._closed:
                 return
             self._closed = True
-            self._queue.clear()
+            self._queue.clear()  # serialized bytes or shared intra messages: nothing imported
+            self._parked.clear()
         _process.remove_subscription(self.base_key, self)
         undeclare_quietly(self._liveliness, *self._subscribers)
+        endpoint_gone(self._backends, self.info)
+

@@ -18,8 +18,10 @@ Liveliness tokens
     node: ``@ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/<enclave>/<namespace>/<node>``;
     endpoint: ``@ros2_lv/<domain>/<zid>/<nid>/<eid>/<MP|MS>/<enclave>/<namespace>/<node>/<topic>/
     <type>/<hash>/<qos>[/<extra>]``; inside a segment ``/`` becomes ``%`` and an empty value is
-    ``%``. The endpoint gid is XXH3-128 (seed 0) of the whole key, low 64 bits then high 64 bits,
-    little endian.
+    ``%``. The endpoint gid is XXH3-128 (seed 0) of the key's first 13 segments (the extra segment
+    left out), low 64 bits then high 64 bits, little endian: stock rmw_zenoh reads only the first
+    13 segments of a token and derives the gid from them, so it computes the very gid our
+    attachments carry.
 
 Extra segment (our extension; its presence marks a *buffer-aware* endpoint)
     ``wb1;host=<h>;pid=<n>;uid=<n>;backends=<name>=<meta>,<name>=<meta>`` where every
@@ -30,16 +32,20 @@ Extra segment (our extension; its presence marks a *buffer-aware* endpoint)
     Locality (host, pid, uid) is what backends need to judge a peer (same host? same process?).
 
 Duplicate avoidance on the base key
-    Buffer-aware subscriptions also listen on the base key, but accept a sample there only from a
-    publisher already discovered *without* the extra segment (a plain rmw_zenoh publisher).
     Buffer-aware publishers write the base key only while a subscription without the extra
-    segment is matched. So every subscription gets each message by exactly one route.
+    segment is matched, and mark those samples with the encoding ``application/cdr;wb1``
+    (:data:`BUFFER_AWARE_ENCODING`; no ROS 2 implementation checks the encoding). Buffer-aware
+    subscriptions also listen on the base key and accept there every sample with a valid
+    attachment (any publisher, any gid, as rmw_zenoh does) except those so marked or from a
+    publisher discovered with the extra segment: those reach them on ``_buf_cpu`` / ``_buf/<gid>``.
+    So every subscription gets each message by exactly one route.
 """
 
 from __future__ import annotations
 
 import struct
 from dataclasses import dataclass, field
+from typing import NamedTuple
 from urllib.parse import quote, unquote
 
 import xxhash
@@ -64,6 +70,7 @@ __all__ = [
     "liveliness_domain_selector",
     "mangle",
     "parse_token",
+    "qos_history",
     "qos_segment",
 ]
 
@@ -72,6 +79,10 @@ DEFAULT_ENCLAVE = ""
 CPU_CHANNEL = "_buf_cpu"
 BUFFER_CHANNEL = "_buf"
 EXTRA_VERSION = "wb1"
+#: Encoding schema of base-key samples written by buffer-aware publishers (see the module doc).
+BUFFER_AWARE_SCHEMA = EXTRA_VERSION
+#: Segments of an endpoint key that stock rmw_zenoh reads (and hashes into the gid).
+STOCK_ENDPOINT_SEGMENTS = 13
 
 PUBLISHER_KIND = "MP"
 SUBSCRIPTION_KIND = "MS"
@@ -146,9 +157,20 @@ def accepts_backends(backends: dict[str, str]) -> bool:
     return any(name != "cpu" for name in backends)
 
 
-def qos_segment(depth: int) -> str:
-    """rmw_zenoh's QoS segment for reliable, volatile, keep-last ``depth`` (42 is the default)."""
-    return f"::,{'' if depth == 42 else depth}:,:,:,,"
+KEEP_LAST = "keep_last"
+KEEP_ALL = "keep_all"
+_HISTORY_ENUM = {KEEP_LAST: "", KEEP_ALL: "2"}  # rmw enum numbers; keep-last is the default
+
+
+def qos_segment(depth: int, history: str = KEEP_LAST) -> str:
+    """rmw_zenoh's QoS segment for reliable, volatile, ``history`` of ``depth`` (42 default)."""
+    return f"::{_HISTORY_ENUM[history]},{'' if depth == 42 else depth}:,:,:,,"
+
+
+def qos_history(segment: str) -> str:
+    """The history policy of a QoS segment (keep-last unless it names keep-all, 2)."""
+    parts = segment.split(":")
+    return KEEP_ALL if len(parts) > 2 and parts[2].split(",")[0] == "2" else KEEP_LAST
 
 
 def liveliness_domain_selector(domain_id: int) -> str:
@@ -156,13 +178,17 @@ def liveliness_domain_selector(domain_id: int) -> str:
 
 
 def gid_from_key(key: str) -> bytes:
-    """Endpoint gid: XXH3-128 of the liveliness key, low 64 bits then high, little endian."""
-    return xxhash.xxh3_128_intdigest(key.encode("utf-8")).to_bytes(16, "little")
+    """Endpoint gid: XXH3-128 of the liveliness key's first 13 segments (what stock rmw_zenoh
+    hashes), low 64 bits then high, little endian."""
+    stock = "/".join(key.split("/", STOCK_ENDPOINT_SEGMENTS)[:STOCK_ENDPOINT_SEGMENTS])
+    return xxhash.xxh3_128_intdigest(stock.encode("utf-8")).to_bytes(16, "little")
 
 
 # --------------------------------------------------------------------------- attachment
-@dataclass(frozen=True)
-class Attachment:
+class Attachment(NamedTuple):
+    """The 33-byte attachment of every sample (a NamedTuple: built once per message on the hot
+    path, several times cheaper than a frozen dataclass)."""
+
     sequence_number: int
     source_timestamp_ns: int
     publisher_gid: bytes
@@ -302,9 +328,12 @@ def parse_token(key: str) -> NodeToken | EndpointToken | None:
                          demangle(parts[6]))
     if kind not in (PUBLISHER_KIND, SUBSCRIPTION_KIND):
         return None
-    if len(parts) not in (13, 14):
+    if len(parts) < STOCK_ENDPOINT_SEGMENTS:
         raise WireFormatError(f"endpoint liveliness key has {len(parts)} segments: {key!r}")
-    locality, backends, aware = Locality(), {}, len(parts) == 14
+    # As stock rmw_zenoh: the first 13 segments make the endpoint; ours adds a 14th (wb1;...),
+    # segments other implementations may add are ignored.
+    locality, backends = Locality(), {}
+    aware = len(parts) > STOCK_ENDPOINT_SEGMENTS and parts[13].startswith(EXTRA_VERSION + ";")
     if aware:
         locality, backends = decode_extra(parts[13])
     return EndpointToken(

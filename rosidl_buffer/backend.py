@@ -1,10 +1,10 @@
 """``BufferBackend``: the plugin interface a memory domain implements (the six methods).
 
 Mirrors ``rosidl::BufferBackend``. A transport calls :meth:`on_creating_endpoint` for each local
-endpoint, :meth:`on_discovering_endpoint` for each peer, and then, per publish and peer,
+endpoint, :meth:`on_discovering_endpoint` for each peer, :meth:`on_endpoint_gone` when either
+goes away, and then, per publish and peer,
 :meth:`create_descriptor_with_endpoint` on the publisher side and
-:meth:`from_descriptor_with_endpoint` on the subscriber side; :meth:`on_endpoint_gone` when an
-endpoint leaves.
+:meth:`from_descriptor_with_endpoint` on the subscriber side.
 """
 
 from __future__ import annotations
@@ -77,6 +77,7 @@ class BufferBackend(abc.ABC):
         return self.get_backend_type() in endpoint_supported_backends, []
 
     def on_endpoint_gone(self, endpoint_info: EndpointInfo) -> None:
-        """A peer (or local) endpoint this backend was told about is gone: drop what is cached
-        for it. Not in the C++ interface (which never forgets a peer); the transport calls it
-        when discovery reports the endpoint's departure. Default: nothing."""
+        """An endpoint this backend was told about (through :meth:`on_creating_endpoint` or
+        :meth:`on_discovering_endpoint`) is gone: drop what is kept for it. Not in the C++
+        interface (which never forgets a peer); the transport calls it when discovery reports
+        the endpoint's departure. Default: nothing."""

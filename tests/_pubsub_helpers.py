@@ -16,6 +16,7 @@ import json
 import os
 import pathlib
 import queue
+import signal
 import subprocess
 import sys
 import threading
@@ -245,12 +246,13 @@ def main(argv: list[str] | None = None) -> int:
 class Child:
     """A helper child process; always reaped (``close`` kills it if it is still running)."""
 
-    def __init__(self, role: str, **options: Any) -> None:
-        argv = [sys.executable, "-m", "tests._pubsub_helpers", role]
+    def __init__(self, role: str, module: str = "tests._pubsub_helpers", stderr: Any = None,
+                 **options: Any) -> None:
+        argv = [sys.executable, "-m", module, role]
         for key, value in options.items():
             argv += [f"--{key.replace('_', '-')}", str(value)]
         self.proc = subprocess.Popen(argv, cwd=ROOT, env=child_env(), stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True)
+                                     stdout=subprocess.PIPE, stderr=stderr, text=True)
         self._lines: queue.Queue[str | None] = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
 
@@ -290,8 +292,12 @@ class Child:
     def close(self) -> None:
         if self.proc.poll() is None:
             self.proc.kill()
+            try:  # a SIGSTOPped child dies of SIGKILL too, but let it run its exit
+                os.kill(self.proc.pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
         self.proc.wait(timeout=10)
-        for stream in (self.proc.stdin, self.proc.stdout):
+        for stream in (self.proc.stdin, self.proc.stdout, self.proc.stderr):
             if stream is not None:
                 stream.close()
 

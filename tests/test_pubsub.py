@@ -363,7 +363,9 @@ def test_wire_layout():
         wire.Attachment.decode(b"\x00" * 32)
     import xxhash
 
-    digest = xxhash.xxh3_128_intdigest(key.encode())
+    # The gid is what stock rmw_zenoh computes: XXH3-128 of the first 13 segments only.
+    digest = xxhash.xxh3_128_intdigest("/".join(segments[:13]).encode())
+    assert token.gid == digest.to_bytes(16, "little")
     assert token.gid[:8] == (digest & (2**64 - 1)).to_bytes(8, "little")
 
 

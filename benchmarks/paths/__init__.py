@@ -22,6 +22,8 @@ PATH_MODULES: dict[str, str] = {
     "warp_zero_copy": "benchmarks.paths.ours_warp",
     "cpu_fallback": "benchmarks.paths.ours_cpu",
     "intra_process": "benchmarks.paths.ours_intra",
+    "intra_prepared": "benchmarks.paths.ours_intra_prepared",
+    "thread_handoff": "benchmarks.paths.thread_handoff",
     "zenoh_copy": "benchmarks.paths.zenoh_copy",
     "zenoh_shm": "benchmarks.paths.zenoh_shm",
     "iceoryx2": "benchmarks.paths.iceoryx2_pubsub",

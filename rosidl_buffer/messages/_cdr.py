@@ -61,6 +61,15 @@ def _align(pos: int, alignment: int) -> int:
     return pos + (-(pos - _ORIGIN) % alignment)
 
 
+def _pad(out: bytearray, pos: int, alignment: int) -> int:
+    """``_align`` for the write pass: zero the padding, so a reused output buffer (see
+    :func:`serialize_message`'s ``out``) carries no bytes of an earlier message."""
+    end = pos + (-(pos - _ORIGIN) % alignment)
+    if end != pos:
+        out[pos:end] = bytes(end - pos)
+    return end
+
+
 @dataclass
 class _SizeContext:
     route: BufferRoute | None
@@ -132,7 +141,7 @@ class _Primitive(_Field):
         return _align(pos, self.width) + self.width
 
     def write(self, value: Any, out: bytearray, pos: int, decisions: list[Any]) -> int:
-        pos = _align(pos, self.width)
+        pos = _pad(out, pos, self.width)
         try:
             self.struct.pack_into(out, pos, value)
         except (struct.error, TypeError) as exc:
@@ -174,7 +183,7 @@ class _String(_Field):
 
     def write(self, value: Any, out: bytearray, pos: int, decisions: list[Any]) -> int:
         encoded = _encode_string(value, self.spec.string_bound, self.name)
-        pos = _align(pos, 4)
+        pos = _pad(out, pos, 4)
         _U32.pack_into(out, pos, len(encoded) + 1)
         pos += 4
         out[pos:pos + len(encoded)] = encoded
@@ -254,11 +263,11 @@ class _NumericArray(_Field):
 def _write_array(array: np.ndarray, out: bytearray, pos: int, counted: bool, width: int) -> int:
     n = array.shape[0]
     if counted:
-        pos = _align(pos, 4)
+        pos = _pad(out, pos, 4)
         _U32.pack_into(out, pos, n)
         pos += 4
     if n:
-        pos = _align(pos, width)
+        pos = _pad(out, pos, width)
         nbytes = n * width
         if nbytes >= _NUMPY_COPY_THRESHOLD:
             # NumPy's copy runs at memcpy speed; bytearray slice assignment is several times slower.
@@ -296,7 +305,7 @@ class _ObjectArray(_Field):
 
     def write(self, value: Any, out: bytearray, pos: int, decisions: list[Any]) -> int:
         if self.spec.is_sequence:
-            pos = _align(pos, 4)
+            pos = _pad(out, pos, 4)
             _U32.pack_into(out, pos, len(value))
             pos += 4
         for item in value:
@@ -359,7 +368,7 @@ class _BufferField(_Field):
         decision: _Decision = decisions.pop()
         if decision.host is not None:
             return _write_array(decision.host, out, pos, True, 1)
-        pos = _align(pos, 4)
+        pos = _pad(out, pos, 4)
         _U32.pack_into(out, pos, BUFFER_DESCRIPTOR_MARKER)
         pos = _String(self.spec).write(decision.backend_name, out, pos + 4, decisions)
         codec = _codec(decision.descriptor.__msgtype__)
@@ -535,15 +544,20 @@ def serialized_size(message: Message) -> int:
     return _plan(message, None)[1]
 
 
-def serialize_message(message: Message, *, route: BufferRoute | None = None) -> bytearray:
+def serialize_message(message: Message, *, route: BufferRoute | None = None,
+                      out: bytearray | None = None) -> bytearray:
     """Serialize ``message`` as ROS 2 CDR, with the 4-byte encapsulation header.
 
     Without ``route`` every buffer is written as CPU bytes (backend buffers through ``to_cpu``).
     A transport passes ``route`` to write non-CPU buffers as backend descriptors for one peer.
-    Returns a ``bytearray`` (a bytes-like; turning it into ``bytes`` would copy the payload again).
+    Returns a ``bytearray`` (a bytes-like; turning it into ``bytes`` would copy the payload again):
+    ``out`` itself when it has exactly the serialized size (a transport that copies the bytes
+    away at once reuses one buffer and saves a fresh allocation and its page faults per message),
+    else a new one.
     """
     codec, end, decisions = _plan(message, route)
-    out = bytearray(end)
+    if out is None or len(out) != end:
+        out = bytearray(end)
     out[:_ORIGIN] = CDR_HEADER
     decisions.reverse()  # pass two pops them in field order
     codec.write(message, out, _ORIGIN, decisions)

@@ -43,6 +43,7 @@ class FakeBufferBackend(BufferBackend):
     def __init__(self) -> None:
         self.created: list = []  # endpoints announced through on_creating_endpoint
         self.discovered: list = []
+        self.gone: list = []  # endpoints reported gone through on_endpoint_gone
 
     def get_backend_type(self) -> str:
         return NAME
@@ -59,6 +60,9 @@ class FakeBufferBackend(BufferBackend):
     def on_discovering_endpoint(self, endpoint_info, existing_endpoints, endpoint_supported_backends):
         self.discovered.append(endpoint_info)
         return endpoint_supported_backends.get(NAME) == METADATA, []
+
+    def on_endpoint_gone(self, endpoint_info) -> None:
+        self.gone.append(endpoint_info)
 
     def create_descriptor_with_endpoint(self, impl, endpoint_info):
         if not isinstance(impl, FakeBufferImpl) or endpoint_info.host_id != local_host_id():

@@ -1,0 +1,130 @@
+"""Field values checked once per publish, whoever listens (intra-process subscribers included).
+
+Serialization catches a bad value only when some remote subscriber makes the publisher serialize;
+an intra-process subscriber would get a ``str`` in a ``uint32`` field. :func:`validate_message`
+runs one check per field, chosen by field kind when the message class is first seen: a type and
+range check for scalars, a dtype-kind and length check for numeric arrays (not per element), a
+class check for nested messages. Errors are :class:`rosidl_buffer.errors.SerializationError`, the
+same type the CPU serializer raises, so a bad value fails the same way on every route.
+"""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from rosidl_buffer.errors import SerializationError
+from rosidl_buffer.messages import FieldSpec, Message, get_message_type, get_schema
+from rosidl_buffer.messages._schema import FieldKind
+
+__all__ = ["validate_message"]
+
+_Check = Callable[[Any], None]
+_checks: dict[type, list[tuple[str, _Check]]] = {}
+
+_INT_RANGES = {
+    "byte": (0, 255), "char": (0, 255), "int8": (-2**7, 2**7 - 1), "uint8": (0, 2**8 - 1),
+    "int16": (-2**15, 2**15 - 1), "uint16": (0, 2**16 - 1), "int32": (-2**31, 2**31 - 1),
+    "uint32": (0, 2**32 - 1), "int64": (-2**63, 2**63 - 1), "uint64": (0, 2**64 - 1),
+}
+# Array dtype kinds a numeric field accepts: b bool, i/u integers, f floats.
+_ARRAY_KINDS = {"bool": "b", "float32": "biuf", "float64": "biuf"}
+
+
+def validate_message(msg: Message) -> None:
+    """Raise SerializationError if a field of ``msg`` (nested ones included) holds a value its
+    type cannot carry."""
+    cls = type(msg)
+    checks = _checks.get(cls)
+    if checks is None:
+        checks = _checks[cls] = [(spec.name, _field_check(spec)) for spec in get_schema(
+            cls.__msgtype__).fields if not spec.is_buffer]
+    for name, check in checks:
+        try:
+            check(getattr(msg, name))
+        except SerializationError as exc:
+            raise SerializationError(f"{cls.__msgtype__}.{name}: {exc}") from None
+
+
+def _fail(message: str) -> SerializationError:
+    return SerializationError(message)
+
+
+def _field_check(spec: FieldSpec) -> _Check:
+    if spec.is_collection:
+        if spec.kind is FieldKind.PRIMITIVE:
+            return _numeric_array_check(spec)
+        return _object_array_check(spec, _scalar_check(spec))
+    return _scalar_check(spec)
+
+
+def _scalar_check(spec: FieldSpec) -> _Check:
+    element = spec.element
+    if spec.kind is FieldKind.MESSAGE:
+        cls = get_message_type(element)
+
+        def check_message(value: Any) -> None:
+            if type(value) is not cls:
+                raise _fail(f"expected a {element} message, got {type(value).__name__}")
+            validate_message(value)
+        return check_message
+    if spec.kind is FieldKind.STRING:
+        bound = spec.string_bound
+
+        def check_string(value: Any) -> None:
+            if type(value) is not str:
+                raise _fail(f"expected str, got {type(value).__name__}")
+            if bound and len(value) * 4 > bound and len(value.encode("utf-8")) > bound:
+                raise _fail(f"string longer than its bound {bound}")
+        return check_string
+    if element == "bool":
+        def check_bool(value: Any) -> None:
+            if not isinstance(value, (bool, np.bool_, int, np.integer)) or value not in (0, 1):
+                raise _fail(f"expected bool, got {value!r}")
+        return check_bool
+    if element.startswith("float"):
+        def check_float(value: Any) -> None:
+            if not isinstance(value, numbers.Real) or isinstance(value, str):
+                raise _fail(f"expected a number for {element}, got {type(value).__name__}")
+        return check_float
+    low, high = _INT_RANGES[element]
+
+    def check_int(value: Any) -> None:
+        if not isinstance(value, (int, np.integer)):
+            raise _fail(f"expected an int for {element}, got {type(value).__name__} {value!r}")
+        if not low <= value <= high:
+            raise _fail(f"{value} out of range for {element}")
+    return check_int
+
+
+def _check_length(n: int, spec: FieldSpec) -> None:
+    if spec.array_length and n != spec.array_length:
+        raise _fail(f"expected exactly {spec.array_length} elements, got {n}")
+    if spec.sequence_bound and n > spec.sequence_bound:
+        raise _fail(f"{n} elements exceed the bound {spec.sequence_bound}")
+
+
+def _numeric_array_check(spec: FieldSpec) -> _Check:
+    kinds = _ARRAY_KINDS.get(spec.element, "biu")  # integers also take bools (0/1)
+
+    def check_array(value: Any) -> None:
+        array = value if isinstance(value, np.ndarray) else np.asarray(value)
+        if array.dtype.kind not in kinds:
+            raise _fail(f"expected {spec.element} values, got an array of {array.dtype}")
+        if array.ndim != 1:
+            raise _fail(f"expected a 1-D sequence, got shape {array.shape}")
+        _check_length(array.shape[0], spec)
+    return check_array
+
+
+def _object_array_check(spec: FieldSpec, element: _Check) -> _Check:
+    def check_list(value: Any) -> None:
+        if not isinstance(value, (list, tuple)):
+            raise _fail(f"expected a list, got {type(value).__name__}")
+        _check_length(len(value), spec)
+        for item in value:
+            element(item)
+    return check_list

@@ -1,0 +1,433 @@
+"""The transport under faults and beside other ROS 2 implementations (issue 12), with real
+processes: a frozen (SIGSTOPped) subscriber, a raw Zenoh peer publishing with foreign gids on our
+keys, Ctrl-C while a peer is frozen, a 1 GiB CPU payload, endpoint churn.
+
+Every child is reaped in ``finally`` (a stopped one is killed and continued).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import signal
+import subprocess
+import threading
+import time
+import uuid
+import zlib
+
+import numpy as np
+import pytest
+import zenoh
+
+from tests._pubsub_helpers import TENSOR, Child, check_frame, make_frame, use_fake_backend
+
+pytestmark = pytest.mark.multiprocess
+
+use_fake_backend()
+
+from buffer_pubsub import (  # noqa: E402
+    DEFAULT_CONFIG,
+    ExecutorModeError,
+    InvalidNameError,
+    Node,
+    PayloadTooLargeError,
+    wire,
+)
+from rosidl_buffer import registry  # noqa: E402
+from rosidl_buffer.errors import SerializationError  # noqa: E402
+from rosidl_buffer.messages import get_message_type  # noqa: E402
+
+HELPERS = "tests._transport_helpers"
+_domains = itertools.count(150 + os.getpid() % 50 * 40)
+
+
+@pytest.fixture
+def domain() -> int:
+    return next(_domains)
+
+
+@pytest.fixture
+def topic() -> str:
+    return f"/transport_test/t_{uuid.uuid4().hex[:10]}"
+
+
+@pytest.fixture(scope="module")
+def backends():
+    loaded, _errors = registry.load_backends()
+    assert "fake" in loaded
+    return loaded
+
+
+def _wait(predicate, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return predicate()
+
+
+# --------------------------------------------------------------------------- 1. foreign peers
+def test_samples_from_foreign_gids_are_messages_and_refusals_are_counted(domain, topic,
+                                                                          backends):
+    got = []
+    with Node("foreign_sub", domain_id=domain, backends=backends) as node:
+        sub = node.create_subscription(TENSOR, topic, lambda m, i: got.append((m, i)), depth=50,
+                                       with_info=True)
+        peer = Child("foreign", module=HELPERS, domain=domain, topic=topic, mode="base", count=5)
+        try:
+            peer.wait_ready()
+            assert _wait(lambda: len(got) >= 5 and sub.counters.rejected >= 2, 10)
+            time.sleep(0.1)
+            peer.stop()
+        finally:
+            peer.close()
+    assert sorted(check_frame(m)["index"] for m, _ in got) == list(range(5))
+    assert {i.route for _, i in got} == {"base"}
+    assert len({i.publisher_gid for _, i in got}) == 5  # five random gids, none with a token
+    assert sub.counters.refused == {"attachment": 2} and sub.counters.rejected == 2
+
+
+def test_spoofed_sequence_jump_does_not_count_as_loss(domain, topic, backends):
+    with Node("seq_sub", domain_id=domain, backends=backends) as node:
+        sub = node.create_subscription(TENSOR, topic, lambda m: None, depth=50)
+        peer = Child("foreign", module=HELPERS, domain=domain, topic=topic, mode="seq")
+        try:
+            peer.wait_ready()
+            assert _wait(lambda: sub.received >= 6, 10)
+            peer.stop()
+        finally:
+            peer.close()
+    # 1, 2, 2**62 (jump), 2**62+1, 3 (jump back), 5 (one lost)
+    assert sub.counters.lost == 1 and sub.counters.sequence_jumps == 2
+
+
+def test_unknown_publisher_samples_park_without_stalling_other_subscriptions(
+        domain, topic, backends):
+    """Samples built for a subscription (they may hold descriptors) wait for their publisher's
+    token in that subscription alone: another subscription of the node keeps its rate; samples
+    whose token comes late are delivered, the others counted as refused."""
+    got, ticks = [], []
+    other_topic = topic + "_other"
+    with Node("park_sub", domain_id=domain, backends=backends) as node:
+        sub = node.create_subscription(TENSOR, topic, lambda m, i: got.append((m, i)),
+                                       acceptable_buffer_backends="fake", with_info=True)
+        node.create_subscription(TENSOR, other_topic, lambda m: ticks.append(time.monotonic()),
+                                 depth=100)
+        ticker = node.create_publisher(TENSOR, other_topic)
+        frame = make_frame(0, 0, 64, "cpu")
+        peer = Child("foreign", module=HELPERS, domain=domain, topic=topic, mode="buffer")
+        try:
+            peer.wait_ready()
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:
+                ticker.publish(frame)
+                time.sleep(0.01)
+            assert _wait(lambda: sub.counters.refused.get("unknown_publisher") == 2, 5)
+            peer.stop()
+        finally:
+            peer.close()
+    assert sorted(check_frame(m)["index"] for m, _ in got) == [10, 11, 12]
+    assert {i.route for _, i in got} == {"buffer"}
+    # Before, each such sample held the node's only callback thread for 1 s.
+    assert max(np.diff(ticks)) < 0.6, "a sample waiting for discovery stalled the executor"
+
+
+# --------------------------------------------------------------------------- 2 + 3. frozen peer
+def test_frozen_subscriber_neither_stalls_publish_nor_starves_the_healthy_one(
+        domain, topic, backends):
+    frozen = Child("sub", domain=domain, topic=topic, accept="cpu")
+    healthy = Child("sub", domain=domain, topic=topic, accept="cpu", expect=120)
+    count, durations = 120, []
+    try:
+        node = Node("frozen_pub", domain_id=domain, backends=backends)
+        try:
+            pub = node.create_publisher(TENSOR, topic, depth=10)
+            frozen.wait_ready()
+            healthy.wait_ready()
+            assert pub.wait_for_subscriptions(2, timeout=10)
+            os.kill(frozen.proc.pid, signal.SIGSTOP)
+            for index in range(count):
+                msg = make_frame(0, index, 512 * 1024, "cpu")
+                start = time.perf_counter()
+                pub.publish(msg)
+                durations.append(time.perf_counter() - start)
+                time.sleep(0.01)
+            result = healthy.stop()
+        finally:
+            start = time.monotonic()
+            node.close()
+            close_s = time.monotonic() - start
+    finally:
+        frozen.close()
+        healthy.close()
+    # BLOCK would hold publish() ~5 s once the frozen peer's queue is full (60 MB sent).
+    assert max(durations) < 1.0, f"publish() blocked {max(durations):.2f} s"
+    assert len(result["records"]) >= 0.9 * count
+    assert close_s < 4.0
+
+
+def test_keep_all_blocks_and_keep_last_drops(domain, topic, backends):
+    with Node("qos", domain_id=domain, backends=backends) as node:
+        last = node.create_publisher(TENSOR, topic)
+        every = node.create_publisher(TENSOR, topic, depth=5, history="keep_all")
+        sub = node.create_subscription(TENSOR, topic, lambda m: None, depth=3,
+                                       history="keep_all")
+        assert last._congestion == zenoh.CongestionControl.DROP
+        assert every._congestion == zenoh.CongestionControl.BLOCK
+        assert every._token.qos == "::2,5:,:,:,," and wire.qos_history(every._token.qos) == "keep_all"
+        assert sub._queue.maxlen is None
+
+
+def test_ctrl_c_during_a_frozen_peer_raises_keyboard_interrupt_promptly(domain, topic):
+    frozen = Child("sub", domain=domain, topic=topic, accept="cpu", publishers=0)
+    flood = None
+    try:
+        frozen.wait_ready()
+        flood = Child("flood", module=HELPERS, stderr=subprocess.PIPE, domain=domain,
+                      topic=topic)
+        flood.wait_ready()
+        os.kill(frozen.proc.pid, signal.SIGSTOP)
+        time.sleep(1.5)  # the frozen peer's queue fills
+        os.kill(flood.proc.pid, signal.SIGINT)
+        start = time.monotonic()
+        rc = flood.proc.wait(timeout=15)
+        exit_s = time.monotonic() - start
+        stderr = flood.proc.stderr.read()
+    finally:
+        frozen.close()
+        if flood is not None:
+            flood.close()
+    assert rc != 0 and "KeyboardInterrupt" in stderr, stderr[-2000:]
+    assert "ZError" not in stderr and "TransportError" not in stderr, stderr[-2000:]
+    assert exit_s < 6.0, f"exit took {exit_s:.1f} s"
+
+
+def test_exit_never_masks_the_exception_in_flight(domain, backends, monkeypatch):
+    node = Node("masking", domain_id=domain, backends=backends)
+
+    def broken_close():
+        raise zenoh.ZError("transport is gone")
+
+    monkeypatch.setattr(node, "session", type("S", (), {"close": staticmethod(broken_close)})())
+    with pytest.raises(KeyboardInterrupt):
+        with node:
+            raise KeyboardInterrupt
+    assert node.closed
+
+
+# --------------------------------------------------------------------------- 4. executor
+def test_slow_subscriber_holds_one_pending_task_at_most(domain, topic, backends):
+    peak = [0]
+    stop = threading.Event()
+
+    def slow(msg) -> None:
+        time.sleep(0.01)
+
+    with Node("slow_sub", domain_id=domain, backends=backends) as node:
+        sub = node.create_subscription(TENSOR, topic, slow, depth=5)
+        pub = Child("pub", domain=domain, topic=topic, backend="cpu", count=300, interval=0.001,
+                    size=1024)
+
+        def watch() -> None:
+            while not stop.is_set():
+                peak[0] = max(peak[0], len(node._executor._ready))
+                time.sleep(0.0005)
+
+        watcher = threading.Thread(target=watch)
+        watcher.start()
+        try:
+            pub.wait_ready()
+            assert _wait(lambda: sub.received + sub.counters.dropped + sub.lost >= 300, 20)
+            pub.stop()
+        finally:
+            stop.set()
+            watcher.join()
+            pub.close()
+    assert peak[0] <= 1
+    assert sub.counters.dropped > 100
+    assert sub.received + sub.counters.dropped + sub.lost == 300
+
+
+def test_manual_executor_runs_callbacks_on_the_spinning_thread(domain, topic, backends):
+    threads = []
+    with Node("spinner", domain_id=domain, backends=backends, executor="manual") as node:
+        node.create_subscription(TENSOR, topic, lambda m: threads.append(threading.get_ident()))
+        pub = node.create_publisher(TENSOR, topic)
+        pub.publish(make_frame(0, 0, 64, "cpu"))
+        pub.publish(make_frame(0, 1, 64, "cpu"))
+        time.sleep(0.05)
+        assert threads == []  # nothing runs until the user spins
+        assert node.spin_once(timeout=1.0) == 1 and node.spin_once(timeout=1.0) == 1
+        assert node.spin_once(timeout=0.01) == 0
+        node.spin(timeout=0.05)
+    assert threads == [threading.get_ident()] * 2
+    with Node("threaded", domain_id=domain, backends=backends) as node:
+        with pytest.raises(ExecutorModeError):
+            node.spin_once(0)
+
+
+# --------------------------------------------------------------------------- 5. payload limit
+def test_payload_over_the_limit_is_a_typed_error(domain, topic, backends):
+    config = json.loads(json.dumps(DEFAULT_CONFIG))
+    config["transport"].setdefault("link", {}).setdefault("rx", {})["max_message_size"] = 65536
+    sub = Child("sub", domain=domain, topic=topic, accept="cpu", expect=1)
+    try:
+        with Node("limited", zenoh.Config.from_json5(json.dumps(config)), domain_id=domain,
+                  backends=backends) as node:
+            assert node.max_message_size < 65536
+            pub = node.create_publisher(TENSOR, topic)
+            sub.wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            with pytest.raises(PayloadTooLargeError):
+                pub.publish(make_frame(0, 0, 100 * 1024, "cpu"))
+            with pytest.raises(PayloadTooLargeError):  # just over: caught after serializing
+                pub.publish(make_frame(0, 2, node.max_message_size - 8, "cpu"))
+            pub.publish(make_frame(0, 1, 1024, "cpu"))
+            time.sleep(0.3)
+            result = sub.stop()
+    finally:
+        sub.close()
+    assert [r["index"] for r in result["records"]] == [1]
+
+
+def _one_gib_message(n: int, pattern: bool = True):
+    # zeros are calloc'ed: pages untouched until read, so the error test costs no memory
+    data = np.resize(np.arange(251, dtype=np.uint8), n) if pattern else np.zeros(n, np.uint8)
+    tensor = get_message_type(TENSOR)
+    return tensor(dtype_code=1, dtype_bits=8, dtype_lanes=1, shape=np.array([n]), data=data)
+
+
+def test_one_gib_cpu_payload_is_a_typed_error_at_publish(domain, topic, backends):
+    """Zenoh carries at most 1 GiB per message: a 1 GiB CPU payload (plus CDR framing) raises
+    PayloadTooLargeError at publish() instead of vanishing with every counter at 0."""
+    sub = Child("sub", domain=domain, topic=topic, accept="cpu", expect=1)
+    try:
+        with Node("gib_pub", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic, depth=1)
+            sub.wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            msg = _one_gib_message(1 << 30, pattern=False)
+            with pytest.raises(PayloadTooLargeError, match="1 GiB"):
+                pub.publish(msg)
+            del msg
+            pub.publish(make_frame(0, 3, 1024, "cpu"))  # the publisher goes on
+            time.sleep(0.3)
+            result = sub.stop()
+    finally:
+        sub.close()
+    assert [r["index"] for r in result["records"]] == [3]
+
+
+@pytest.mark.slow
+def test_largest_cpu_payload_arrives(domain, topic, backends):
+    """Just under the limit (~1 GiB) arrives intact (about 5 GiB of memory, ~15 s)."""
+    big = Child("big", module=HELPERS, domain=domain, topic=topic, count=1, timeout=90)
+    try:
+        with Node("big_pub", domain_id=domain, backends=backends) as node:
+            n = node.max_message_size - 256
+            pub = node.create_publisher(TENSOR, topic, depth=1, history="keep_all")
+            big.wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            msg = _one_gib_message(n)
+            crc = zlib.crc32(msg.data.to_numpy())
+            pub.publish(msg)
+            del msg
+            result = big.stop(timeout=90)  # the child waits for the frame first
+    finally:
+        big.close()
+    assert result["records"] == [{"size": n, "crc": crc}], result["counters"]
+
+
+# --------------------------------------------------------------------------- 6. validation, names
+def test_field_values_are_validated_whoever_listens(domain, topic, backends):
+    image_type = "sensor_msgs/msg/Image"
+    got = []
+    with Node("validate", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(image_type, topic)
+        with pytest.raises(SerializationError, match="height"):
+            pub.publish(get_message_type(image_type)(height="480"))  # nobody listens
+        node.create_subscription(image_type, topic, got.append)
+        with pytest.raises(SerializationError, match="height"):
+            pub.publish(get_message_type(image_type)(height="480"))  # intra-process only
+        with pytest.raises(SerializationError, match="out of range"):
+            pub.publish(get_message_type(image_type)(height=-1))
+        with pytest.raises(SerializationError, match="stamp"):
+            msg = get_message_type(image_type)()
+            msg.header.stamp.sec = 1.5
+            pub.publish(msg)
+        pub.publish(get_message_type(image_type)(height=480, encoding="rgb8"))
+        assert _wait(lambda: len(got) == 1, 5)
+    assert got[0].height == 480
+
+
+@pytest.mark.parametrize("bad", ["bad topic name!", "a//b", "1abc", "a/", "~x", "{foo}/a", ""])
+def test_bad_topic_names_are_rejected(domain, backends, bad):
+    with Node("names", domain_id=domain, backends=backends) as node:
+        with pytest.raises(InvalidNameError):
+            node.create_publisher(TENSOR, bad)
+
+
+def test_names_expand_like_rcl(domain, backends):
+    for bad in ("1node", "bad/name", "bad-name", ""):
+        with pytest.raises(InvalidNameError):
+            Node(bad, domain_id=domain, backends=backends)
+    with pytest.raises(InvalidNameError):
+        Node("ok", namespace="a//b", domain_id=domain, backends=backends)
+    with Node("me", namespace="/ns", domain_id=domain, backends=backends) as node:
+        assert node.create_publisher(TENSOR, "~/priv").topic_name == "/ns/me/priv"
+        assert node.create_publisher(TENSOR, "rel/t").topic_name == "/ns/rel/t"
+        assert node.create_publisher(TENSOR, "/abs").topic_name == "/abs"
+        assert node.create_publisher(TENSOR, "{node}/x").topic_name == "/ns/me/x"
+
+
+# --------------------------------------------------------------------------- 7. races and churn
+def test_peer_that_vanishes_during_negotiation_leaves_no_ghost(domain, topic, backends):
+    fake = backends["fake"]
+    with Node("ghost", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        token = wire.EndpointToken(
+            domain_id=domain, zid="0" * 32, node_id=0, entity_id=7, kind=wire.SUBSCRIPTION_KIND,
+            namespace="", node_name="ghost_sub", topic=pub.topic_name, type_name=TENSOR,
+            type_hash=pub._token.type_hash, qos=wire.qos_segment(10), buffer_aware=True,
+            locality=wire.Locality("h", 1, 0), backends={"fake": "fake-v1", "cpu": ""})
+        with node._lock:
+            node._graph[token.gid] = token
+        original = type(fake).on_discovering_endpoint
+
+        def racing(self, info, existing, supported):
+            # The DELETE overtakes the PUT's negotiation, as the discovery thread would do it.
+            with node._lock:
+                node._graph.pop(token.gid, None)
+            pub._on_peer(token, False)
+            return original(self, info, existing, supported)
+
+        type(fake).on_discovering_endpoint = racing
+        try:
+            gone = len(fake.gone)
+            pub._on_peer(token, True)
+        finally:
+            type(fake).on_discovering_endpoint = original
+        assert token.gid not in pub._peers
+        assert token.gid in {e.gid for e in fake.gone[gone:]}
+
+
+def test_backend_forgets_endpoints_that_churn(domain, topic, backends):
+    fake = backends["fake"]
+    discovered, gone = len(fake.discovered), len(fake.gone)
+    churn = Child("churn", module=HELPERS, domain=domain, topic=topic, count=8)
+    try:
+        with Node("churn_pub", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic)
+            churn.wait_ready()
+            result = churn.stop(timeout=60)
+            assert _wait(lambda: pub.get_subscription_count() == 0, 5)
+            assert _wait(lambda: not pub._peers, 5)
+            seen = {e.gid for e in fake.discovered[discovered:] if e.topic_name == topic}
+            forgotten = {e.gid for e in fake.gone[gone:]}
+    finally:
+        churn.close()
+    assert result["matched"] == 8 and len(seen) == 8
+    assert seen <= forgotten, "the backend was not told that churned peers are gone"
+    # The publisher itself is reported gone when its node closes.
+    assert pub.gid in {e.gid for e in fake.gone[gone:]}

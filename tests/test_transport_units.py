@@ -1,0 +1,69 @@
+"""Small pieces of the transport (issue 12) that need no peer: the reused CDR buffer, the waker,
+the transport ratios of the bench report, the stage table."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from benchmarks.report import transport_ratios
+from benchmarks.stages import format_stages
+from buffer_pubsub import ThreadWaker
+from rosidl_buffer.messages import get_message_type, serialize_message
+
+IMAGE = "sensor_msgs/msg/Image"
+
+
+def test_reused_output_buffer_is_byte_identical_to_a_fresh_one() -> None:
+    image = get_message_type(IMAGE)
+    first = image(encoding="rgb8", height=2, width=3, step=9, data=np.arange(18, dtype=np.uint8))
+    out = serialize_message(first)
+    out[:] = b"\xff" * len(out)  # garbage everywhere, padding included
+    second = image(encoding="bgr8", height=3, width=2, step=6, data=np.arange(18, dtype=np.uint8))
+    reused = serialize_message(second, out=out)
+    assert reused is out and bytes(reused) == bytes(serialize_message(second))
+    other_size = serialize_message(image(data=np.zeros(5, np.uint8)), out=out)
+    assert other_size is not out  # a different size gets a buffer of its own
+
+
+def test_waker_keeps_a_notification_given_while_nobody_waits() -> None:
+    waker = ThreadWaker()
+    waker.notify()
+    start = time.monotonic()
+    waker.wait(5.0)
+    assert time.monotonic() - start < 1.0
+    start = time.monotonic()
+    waker.wait(0.05)  # consumed: this one times out
+    assert time.monotonic() - start >= 0.04
+    threading.Timer(0.05, waker.notify).start()
+    start = time.monotonic()
+    waker.wait(5.0)
+    assert time.monotonic() - start < 1.0
+
+
+def _path(p50_by_size: dict[int, float]) -> dict:
+    return {"status": "ok", "latency_us": {str(s): {"p50_us": v} for s, v in p50_by_size.items()}}
+
+
+def test_transport_ratios_pass_miss_and_missing() -> None:
+    paths = {"intra_prepared": _path({4096: 18.0}), "thread_handoff": _path({4096: 10.0}),
+             "cpu_fallback": _path({4096: 120.0, 16 << 20: 16_000.0}),
+             "zenoh_copy": _path({4096: 100.0, 16 << 20: 15_000.0})}
+    result = transport_ratios(paths)
+    assert result["intra_one_way_4KiB"]["verdict"] == "PASS"
+    assert result["intra_over_thread_handoff_4KiB"]["verdict"] == "MISS"
+    assert result["intra_over_thread_handoff_4KiB"]["value"] == pytest.approx(1.8)
+    assert result["cpu_fallback_over_zenoh_16MiB"]["verdict"] == "PASS"
+    assert result["cpu_fallback_over_zenoh_4KiB"]["verdict"] == "PASS"
+    del paths["thread_handoff"]
+    assert transport_ratios(paths)["intra_over_thread_handoff_4KiB"]["verdict"] == "N/A"
+
+
+def test_stage_table_lists_every_stage_per_size() -> None:
+    stages = {"sizes": {"4096": {"publish: x": 1.5, "sum": 1.5},
+                        "16777216": {"publish: x": 900.0, "sum": 900.0}}}
+    text = format_stages(stages)
+    assert "4 KiB" in text and "16 MiB" in text and "900.0" in text and "publish: x" in text
