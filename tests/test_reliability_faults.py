@@ -318,7 +318,9 @@ def test_under_ulimit_1024_a_publisher_runs_10000_ahead_of_a_slow_holding_subscr
 
         result = json.loads(ran[len("RESULT "):])
         assert result["failed"] == 0, result["failures"]
-        assert result["after"]["fds"] - result["before"]["fds"] <= 4, result
+        # O(1): Zenoh links and hand-off connections come and go (a few fds); one fd per message
+        # in flight, as the first design had, would be 10,000.
+        assert result["after"]["fds"] - result["before"]["fds"] <= 16, result
         assert result["pool"]["created"] >= 0.9 * count  # the held frames were never recycled
         holder.expect(f"HELD {count}", timeout=180)
         held = holder.stop(timeout=60)

@@ -83,6 +83,9 @@ def exchange(workdir: pathlib.Path) -> dict[str, dict]:
     router = _popen([sys.executable, "-m", "warp_buffer_cli.main", "router", "--listen",
                      f"unixsock-stream/{socket_path}"])
     hosts: list[subprocess.Popen[str]] = []
+    marker = f"two_hosts_marker_{os.getpid()}_{uuid.uuid4().hex[:8]}"
+    marker_path = pathlib.Path("/dev/shm") / marker
+    marker_path.write_bytes(b"")
     try:
         assert router.stdout is not None
         line = router.stdout.readline()
@@ -107,9 +110,12 @@ def exchange(workdir: pathlib.Path) -> dict[str, dict]:
         if setup_errors:
             pytest.skip("namespace set-up refused: " + setup_errors[0].read_text())
         assert not errors, errors
-        return {role: json.loads((workdir / f"{role}.json").read_text())
-                for role in ("pub_a", "pub_b", "sub_a", "sub_b")}
+        found = {role: json.loads((workdir / f"{role}.json").read_text())
+                 for role in ("pub_a", "pub_b", "sub_a", "sub_b")}
+        found["marker"] = {"name": marker, "host_shm": os.listdir("/dev/shm")}
+        return found
     finally:
+        marker_path.unlink(missing_ok=True)
         for host in hosts:
             _stop(host)
         _stop(router, signal.SIGTERM)
@@ -127,11 +133,12 @@ def test_each_namespace_looks_like_another_host(exchange: dict[str, dict]) -> No
     b = {exchange[r]["host_id"] for r in ("pub_b", "sub_b")}
     assert len(a) == 1 and len(b) == 1 and a != b
     assert exchange["sub_a"]["hostname"] == "host-a" and exchange["sub_b"]["hostname"] == "host-b"
-    own = {name for name in os.listdir("/dev/shm")}
-    # Each host's /dev/shm is its own: the exports of one are absent from the other and from ours.
+    # Each host's /dev/shm is its own: the marker this test left in ours is in neither; and the
+    # zero-copy arenas are anonymous memfds, so nothing of ours is named in any of them.
     shm_a, shm_b = set(exchange["pub_a"]["shm"]), set(exchange["pub_b"]["shm"])
-    exports_a = {n for n in shm_a if n.startswith("warp_buffer.")}
-    assert exports_a and not exports_a & shm_b and not exports_a & own
+    marker = exchange["marker"]["name"]
+    assert marker in exchange["marker"]["host_shm"] and marker not in shm_a | shm_b
+    assert not {n for n in shm_a | shm_b if n.startswith("warp_buffer")}
 
 
 def test_same_host_subscriber_gets_warp_other_host_gets_cpu_bytes(
