@@ -33,6 +33,7 @@ from .pool import get_pool, ipc_disabled
 __all__ = ["WARP_BACKEND", "WarpBufferImpl", "WriteState", "resolve_device"]
 
 WARP_BACKEND = "warp"
+_new_impl = object.__new__
 
 
 def resolve_device(device: Any = None) -> Any:
@@ -63,6 +64,17 @@ class _HostKeep:
 
     def __call__(self, ptr: int = 0, size: int = 0) -> None:
         self.base = None
+
+
+class _LazyLock:
+    """The impl's ``_lock``, made on first use (an impl that is never exported, written through a
+    handle or re-read, a cpu clone, never needs one). ``dict.setdefault`` is atomic, so two
+    threads racing for the first use get the same lock."""
+
+    def __get__(self, impl: Any, owner: Any = None) -> Any:
+        if impl is None:
+            return self
+        return impl.__dict__.setdefault("_lock", threading.RLock())
 
 
 class WriteState:
@@ -96,6 +108,14 @@ class WarpBufferImpl(BufferImplBase):
     _released = False
     _staging: Any = None  # host staging copy for CUDA exports
     cuda_uses: Any = None  # an import's readers' last-use events (cuda.BlockUses), CUDA only
+    # Storage a private cpu clone does not have (set per instance by __init__ otherwise).
+    _arr: wp.array | None = None
+    _owner: Any = None
+    _ptr = 0  # 0: a private clone's, read from its NumPy array when first needed
+    _block: Any = None
+    _import: Any = None
+    _hold: Any = None
+    _lock = _LazyLock()  # an instance attribute once made
     _reexport: WarpBufferImpl | None = None  # local copy of an import, to re-publish
 
     def __init__(self, array: wp.array | None, device: Any, *, block: Any = None,
@@ -110,7 +130,6 @@ class WarpBufferImpl(BufferImplBase):
         self._import = imported  # the descriptor this buffer was imported from
         self._hold = hold  # an import's hold on the publisher's block
         self._host = host  # NumPy view of host storage, for plain host copies
-        self._lock = threading.RLock()
 
     @classmethod
     def allocate(cls, nbytes: int, device: Any = None) -> WarpBufferImpl:
@@ -133,24 +152,6 @@ class WarpBufferImpl(BufferImplBase):
                  host: np.ndarray | None) -> WarpBufferImpl:
         """An impl over imported memory; its ``wp.array`` is made on first use."""
         return cls(None, device, imported=descriptor, hold=hold, ptr=ptr, size=size, host=host)
-
-    @classmethod
-    def _private_host(cls, host: np.ndarray, device: Any) -> WarpBufferImpl:
-        """An impl over private host memory ``host`` (a cpu clone), built with no pool call:
-        only the attributes that differ from the class defaults are set. It moves into the
-        pool's shared memory on its first export (:meth:`_adopt_block`)."""
-        impl = cls.__new__(cls)
-        impl._arr = None
-        impl._owner = None  # the lazy wp.array's deleter is made on first use
-        impl._device = device
-        impl._ptr = host.ctypes.data
-        impl._size = host.shape[0]
-        impl._block = None
-        impl._import = None
-        impl._hold = None
-        impl._host = host
-        impl._lock = threading.RLock()
-        return impl
 
     def _adopt_block(self) -> bool:
         """Move private host storage (a clone's) into a pool block, so it can be exported
@@ -179,10 +180,11 @@ class WarpBufferImpl(BufferImplBase):
                                           "accessible through it")
             with self._lock:
                 if self._arr is None:
-                    owner = self._owner
+                    owner, ptr = self._owner, self._ptr
                     if owner is None and self._block is None and self._import is None:
                         owner = _HostKeep(self._host)  # a private clone's memory
-                    self._arr = wrap_bytes(self._ptr, self._size, self._device, owner)
+                        ptr = self._ptr = self._host.ctypes.data
+                    self._arr = wrap_bytes(ptr, self._size, self._device, owner)
                 array = self._arr
         return array
 
@@ -225,7 +227,11 @@ class WarpBufferImpl(BufferImplBase):
         first export (one more copy then, none per peer)."""
         host = self._host
         if host is not None and not self._released:
-            return WarpBufferImpl._private_host(host.copy(), self._device)
+            impl = _new_impl(WarpBufferImpl)  # no pool call, no lock: class defaults
+            impl._device = self._device
+            impl._size = self._size
+            impl._host = host.copy()
+            return impl
         return self._clone_pooled()
 
     def _clone_pooled(self) -> WarpBufferImpl:
