@@ -213,34 +213,19 @@ def test_write_stream_covers_a_write_on_a_non_default_torch_stream() -> None:
     assert int(host.numpy().min()) == 9
 
 
-def test_to_buffer_under_a_torch_stream_is_read_complete() -> None:
+@pytest.mark.parametrize("explicit", [False, True], ids=["handle_stream", "explicit_stream"])
+def test_to_buffer_under_a_torch_stream_is_read_complete(explicit: bool) -> None:
+    """torch writes under ``torch.cuda.stream(s)``; to_buffer copies on the handle's stream or
+    on an explicit other one (``wp.from_dlpack`` orders only Warp's current stream after torch:
+    api._order_after_source orders the copy stream too). A reader on a third stream sees it all."""
     torch = pytest.importorskip("torch")
     device = wp.get_device(DEVICE)
     s = torch.cuda.Stream(device=device.ordinal)
+    copy_stream = wp.Stream(device) if explicit else None
     buffer = warp_buffer.allocate_buffer(NBYTES, DEVICE)
     with torch.cuda.stream(s):
         torch.cuda._sleep(int(2e8))
         tensor = torch.full((NBYTES,), 4, dtype=torch.uint8, device=DEVICE)
-        with warp_buffer.from_output_buffer(buffer) as out:
-            warp_buffer.to_buffer(tensor, out)
-    reader = wp.Stream(device)
-    with warp_buffer.from_input_buffer(buffer, stream=reader) as view:
-        host = wp.empty(NBYTES, dtype=wp.uint8, device="cpu", pinned=True)
-        wp.copy(host, view.array, stream=reader)
-        wp.synchronize_stream(reader)
-    assert int(host.numpy().min()) == 4
-
-
-def test_to_buffer_on_an_explicit_stream_after_a_torch_write_is_complete() -> None:
-    """``wp.from_dlpack`` orders only Warp's current stream after torch's write; a copy on
-    another (explicit) stream must wait for it too (api._order_after_source)."""
-    torch = pytest.importorskip("torch")
-    device = wp.get_device(DEVICE)
-    s, copy_stream = torch.cuda.Stream(device=device.ordinal), wp.Stream(device)
-    buffer = warp_buffer.allocate_buffer(NBYTES, DEVICE)
-    with torch.cuda.stream(s):
-        torch.cuda._sleep(int(2e8))
-        tensor = torch.full((NBYTES,), 5, dtype=torch.uint8, device=DEVICE)
         with warp_buffer.from_output_buffer(buffer) as out:
             warp_buffer.to_buffer(tensor, out, stream=copy_stream)
     reader = wp.Stream(device)
@@ -248,7 +233,7 @@ def test_to_buffer_on_an_explicit_stream_after_a_torch_write_is_complete() -> No
         host = wp.empty(NBYTES, dtype=wp.uint8, device="cpu", pinned=True)
         wp.copy(host, view.array, stream=reader)
         wp.synchronize_stream(reader)
-    assert int(host.numpy().min()) == 5
+    assert int(host.numpy().min()) == 4
 
 
 def test_device_to_host_copies_wait_for_their_own_copy_only(
