@@ -211,7 +211,7 @@ def _pin(block: Any) -> None:
 
 
 def _describe(kind: int, impl: WarpBufferImpl, block: Any, peer: PeerSlot | None,
-              pci: int = 0, handles: tuple[int, ...] = _desc.NO_HANDLES) -> Any:
+              device_word: int = 0, handles: tuple[int, ...] = _desc.NO_HANDLES) -> Any:
     try:
         generation = block.begin_export()
     except OSError as exc:
@@ -229,7 +229,7 @@ def _describe(kind: int, impl: WarpBufferImpl, block: Any, peer: PeerSlot | None
         slot, sequence = peer.index, peer.next_sequence()
         block.pending[slot] = sequence
     return _desc.make((_desc.VERSION, kind, slot, arena.pid, arena.session, block.offset,
-                       block.capacity, impl.size(), generation, sequence, pci) + handles)
+                       block.capacity, impl.size(), generation, sequence, device_word) + handles)
 
 
 # ------------------------------------------------------------------------------------ import
