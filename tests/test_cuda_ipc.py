@@ -180,8 +180,8 @@ def test_public_api_reuse_hazard(kernels: dict, spins: int) -> None:
     device = wp.get_device(DEVICE)
     reader, writer = wp.Stream(device), wp.Stream(device)
     first = warp_buffer.allocate_buffer(NBYTES, DEVICE)
-    with warp_buffer.from_output_buffer(first, stream=writer) as out:
-        out.array.fill_(1)
+    with warp_buffer.from_output_buffer(first, stream=writer) as out, wp.ScopedStream(writer):
+        out.array.fill_(1)  # on the handle's stream (fill_ runs on the current one)
     result = wp.zeros(NBYTES, dtype=wp.uint8, device=device)
     with warp_buffer.from_input_buffer(first, stream=reader) as view:
         wp.launch(kernels["slow_copy"], dim=NBYTES, inputs=[result, view.array, spins * 4],
