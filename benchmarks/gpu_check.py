@@ -601,8 +601,19 @@ def check_capabilities(ctx: Context) -> dict[str, Any]:
     caps = cuda.capabilities(ctx.device)
     ctx.log(json.dumps(dataclasses.asdict(caps)))
     ctx.baseline_free = wp.get_device(ctx.device).free_memory
+    # The wired core: peers are told the device by UUID (what the exporter matches, MIG-safe),
+    # and a pool block is IPC-exportable whatever allocator the device uses.
+    from warp_buffer_backend.backend import WarpBufferBackend, parse_metadata
+
+    meta = parse_metadata(WarpBufferBackend().get_backend_metadata())
+    need(caps.uuid in meta.cuda_uuids, f"the backend metadata does not advertise {caps.uuid}")
+    from warp_buffer.buffer_impl import WarpBufferImpl
+
+    block = WarpBufferImpl.allocate(4096, ctx.device)._block
+    need(cuda.is_ipc_allocation(block.storage),
+         "a pool block is not a whole default-allocator allocation (CUDA IPC cannot export it)")
     return {"ipc": caps.ipc, "mempool": caps.mempool_supported, "vmm": caps.vmm,
-            "uuid": caps.uuid, "name": caps.name,
+            "uuid": caps.uuid, "name": caps.name, "advertised": sorted(meta.cuda_uuids),
             "driver": wp._src.context.runtime.driver_version}
 
 

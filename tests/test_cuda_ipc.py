@@ -7,8 +7,11 @@
 5. exporter-independent lifetime and read-only imports (VMM), devices by UUID, allocation that
    ignores the mempool flip and user allocators, pinned staging, the import cache on real handles.
 
-Written against :mod:`warp_buffer.cuda` and the public API; nothing here has run on a GPU in the
-session that wrote it (none was lent).
+Written against :mod:`warp_buffer.cuda`, the public API and the wired core (pool, ipc,
+buffer_impl, api; their cpu bookkeeping is in tests/test_cuda_wiring.py); nothing here has run on
+a GPU in the sessions that wrote it (none was lent). The public-API tests (reuse hazard, to_buffer
+under a torch stream, publish with a user allocator, tensor_conversions without device syncs)
+pass by construction of the wiring, not by a GPU run.
 """
 
 from __future__ import annotations
@@ -177,8 +180,8 @@ def test_public_api_reuse_hazard(kernels: dict, spins: int) -> None:
     device = wp.get_device(DEVICE)
     reader, writer = wp.Stream(device), wp.Stream(device)
     first = warp_buffer.allocate_buffer(NBYTES, DEVICE)
-    with warp_buffer.from_output_buffer(first, stream=writer) as out:
-        out.array.fill_(1)
+    with warp_buffer.from_output_buffer(first, stream=writer) as out, wp.ScopedStream(writer):
+        out.array.fill_(1)  # on the handle's stream (fill_ runs on the current one)
     result = wp.zeros(NBYTES, dtype=wp.uint8, device=device)
     with warp_buffer.from_input_buffer(first, stream=reader) as view:
         wp.launch(kernels["slow_copy"], dim=NBYTES, inputs=[result, view.array, spins * 4],
@@ -210,22 +213,68 @@ def test_write_stream_covers_a_write_on_a_non_default_torch_stream() -> None:
     assert int(host.numpy().min()) == 9
 
 
-def test_to_buffer_under_a_torch_stream_is_read_complete() -> None:
+@pytest.mark.parametrize("explicit", [False, True], ids=["handle_stream", "explicit_stream"])
+def test_to_buffer_under_a_torch_stream_is_read_complete(explicit: bool) -> None:
+    """torch writes under ``torch.cuda.stream(s)``; to_buffer copies on the handle's stream or
+    on an explicit other one (``wp.from_dlpack`` orders only Warp's current stream after torch:
+    api._order_after_source orders the copy stream too). A reader on a third stream sees it all."""
     torch = pytest.importorskip("torch")
     device = wp.get_device(DEVICE)
     s = torch.cuda.Stream(device=device.ordinal)
+    copy_stream = wp.Stream(device) if explicit else None
     buffer = warp_buffer.allocate_buffer(NBYTES, DEVICE)
     with torch.cuda.stream(s):
         torch.cuda._sleep(int(2e8))
         tensor = torch.full((NBYTES,), 4, dtype=torch.uint8, device=DEVICE)
         with warp_buffer.from_output_buffer(buffer) as out:
-            warp_buffer.to_buffer(tensor, out)
+            warp_buffer.to_buffer(tensor, out, stream=copy_stream)
     reader = wp.Stream(device)
     with warp_buffer.from_input_buffer(buffer, stream=reader) as view:
         host = wp.empty(NBYTES, dtype=wp.uint8, device="cpu", pinned=True)
         wp.copy(host, view.array, stream=reader)
         wp.synchronize_stream(reader)
     assert int(host.numpy().min()) == 4
+
+
+def test_device_to_host_copies_wait_for_their_own_copy_only(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """to_buffer into a cpu buffer and to_cpu of a CUDA buffer: bytes right, and neither
+    synchronises the device or a whole stream (an event on the copy instead)."""
+    src = wp.full(NBYTES, 3, dtype=wp.uint8, device=DEVICE)
+    cuda_buffer = warp_buffer.allocate_buffer(NBYTES, DEVICE)
+    with warp_buffer.from_output_buffer(cuda_buffer) as out:
+        warp_buffer.to_buffer(src, out)
+
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a device- or stream-wide host wait")
+
+    monkeypatch.setattr(wp, "synchronize_device", refuse)
+    monkeypatch.setattr(wp, "synchronize_stream", refuse)
+    host = warp_buffer.allocate_buffer(NBYTES, "cpu")
+    with warp_buffer.from_output_buffer(host) as out:
+        warp_buffer.to_buffer(src, out)
+    assert int(host.to_numpy().min()) == 3 == int(cuda_buffer.to_numpy().max())
+
+
+def test_staged_export_is_read_back_by_an_import() -> None:
+    """KIND_CUDA_STAGING: the bytes are in the (pinned) arena block when the descriptor
+    leaves; an import reads them on cpu."""
+    from warp_buffer import descriptor as desc
+    from warp_buffer import ipc
+
+    buffer = warp_buffer.allocate_buffer(NBYTES, DEVICE)
+    with warp_buffer.from_output_buffer(buffer) as out:
+        out.array.fill_(11)
+    descriptor = ipc.export_buffer(buffer, kind=desc.KIND_CUDA_STAGING)
+    assert descriptor.kind == desc.KIND_CUDA_STAGING
+    assert descriptor.device_uuid == desc.uuid_word(wp.get_device(DEVICE).uuid)
+    imported = ipc.import_buffer(descriptor)
+    try:
+        assert imported.device == "cpu"
+        got = imported.to_cpu().view()
+        assert int(got.min()) == 11 == int(got.max())
+    finally:
+        imported.release()
 
 
 def test_dlpack_stream_values_map_to_cuda_streams() -> None:
@@ -362,7 +411,8 @@ def test_publish_with_a_user_allocator_does_not_raise() -> None:
         buffer = warp_buffer.allocate_buffer(4096, DEVICE)
         with warp_buffer.from_output_buffer(buffer) as out:
             out.array.fill_(3)
-        backend.create_descriptor_with_endpoint(buffer.get_impl(), peer)  # must not raise
+        descriptor = backend.create_descriptor_with_endpoint(buffer.get_impl(), peer)
+        assert descriptor is not None  # IPC (our own cudaMalloc block) or staging, no error
         assert buffer.to_numpy()[0] == 3
     finally:
         wp.set_device_allocator(device, None)

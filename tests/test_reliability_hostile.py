@@ -284,7 +284,7 @@ FIELD_VALUES = {
     "generation": st.integers(0, 2**64 - 1) | st.integers(0, 50),
     "sequence": st.integers(0, 2**64 - 1),
     "owner_pid": st.integers(0, 2**32 - 1), "session": st.integers(0, 2**64 - 1),
-    "device_pci_bus_id": st.integers(0, 2**64 - 1),
+    "device_uuid": st.integers(0, 2**64 - 1),
 }
 _NAME = re.compile(rb"^\0warp_buffer\.\d+\.\d+\.[0-9a-f]{16}$")
 

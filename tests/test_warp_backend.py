@@ -90,9 +90,10 @@ def test_metadata_says_what_a_peer_needs(backend, monkeypatch):
     assert "shm" in meta.ipc and meta.devices[0] == "cpu"
     monkeypatch.setenv("WARP_BUFFER_DISABLE_IPC", "1")
     assert parse_metadata(backend.get_backend_metadata()).ipc == frozenset()
-    sample = PeerMetadata(1, "h@x", 7, frozenset({"shm", "cuda_ipc"}), ("cpu", "cuda:0@0000:01:00.0"))
+    uuid = "GPU-5a1b2c3d-0000-1111-2222-333344445555"
+    sample = PeerMetadata(1, "h@x", 7, frozenset({"shm", "cuda_ipc"}), ("cpu", f"cuda:0@{uuid}"))
     assert parse_metadata(format_metadata(sample)) == sample
-    assert sample.cuda_pci_bus_ids == {"0000:01:00.0"}
+    assert sample.cuda_uuids == {uuid}
     for bad in ("", "v=1", "v=x;host=h;uid=1;ipc=;dev=", "v=1;v=1;host=h;uid=1;ipc=;dev="):
         with pytest.raises(ValueError):
             parse_metadata(bad)
@@ -296,13 +297,14 @@ def test_an_imported_buffer_is_republished_from_a_local_copy(backend):
 
 
 def test_cuda_fields_round_trip_through_the_fixed_layout():
-    """What a CUDA IPC descriptor carries (no GPU needed): Warp's PCI bus id and the 64-byte
-    memory and event handles, as words."""
-    for pci in ("00000000:01:00", "0000ABCD:FF:1F"):
-        assert wire_layout.pci_from_int(wire_layout.pci_to_int(pci)) == pci
-    assert wire_layout.pci_to_int("") == 0
-    with pytest.raises(DescriptorError):
-        wire_layout.pci_to_int("not-a-bus-id")
+    """What a CUDA IPC descriptor carries (no GPU needed): a 64-bit digest of the device UUID
+    (distinct for two MIG instances of one GPU, which share a PCI bus id) and the 64-byte memory
+    and event handles, as words."""
+    mig_a, mig_b = "MIG-0e6a6b4c-1111-5e2f-9a40-8f3c6c2f0a01", "MIG-0e6a6b4c-1111-5e2f-9a40-8f3c6c2f0a02"
+    words = {wire_layout.uuid_word(u) for u in (mig_a, mig_b)}
+    assert len(words) == 2 and all(0 < w < 1 << 64 for w in words)
+    assert wire_layout.uuid_word(mig_a) == wire_layout.uuid_word(mig_a)
+    assert wire_layout.uuid_word("") == 0 and wire_layout.uuid_word(None) == 0
     handle = bytes(range(64))
     assert wire_layout.handle_bytes(wire_layout.handle_words(handle)) == handle
     with pytest.raises(DescriptorError):

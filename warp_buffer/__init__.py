@@ -31,7 +31,7 @@ Environment switches
 
 from __future__ import annotations
 
-from . import errors, ipc, kernels
+from . import cuda, errors, ipc, kernels
 from .api import (
     ReadHandle,
     WriteHandle,
@@ -42,7 +42,9 @@ from .api import (
 )
 from .buffer_impl import WARP_BACKEND, WarpBufferImpl
 from .errors import (
+    CudaDriverError,
     DescriptorError,
+    DeviceMemoryError,
     DeviceUnavailableError,
     EmptyBufferError,
     ExportBoundsError,
@@ -63,7 +65,9 @@ from .startup import init_warp
 
 __all__ = [
     "WARP_BACKEND",
+    "CudaDriverError",
     "DescriptorError",
+    "DeviceMemoryError",
     "DeviceUnavailableError",
     "EmptyBufferError",
     "ExportBoundsError",
@@ -82,6 +86,7 @@ __all__ = [
     "WriteHandle",
     "WriteHandleError",
     "allocate_buffer",
+    "cuda",
     "errors",
     "from_input_buffer",
     "from_output_buffer",

@@ -30,7 +30,7 @@ import warp as wp
 from rosidl_buffer import Buffer
 from rosidl_buffer.buffer_impl import CpuBufferImpl
 
-from . import kernels
+from . import cuda, kernels
 from .buffer_impl import WarpBufferImpl, wrap_bytes
 from .errors import (
     EmptyBufferError,
@@ -218,9 +218,11 @@ class WriteHandle(_Handle):
     _kind = "write"
 
     def __init__(self, buffer: Buffer, impl: WarpBufferImpl, stream: Any,
-                 promoted: Buffer | None) -> None:
+                 promoted: Buffer | None, explicit: Any = None) -> None:
         self._released = True  # a refused handle has nothing to release
-        self._state = impl._open_writer(stream)
+        # The write's completion is recorded on the stream the user named, else on the current
+        # streams when it ends (Warp's joined with torch's: cuda.write_stream).
+        self._state = impl._open_writer(explicit)
         super().__init__(buffer, impl, stream, promoted)
 
     def _usable(self) -> WarpBufferImpl:
@@ -237,9 +239,22 @@ class WriteHandle(_Handle):
 
 
 class ReadHandle(_Handle):
-    """Read access to a warp buffer, ordered after its writer. See :func:`from_input_buffer`."""
+    """Read access to a warp buffer, ordered after its writer. See :func:`from_input_buffer`.
+
+    Releasing it records the read's last use on its stream (CUDA): the buffer's block is not
+    reused, nor an import's hold dropped, before the reads queued so far completed."""
 
     _kind = "read"
+
+    def __init__(self, buffer: Buffer, impl: WarpBufferImpl, stream: Any,
+                 promoted: Buffer | None, explicit: Any = None) -> None:
+        super().__init__(buffer, impl, stream, promoted)
+        self._explicit = explicit  # the stream the user named (None: the current ones)
+
+    def _on_release(self) -> None:
+        impl = self._impl
+        if not impl._device.is_cpu:
+            impl._record_use(cuda.write_stream(impl._device, self._explicit))
 
 
 def _require_buffer(buffer: Any) -> Buffer:
@@ -266,8 +281,9 @@ def from_output_buffer(buffer: Buffer, stream: Any = None) -> WriteHandle:
         device = stream.device if stream is not None else None
         promoted = allocate_buffer(buffer.nbytes, device)
         buffer, impl = promoted, promoted.get_impl()
+    explicit = stream
     stream = _check_stream(impl._device, stream)
-    return WriteHandle(buffer, impl, stream, promoted)
+    return WriteHandle(buffer, impl, stream, promoted, explicit)
 
 
 def from_input_buffer(buffer: Buffer, stream: Any = None) -> ReadHandle:
@@ -290,10 +306,11 @@ def from_input_buffer(buffer: Buffer, stream: Any = None) -> ReadHandle:
         new_impl = promoted.get_impl()
         _copy_into(new_impl, _as_bytes(host), _check_stream(new_impl._device, stream))
         buffer, impl = promoted, new_impl
+    explicit = stream
     stream = _check_stream(impl._device, stream)
     impl._mark_read()
     impl._wait_for_writer(stream)
-    return ReadHandle(buffer, impl, stream, promoted)
+    return ReadHandle(buffer, impl, stream, promoted, explicit)
 
 
 def _as_bytes(src: Any) -> np.ndarray | wp.array:
@@ -342,7 +359,17 @@ def _as_bytes(src: Any) -> np.ndarray | wp.array:
     return wrap_bytes(array.ptr, nbytes, array.device, _KeepAlive(array))
 
 
-def _copy_into(impl: WarpBufferImpl, src: np.ndarray | wp.array, stream: Any) -> None:
+def _order_after_source(src: Any, stream: Any) -> None:
+    """``wp.from_dlpack`` (and a ``wp.array`` written by Warp) orders only the source device's
+    *current* stream after the producer's writes: a copy on another stream waits for it."""
+    if isinstance(src, wp.array) and src.device.is_cuda:
+        current = src.device.stream
+        if stream.cuda_stream != current.cuda_stream:
+            stream.wait_stream(current)
+
+
+def _copy_into(impl: WarpBufferImpl, src: np.ndarray | wp.array, stream: Any) -> Any:
+    """Copy ``src`` into ``impl``; returns the CUDA stream the copy ran on (None: it is done)."""
     dst = impl._array
     nbytes = src.shape[0] if isinstance(src, np.ndarray) else src.shape[0]
     if nbytes != dst.shape[0]:
@@ -353,22 +380,25 @@ def _copy_into(impl: WarpBufferImpl, src: np.ndarray | wp.array, stream: Any) ->
         if isinstance(src, wp.array):
             if src.device.is_cpu:
                 src = src.numpy()
-            else:
-                wp.copy(dst, src, stream=stream)
-                wp.synchronize_stream(src.device)  # a device-to-host copy is done when we return
-                return
+            else:  # device to host: done when we return; wait for this copy only
+                copy_stream = cuda.write_stream(src.device)
+                wp.copy(dst, src, stream=copy_stream)
+                wp.synchronize_event(copy_stream.record_event())
+                return None
         np.copyto(impl._host, src)
-        return
+        return None
+    stream = cuda.write_stream(impl._device, stream)  # the stream the copy (the write) runs on
     if isinstance(src, np.ndarray):
         src = wp.array(ptr=src.ctypes.data, dtype=wp.uint8, shape=(nbytes,), device="cpu",
                        deleter=_KeepAlive(src))  # type: ignore[arg-type]
+    else:
+        _order_after_source(src, stream)
     if src.device == dst.device:
         kernels.copy_bytes(dst, src, stream)
     else:
         wp.copy(dst, src, stream=stream)
-        if dst.device.is_cpu:
-            wp.synchronize_stream(src.device)  # a device-to-host copy is done when we return
     impl._complete_write(stream)
+    return stream
 
 
 def to_buffer(src: Any, write_handle: WriteHandle, stream: Any = None) -> None:
@@ -383,5 +413,13 @@ def to_buffer(src: Any, write_handle: WriteHandle, stream: Any = None) -> None:
     if not isinstance(write_handle, WriteHandle):
         raise TypeError(f"to_buffer needs a WriteHandle, got {type(write_handle).__name__}")
     impl = write_handle._usable()
-    stream = _check_stream(impl._device, stream) if stream is not None else write_handle._stream
-    _copy_into(impl, _as_bytes(src), stream)
+    state = write_handle._state
+    if stream is not None:
+        _check_stream(impl._device, stream)
+    copied_on = _copy_into(impl, _as_bytes(src), stream if stream is not None else state.stream)
+    if copied_on is not None:
+        # The write ends with an event on the handle's stream: order it after this copy when
+        # the copy ran elsewhere (an explicit stream), device-side.
+        writes = cuda.write_stream(impl._device, state.stream)
+        if writes.cuda_stream != copied_on.cuda_stream:
+            writes.wait_stream(copied_on)

@@ -26,13 +26,14 @@ import warp as wp
 
 from rosidl_buffer.buffer_impl import BufferImplBase, CpuBufferImpl
 
-from . import kernels
+from . import cuda, kernels
 from .errors import DeviceUnavailableError, EmptyBufferError, HandleReleasedError, WriteHandleError
-from .pool import get_pool
+from .pool import get_pool, ipc_disabled
 
 __all__ = ["WARP_BACKEND", "WarpBufferImpl", "WriteState", "resolve_device"]
 
 WARP_BACKEND = "warp"
+_new_impl = object.__new__
 
 
 def resolve_device(device: Any = None) -> Any:
@@ -52,13 +53,40 @@ def wrap_bytes(ptr: int, nbytes: int, device: Any, owner: Any) -> wp.array:
     return wp.array(ptr=ptr, dtype=wp.uint8, shape=(nbytes,), device=device, deleter=owner)
 
 
+class _HostKeep:
+    """Deleter of a ``wp.array`` over private host memory (a clone's ``np.empty``): keeps the
+    NumPy array alive until the ``wp.array`` and its views are gone."""
+
+    __slots__ = ("base",)
+
+    def __init__(self, base: np.ndarray) -> None:
+        self.base = base
+
+    def __call__(self, ptr: int = 0, size: int = 0) -> None:
+        self.base = None
+
+
+class _LazyLock:
+    """The impl's ``_lock``, made on first use (an impl that is never exported, written through a
+    handle or re-read, a cpu clone, never needs one). ``dict.setdefault`` is atomic, so two
+    threads racing for the first use get the same lock."""
+
+    def __get__(self, impl: Any, owner: Any = None) -> Any:
+        if impl is None:
+            return self
+        return impl.__dict__.setdefault("_lock", threading.RLock())
+
+
 class WriteState:
     """The state of one buffer's (only) write, shared by the impl and its write handle."""
 
     __slots__ = ("stream", "sealed")
 
     def __init__(self, stream: Any) -> None:
-        self.stream = stream  # CUDA stream the writes are ordered on (None on cpu)
+        # The CUDA stream the user named for the writes, None for "the current one" (resolved
+        # when the write completes: Warp's current stream joined with torch's, see
+        # cuda.write_stream); always None on cpu.
+        self.stream = stream
         self.sealed: str | None = None  # why writes ended early: "published" or "read"
 
 
@@ -79,6 +107,15 @@ class WarpBufferImpl(BufferImplBase):
     _read = False
     _released = False
     _staging: Any = None  # host staging copy for CUDA exports
+    cuda_uses: Any = None  # an import's readers' last-use events (cuda.BlockUses), CUDA only
+    # Storage a private cpu clone does not have (set per instance by __init__ otherwise).
+    _arr: wp.array | None = None
+    _owner: Any = None
+    _ptr = 0  # 0: a private clone's, read from its NumPy array when first needed
+    _block: Any = None
+    _import: Any = None
+    _hold: Any = None
+    _lock = _LazyLock()  # an instance attribute once made
     _reexport: WarpBufferImpl | None = None  # local copy of an import, to re-publish
 
     def __init__(self, array: wp.array | None, device: Any, *, block: Any = None,
@@ -93,7 +130,6 @@ class WarpBufferImpl(BufferImplBase):
         self._import = imported  # the descriptor this buffer was imported from
         self._hold = hold  # an import's hold on the publisher's block
         self._host = host  # NumPy view of host storage, for plain host copies
-        self._lock = threading.RLock()
 
     @classmethod
     def allocate(cls, nbytes: int, device: Any = None) -> WarpBufferImpl:
@@ -117,6 +153,24 @@ class WarpBufferImpl(BufferImplBase):
         """An impl over imported memory; its ``wp.array`` is made on first use."""
         return cls(None, device, imported=descriptor, hold=hold, ptr=ptr, size=size, host=host)
 
+    def _adopt_block(self) -> bool:
+        """Move private host storage (a clone's) into a pool block, so it can be exported
+        without a further copy to each peer: one copy, on the first export only. Call with the
+        lock held, once the write ended (the bytes no longer change). Arrays already made over
+        the private memory keep it alive and still read the same bytes. False when the pool
+        gives private memory too (IPC disabled, no arena room)."""
+        if self._block is not None or self._import is not None or not self._device.is_cpu:
+            return self._block is not None and self._block.shared
+        lease = get_pool(self._device).acquire(self._size)
+        block = lease.block
+        if not block.shared:
+            return False  # the lease goes back with this frame
+        host = block.host[:self._size]
+        np.copyto(host, self._host)
+        self._block, self._owner, self._host = block, lease, host
+        self._ptr, self._arr = block.data_ptr, None
+        return True
+
     @property
     def _array(self) -> wp.array:
         array = self._arr
@@ -126,7 +180,11 @@ class WarpBufferImpl(BufferImplBase):
                                           "accessible through it")
             with self._lock:
                 if self._arr is None:
-                    self._arr = wrap_bytes(self._ptr, self._size, self._device, self._owner)
+                    owner, ptr = self._owner, self._ptr
+                    if owner is None and self._block is None and self._import is None:
+                        owner = _HostKeep(self._host)  # a private clone's memory
+                        ptr = self._ptr = self._host.ctypes.data
+                    self._arr = wrap_bytes(ptr, self._size, self._device, owner)
                 array = self._arr
         return array
 
@@ -152,23 +210,41 @@ class WarpBufferImpl(BufferImplBase):
         n = self._size
         out = np.empty(n, dtype=np.uint8)
         dst = wp.array(ptr=out.ctypes.data, dtype=wp.uint8, shape=(n,), device="cpu")
-        stream = wp.get_stream(self._device)
+        stream = cuda.write_stream(self._device)
         self._wait_for_writer(stream)
         wp.copy(dst, self._array, stream=stream)
-        wp.synchronize_stream(stream)
+        done = stream.record_event()
+        self._record_use(stream)
+        wp.synchronize_event(done)  # the host needs the bytes: wait for this copy only
         return CpuBufferImpl.wrap(out)
 
     def clone(self) -> WarpBufferImpl:
         """A deep copy on the same device (a host copy on cpu, the copy kernel on CUDA); the copy
-        is a fresh buffer (one write handle allowed, not published)."""
+        is a fresh buffer (one write handle allowed, not published).
+
+        On cpu the copy is private host memory (``ndarray.copy``: no pool call, so a clone runs
+        at the memory's speed at every size); it moves into the pool's shared memory on its
+        first export (one more copy then, none per peer)."""
+        host = self._host
+        if host is not None and not self._released:
+            impl = _new_impl(WarpBufferImpl)  # no pool call, no lock: class defaults
+            impl._device = self._device
+            impl._size = self._size
+            impl._host = host.copy()
+            return impl
+        return self._clone_pooled()
+
+    def _clone_pooled(self) -> WarpBufferImpl:
+        """A deep copy in a pool block (exportable as it is)."""
         self._check_live()
         other = WarpBufferImpl.allocate(self._size, self._device)
         if self._host is not None and other._host is not None:
             np.copyto(other._host, self._host)
             return other
-        stream = None if self._device.is_cpu else wp.get_stream(self._device)
+        stream = None if self._device.is_cpu else cuda.write_stream(self._device)
         self._wait_for_writer(stream)
         kernels.copy_bytes(other._array, self._array, stream)
+        self._record_use(stream)  # our block is not reused before the copy read it
         other._complete_write(stream)
         return other
 
@@ -186,7 +262,7 @@ class WarpBufferImpl(BufferImplBase):
         if hold is None:
             return
         self._released = True  # a plain store: later accesses check it
-        hold.release()
+        hold.release()  # CUDA imports: stream-ordered (ipc._CudaHold)
 
     # -- public properties ---------------------------------------------------------------------
     @property
@@ -222,7 +298,9 @@ class WarpBufferImpl(BufferImplBase):
         if self._import is not None:
             return True  # through a local copy
         if self._device.is_cpu:
-            return bool(self._block is not None and self._block.shared)
+            if self._block is None:  # a private clone: moves into the arena on export
+                return not ipc_disabled()
+            return bool(self._block.shared)
         return True  # CUDA: an IPC handle or a host staging block
 
     def __repr__(self) -> str:
@@ -276,11 +354,13 @@ class WarpBufferImpl(BufferImplBase):
             self._read = True
 
     def _complete_write(self, stream: Any) -> None:
-        """Record that every write enqueued so far has completed (CUDA: an event; cpu kernels
-        are synchronous, so there is nothing to record)."""
+        """Record that every write enqueued so far has completed (CUDA: an event on the stream
+        the write ran on: ``stream``, or for None Warp's current stream joined with torch's;
+        cpu kernels are synchronous, so there is nothing to record). The block's one event is
+        re-recorded per write."""
         if self._device.is_cpu:
             return
-        stream = stream if stream is not None else wp.get_stream(self._device)
+        stream = cuda.write_stream(self._device, stream)
         event = self._block.event if self._block is not None else wp.Event(self._device)
         stream.record_event(event)
         self._event = event
@@ -292,7 +372,16 @@ class WarpBufferImpl(BufferImplBase):
         with self._lock:
             writer = self._writer
             if writer is not None:
-                if writer.stream is not stream:
-                    stream.wait_stream(writer.stream)
+                writes = cuda.write_stream(self._device, writer.stream)
+                if writes.cuda_stream != stream.cuda_stream:
+                    stream.wait_stream(writes)
             elif self._event is not None:
                 stream.wait_event(self._event)
+
+    def _record_use(self, stream: Any) -> None:
+        """Work on ``stream`` read this buffer (a read handle's release, a clone's or staging
+        copy): a local block is not reused, and an import's hold not dropped, before that work
+        completed. Nothing to record on cpu (synchronous)."""
+        if stream is None or self._device.is_cpu:
+            return
+        cuda.record_use(self._block if self._block is not None else self, stream)

@@ -63,12 +63,13 @@ from typing import Any
 
 import warp as wp
 
-from .errors import (
+from .errors import (  # DeviceMemoryError / CudaDriverError are re-exported (they began here)
+    CudaDriverError,
     DescriptorError,
+    DeviceMemoryError,
     DeviceUnavailableError,
     ExportUnavailableError,
     StaleBufferError,
-    WarpBufferError,
 )
 
 __all__ = [
@@ -109,14 +110,6 @@ _log = logging.getLogger(__name__)
 
 #: Bytes of a CUDA IPC memory or event handle.
 IPC_HANDLE_SIZE = 64
-
-
-class DeviceMemoryError(WarpBufferError, MemoryError):
-    """A CUDA allocation failed (the device is out of memory)."""
-
-
-class CudaDriverError(ExportUnavailableError):
-    """A CUDA driver call failed, or no CUDA driver is present (``libcuda.so.1``)."""
 
 
 def _runtime() -> Any:

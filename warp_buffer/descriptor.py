@@ -10,6 +10,7 @@ bytes are those of the generic codec.
 
 from __future__ import annotations
 
+import hashlib
 import operator
 import struct
 from typing import Any
@@ -32,8 +33,7 @@ __all__ = [
     "unpack",
     "handle_words",
     "handle_bytes",
-    "pci_to_int",
-    "pci_from_int",
+    "uuid_word",
 ]
 
 DESCRIPTOR_TYPE = "warp_buffer_backend_msgs/msg/WarpBufferDescriptor"
@@ -45,7 +45,7 @@ KINDS = (KIND_HOST, KIND_CUDA_IPC, KIND_CUDA_STAGING)
 HANDLE_WORDS = 8
 
 FIELDS = ("version", "kind", "peer_slot", "owner_pid", "session", "offset", "capacity", "size",
-          "generation", "sequence", "device_pci_bus_id",
+          "generation", "sequence", "device_uuid",
           *(f"mem_handle_{i}" for i in range(HANDLE_WORDS)),
           *(f"event_handle_{i}" for i in range(HANDLE_WORDS)))
 #: CDR layout of the descriptor starting at an 8-byte boundary of the stream.
@@ -119,16 +119,9 @@ def handle_bytes(words: tuple[int, ...] | list[int]) -> bytes:
     return struct.pack("<8Q", *words)
 
 
-def pci_to_int(pci_bus_id: str | None) -> int:
-    """Warp's ``"DDDDDDDD:BB:DD"`` PCI bus id as ``domain << 16 | bus << 8 | device`` (0: none)."""
-    if not pci_bus_id:
+def uuid_word(uuid: str | None) -> int:
+    """The descriptor's 64-bit word for a CUDA device UUID (``wp.Device.uuid``, one per GPU and
+    per MIG instance; PCI bus ids are shared by MIG instances): a BLAKE2b digest, 0 for none."""
+    if not uuid:
         return 0
-    try:
-        domain, bus, device = (int(part, 16) for part in pci_bus_id.split(".")[0].split(":"))
-    except ValueError:
-        raise DescriptorError(f"unreadable PCI bus id {pci_bus_id!r}") from None
-    return domain << 16 | bus << 8 | device
-
-
-def pci_from_int(value: int) -> str:
-    return f"{value >> 16:08X}:{value >> 8 & 0xFF:02X}:{value & 0xFF:02X}"
+    return int.from_bytes(hashlib.blake2b(uuid.encode(), digest_size=8).digest(), "little") or 1

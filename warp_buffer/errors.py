@@ -9,6 +9,8 @@ and keep running. Errors that also describe a standard condition inherit the mat
 
     WarpBufferError
     ├── DeviceUnavailableError      the requested Warp device does not exist here
+    ├── DeviceMemoryError           a CUDA allocation failed (out of device memory); also a
+    │                               MemoryError
     ├── InvalidSizeError            a buffer size that cannot be allocated
     │   └── EmptyBufferError        zero-byte buffers are rejected (as the backend guide says)
     ├── SizeMismatchError           to_buffer source and destination sizes differ
@@ -20,6 +22,7 @@ and keep running. Errors that also describe a standard condition inherit the mat
     │   └── HandleReleasedError     a released handle was used
     └── ExportError                 shared-memory / CUDA IPC export and import failures
         ├── ExportUnavailableError  this buffer cannot be exported (private memory, no IPC)
+        │   └── CudaDriverError     a CUDA driver call failed, or no driver (libcuda.so.1)
         ├── DescriptorError         a malformed descriptor
         ├── ForeignExportError      the export belongs to another host or user, or its memory
         │                           is not sealed against shrinking
@@ -35,6 +38,7 @@ from rosidl_buffer.errors import RosidlBufferError
 __all__ = [
     "WarpBufferError",
     "DeviceUnavailableError",
+    "DeviceMemoryError",
     "InvalidSizeError",
     "EmptyBufferError",
     "SizeMismatchError",
@@ -44,6 +48,7 @@ __all__ = [
     "HandleReleasedError",
     "ExportError",
     "ExportUnavailableError",
+    "CudaDriverError",
     "DescriptorError",
     "ForeignExportError",
     "ExportBoundsError",
@@ -57,6 +62,10 @@ class WarpBufferError(RosidlBufferError):
 
 class DeviceUnavailableError(WarpBufferError, RuntimeError):
     """The requested Warp device is not present (e.g. ``"cuda:0"`` on a machine without a GPU)."""
+
+
+class DeviceMemoryError(WarpBufferError, MemoryError):
+    """A CUDA allocation failed (the device is out of memory)."""
 
 
 class InvalidSizeError(WarpBufferError, ValueError):
@@ -94,6 +103,11 @@ class ExportError(WarpBufferError):
 
 class ExportUnavailableError(ExportError):
     """This buffer cannot be exported (it lives in private memory, or IPC is not possible)."""
+
+
+class CudaDriverError(ExportUnavailableError):
+    """A CUDA driver call failed, or no CUDA driver is present (``libcuda.so.1``): the export
+    path falls back (staging) as for any unavailable export."""
 
 
 class DescriptorError(ExportError, ValueError):

@@ -5,10 +5,16 @@ Zero payload copies between processes of one user on one host:
 - ``KIND_HOST``: a cpu buffer lives in a block of this process's arena (:mod:`warp_buffer.arena`);
   the importer reads it through its own mapping of that arena, fetched once per session
   (:mod:`warp_buffer.attach`), as a read-only ``wp.array`` on ``cpu``.
-- ``KIND_CUDA_IPC``: a CUDA buffer whose peer has the same GPU (same PCI bus id) is opened from
-  the allocation's CUDA IPC handle and ordered by an interprocess CUDA event.
-- ``KIND_CUDA_STAGING``: a CUDA buffer for a peer without that GPU (or without CUDA IPC) is copied
-  once into a host block, which the peer reads as in ``KIND_HOST`` (it arrives on ``cpu``).
+- ``KIND_CUDA_IPC``: a CUDA buffer whose peer has the same GPU (same device UUID, judged once per
+  peer at discovery; MIG instances have their own) is opened from the allocation's CUDA IPC
+  handle, once per (publisher session, block) (:class:`warp_buffer.cuda.ImportCache`, checked:
+  a failed open raises :class:`StaleBufferError`), and ordered by an interprocess CUDA event. The
+  importer drops its hold only once its readers' streams finished with the bytes
+  (:func:`warp_buffer.cuda.release_after`), so the publisher never recycles memory still read.
+- ``KIND_CUDA_STAGING``: a CUDA buffer for a peer without that GPU (or without CUDA IPC, or in
+  memory CUDA IPC cannot export: a user-set allocator, a mempool) is copied once into a host
+  block (pinned with ``cuMemHostRegister``, so the copy is asynchronous), which the peer reads as
+  in ``KIND_HOST`` (it arrives on ``cpu``).
 
 The descriptor (:mod:`warp_buffer.descriptor`) is the record: it carries numbers only. An import
 validates it against the session's geometry, takes its hold (a read lock on the block's first
@@ -19,6 +25,7 @@ is never delivered as an empty or wrong buffer. Every failure is a typed
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 import weakref
@@ -30,6 +37,7 @@ from rosidl_buffer import Buffer
 from rosidl_buffer.endpoint import local_host_id as _real_host_id
 
 from . import attach as _attach
+from . import cuda as _cuda
 from . import descriptor as _desc
 from . import handoff
 from .arena import MAX_PEERS, NO_PEER, PeerSlot, current_arena, existing_arena
@@ -37,6 +45,7 @@ from .buffer_impl import WarpBufferImpl, wrap_bytes
 from .errors import (
     DescriptorError,
     ExportBoundsError,
+    ExportError,
     ExportUnavailableError,
     StaleBufferError,
 )
@@ -55,6 +64,7 @@ __all__ = [
     "shutdown",
 ]
 
+_log = logging.getLogger(__name__)
 _PID_MAX = 1 << 22  # Linux's pid_max ceiling
 _server_lock = threading.Lock()
 
@@ -101,69 +111,107 @@ def _impl_of(buffer: Buffer | WarpBufferImpl) -> WarpBufferImpl:
 
 def export_buffer(buffer: Buffer | WarpBufferImpl, kind: int | None = None, *,
                   peer: PeerSlot | None = None,
-                  peer_pci_bus_ids: frozenset[str] | set[str] = frozenset()) -> Any:
+                  peer_device_uuids: frozenset[str] | set[str] = frozenset()) -> Any:
     """Export ``buffer`` for one same-host peer and return the descriptor to send it.
 
     Seals the buffer (an open write handle is closed; no write after this). ``peer`` is the
     receiving subscription's delivery slot (:func:`peer_slot`): the block is then not recycled
     before that peer imported this descriptor or a later one, or is gone. Without it the block is
     only protected once imported. ``kind`` None picks the cheapest mechanism: host on cpu; on
-    CUDA, CUDA IPC when the device supports it and its PCI bus id is in ``peer_pci_bus_ids``,
-    else staging. An imported buffer is re-exported from a local copy made once. Raises
-    :class:`ExportUnavailableError` when the buffer cannot be exported.
+    CUDA, CUDA IPC when the device supports it, its UUID is in ``peer_device_uuids`` and its
+    memory can be exported (else staging: never an error). An imported buffer is re-exported
+    from a local copy made once. Raises :class:`ExportUnavailableError` when the buffer cannot
+    be exported.
     """
     impl = _impl_of(buffer)
     with impl._lock:
         impl._mark_published()
         if impl._import is not None:
             if impl._reexport is None:
-                copy = impl.clone()
+                copy = impl._clone_pooled()  # exportable as it is (a plain clone may not be)
                 copy._mark_published()
                 impl._reexport = copy
             impl = impl._reexport
-        return _export_local(impl, kind, frozenset(peer_pci_bus_ids), peer)
+        return _export_local(impl, kind, frozenset(peer_device_uuids), peer)
 
 
-def _export_local(impl: WarpBufferImpl, kind: int | None, peer_pcis: frozenset[str],
+def _export_local(impl: WarpBufferImpl, kind: int | None, peer_uuids: frozenset[str],
                   peer: PeerSlot | None) -> Any:
     device = impl._device
-    block = impl._block
     if device.is_cpu:
         if kind not in (None, _desc.KIND_HOST):
             raise ExportUnavailableError(f"a cpu buffer cannot be exported as kind {kind!r}")
-        if block is None or not block.shared:
+        if not impl._adopt_block():  # a private clone moves into the arena now (once)
             raise ExportUnavailableError("this buffer lives in private memory (IPC is disabled, "
                                          "or the arena had no room)")
-        return _describe(_desc.KIND_HOST, impl, block, peer)
+        return _describe(_desc.KIND_HOST, impl, impl._block, peer)
+    block = impl._block
+    device_word = _desc.uuid_word(device.uuid)
     if kind is None:
-        kind = (_desc.KIND_CUDA_IPC if block.ipc_supported and device.pci_bus_id in peer_pcis
+        kind = (_desc.KIND_CUDA_IPC if block.ipc_supported and device.uuid in peer_uuids
                 else _desc.KIND_CUDA_STAGING)
-    if kind == _desc.KIND_CUDA_IPC:
-        if not block.ipc_supported:
-            raise ExportUnavailableError(f"{device.alias} does not support CUDA IPC")
-        if impl._event is None:
-            impl._complete_write(None)  # orders after whatever is pending on the current stream
-        handles = (_desc.handle_words(block.ipc_mem_handle())
-                   + _desc.handle_words(block.ipc_event_handle()))
-        return _describe(kind, impl, block, peer, _desc.pci_to_int(device.pci_bus_id), handles)
+        if kind == _desc.KIND_CUDA_IPC:
+            try:
+                return _describe_cuda_ipc(impl, block, peer, device_word)
+            except ExportUnavailableError as exc:
+                # Memory CUDA IPC cannot export (a user-set allocator, a mempool): stage it.
+                # publish() must not fail for it.
+                _log.debug("CUDA IPC export unavailable (%s): staging instead", exc)
+                kind = _desc.KIND_CUDA_STAGING
+    elif kind == _desc.KIND_CUDA_IPC:
+        return _describe_cuda_ipc(impl, block, peer, device_word)
     if kind != _desc.KIND_CUDA_STAGING:
         raise ExportUnavailableError(f"a CUDA buffer cannot be exported as kind {kind!r}")
     staging = impl._staging
     if staging is None:
-        staging = WarpBufferImpl.allocate(impl.size(), "cpu")
-        if not staging._block.shared:
-            raise ExportUnavailableError("no arena room for a staging block")
-        stream = wp.get_stream(device)
-        impl._wait_for_writer(stream)
-        wp.copy(staging._array, impl._array, stream=stream)
-        wp.synchronize_stream(stream)
-        staging._mark_published()
+        staging = _stage(impl)
         impl._staging = staging
-    return _describe(kind, staging, staging._block, peer, _desc.pci_to_int(device.pci_bus_id))
+    return _describe(kind, staging, staging._block, peer, device_word)
+
+
+def _describe_cuda_ipc(impl: WarpBufferImpl, block: Any, peer: PeerSlot | None,
+                       device_word: int) -> Any:
+    if not block.ipc_supported:
+        raise ExportUnavailableError(f"{impl._device.alias} does not support CUDA IPC")
+    mem_handle = block.ipc_mem_handle()  # ExportUnavailableError: memory it cannot export
+    if impl._event is None:
+        impl._complete_write(None)  # orders after whatever is pending on the current streams
+    handles = _desc.handle_words(mem_handle) + _desc.handle_words(block.ipc_event_handle())
+    return _describe(_desc.KIND_CUDA_IPC, impl, block, peer, device_word, handles)
+
+
+def _stage(impl: WarpBufferImpl) -> WarpBufferImpl:
+    """Copy CUDA ``impl`` into a host block of the arena (pinned, so the copy is asynchronous)
+    and wait for that copy only: the transport sends the descriptor synchronously after this, so
+    the bytes must be there; nothing else on the device or stream is waited for."""
+    staging = WarpBufferImpl.allocate(impl.size(), "cpu")
+    host_block = staging._block
+    if not host_block.shared:
+        raise ExportUnavailableError("no arena room for a staging block")
+    _pin(host_block)
+    stream = _cuda.write_stream(impl._device)
+    impl._wait_for_writer(stream)
+    done = _cuda.stage_to_host(impl._array, staging._array, stream)
+    impl._record_use(stream)  # the source block is not reused before the copy read it
+    wp.synchronize_event(done)
+    staging._mark_published()
+    return staging
+
+
+def _pin(block: Any) -> None:
+    """Pin a host staging block once (``cuMemHostRegister``; unpinned when the block is
+    destroyed, before its pages are punched out). Unpinned memory still works, synchronously."""
+    if getattr(block, "cuda_pin", None) is not None:
+        return
+    try:
+        block.cuda_pin = _cuda.register_host_memory(block.data_ptr, block.capacity)
+    except ExportError as exc:
+        _log.debug("staging into pageable memory (%s)", exc)
+        block.cuda_pin = False
 
 
 def _describe(kind: int, impl: WarpBufferImpl, block: Any, peer: PeerSlot | None,
-              pci: int = 0, handles: tuple[int, ...] = _desc.NO_HANDLES) -> Any:
+              device_word: int = 0, handles: tuple[int, ...] = _desc.NO_HANDLES) -> Any:
     try:
         generation = block.begin_export()
     except OSError as exc:
@@ -181,7 +229,7 @@ def _describe(kind: int, impl: WarpBufferImpl, block: Any, peer: PeerSlot | None
         slot, sequence = peer.index, peer.next_sequence()
         block.pending[slot] = sequence
     return _desc.make((_desc.VERSION, kind, slot, arena.pid, arena.session, block.offset,
-                       block.capacity, impl.size(), generation, sequence, pci) + handles)
+                       block.capacity, impl.size(), generation, sequence, device_word) + handles)
 
 
 # ------------------------------------------------------------------------------------ import
@@ -200,7 +248,7 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
         raise DescriptorError(f"expected a {_desc.DESCRIPTOR_TYPE}, got "
                               f"{type(descriptor).__name__}")
     (version, kind, slot, owner_pid, session, offset, capacity, size, generation, sequence,
-     pci, *handles) = _desc.values_of(descriptor)
+     device_word, *handles) = _desc.values_of(descriptor)
     if version != _desc.VERSION:
         raise DescriptorError(f"descriptor version {version} (this reader knows {_desc.VERSION})")
     if kind not in _desc.KINDS:
@@ -225,7 +273,7 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
             raise StaleBufferError(f"block {offset:#x} of process {owner_pid} was recycled "
                                    "(a later publish reuses it)")
         if cuda:
-            return _import_cuda(descriptor, capacity, size, pci, handles, hold)
+            return _import_cuda(descriptor, capacity, size, device_word, handles, hold)
         return WarpBufferImpl.imported(arena.address(offset), size, _cpu_device(), hold,
                                        descriptor, arena.host_array(offset, size))
     except BaseException:
@@ -244,54 +292,78 @@ def _cpu_device() -> Any:
 
 
 # -- CUDA (the one place an import opens a CUDA handle) ------------------------------------
-def _cuda_device(pci: int) -> Any:
-    wanted = _desc.pci_from_int(pci)
-    for device in wp.get_cuda_devices():
-        if device.pci_bus_id == wanted:
-            if not device.is_ipc_supported:
-                raise ExportUnavailableError(f"{device.alias} does not support CUDA IPC")
-            return device
-    raise ExportUnavailableError(f"no local GPU with PCI bus id {wanted!r} for a CUDA IPC export")
+_devices_by_word: dict[int, Any] | None = None
 
 
-_cuda_maps: dict[tuple[int, int, int], weakref.ref[wp.array]] = {}
-_cuda_maps_lock = threading.Lock()
+def _cuda_device(device_word: int) -> Any:
+    """The local CUDA device whose UUID digest is ``device_word`` (UUIDs, not PCI bus ids: MIG
+    instances share one)."""
+    global _devices_by_word
+    if _devices_by_word is None:
+        _devices_by_word = {_desc.uuid_word(d.uuid): d for d in wp.get_cuda_devices() if d.uuid}
+    device = _devices_by_word.get(device_word)
+    if device is None:
+        raise ExportUnavailableError(f"no local CUDA device with uuid digest {device_word:#x} "
+                                     "for a CUDA IPC export")
+    if not device.is_ipc_supported:
+        raise ExportUnavailableError(f"{device.alias} does not support CUDA IPC")
+    return device
 
 
-def _import_cuda(descriptor: Any, capacity: int, size: int, pci: int, handles: list[int],
-                 hold: _attach.Hold) -> WarpBufferImpl:
-    device = _cuda_device(pci)
-    key = (descriptor.owner_pid, descriptor.session, descriptor.offset)
-    mem_handle = _desc.handle_bytes(handles[:8])
-    with _cuda_maps_lock:  # a handle may not be opened twice in one context: once per block
-        ref = _cuda_maps.get(key)
-        base = ref() if ref is not None else None
-        if base is None:
-            try:
-                base = wp.from_ipc_handle(mem_handle, wp.uint8, (capacity,), device=device)
-            except RuntimeError as exc:
-                raise StaleBufferError(f"cannot open the CUDA IPC handle of block "
-                                       f"{descriptor.offset:#x}: {exc}") from None
-            _cuda_maps[key] = weakref.ref(base, lambda _ref, key=key: _cuda_maps.pop(key, None))
-    event = wp.event_from_ipc_handle(_desc.handle_bytes(handles[8:]), device=device)
-    keep = _CudaHold(hold, base, event)
-    array = wrap_bytes(base.ptr, size, device, keep)
-    impl = WarpBufferImpl(array, device, imported=descriptor, hold=hold)
+#: Opened CUDA IPC memory and events, once per (publisher session, block) for the process.
+_cuda_imports = _cuda.ImportCache()
+_attach.session_closed_hooks.append(_cuda_imports.drop)  # S5: a gone session is forgotten
+
+
+def _import_cuda(descriptor: Any, capacity: int, size: int, device_word: int,
+                 handles: list[int], hold: _attach.Hold) -> WarpBufferImpl:
+    device = _cuda_device(device_word)
+    session = (descriptor.owner_pid, descriptor.session)
+    block = descriptor.offset
+    # Checked opens (StaleBufferError when the exporter is gone or the handle forged), one per
+    # (session, block) while the block's handle is unchanged.
+    base = _cuda_imports.memory(session, block, _desc.handle_bytes(handles[:8]), capacity, device)
+    event = _cuda_imports.event(session, block, _desc.handle_bytes(handles[8:]), device)
+    impl = WarpBufferImpl.__new__(WarpBufferImpl)
+    keep = _CudaHold(impl, hold, base, event)
+    WarpBufferImpl.__init__(impl, wrap_bytes(base.ptr, size, device, keep), device,
+                            imported=descriptor, hold=keep)
     impl._event = event
     return impl
 
 
 class _CudaHold:
-    """Deleter of an imported CUDA array: keeps the opened allocation and event, then releases
-    the hold (the one place a CUDA import is released)."""
+    """An imported CUDA buffer's hold: keeps the opened allocation and event, and releases the
+    arena hold (the lock the publisher's reclaim probes) only once the work queued on the
+    current streams, and every read recorded on the buffer, completed (stream-ordered release:
+    :func:`warp_buffer.cuda.release_after`). The deleter of the imported array, and what
+    ``release()`` drops."""
 
-    __slots__ = ("hold", "keep")
+    __slots__ = ("hold", "keep", "impl", "__weakref__")
 
-    def __init__(self, hold: _attach.Hold, *keep: Any) -> None:
+    def __init__(self, impl: WarpBufferImpl, hold: _attach.Hold, *keep: Any) -> None:
         self.hold = hold
         self.keep = keep
+        self.impl = weakref.ref(impl)
 
-    def __call__(self, ptr: int = 0, size: int = 0) -> None:
-        self.keep = ()
-        self.hold.release()
+    def release(self, *_args: Any) -> None:
+        hold, self.hold = self.hold, None
+        if hold is None or not hold.live:
+            return
+        keep, self.keep = self.keep, ()
+        device = keep[0].device if keep else None
+        if device is None:
+            hold.release()
+            return
+        stream = _cuda.write_stream(device)
+        impl = self.impl()
+        uses = impl.cuda_uses if impl is not None else None
+        if uses is not None:
+            uses.order_after(stream)
 
+        def drop(keep: tuple[Any, ...] = keep) -> None:
+            hold.release()  # the mapping and event (keep) go with this closure
+
+        _cuda.release_after(stream, drop)
+
+    __call__ = release  # as a wp.array deleter: (ptr, size)

@@ -9,8 +9,10 @@ next allocation of that class reuses it, so steady-state publishing creates no m
   bytes: exporting costs nothing and no block has an fd or a mapping of its own. Where the arena
   cannot serve (IPC disabled, the arena full) a block is private memory and not exportable.
 - CUDA blocks are device allocations made with the default (non-mempool) allocator, the one CUDA
-  IPC handles work with; on first export each also gets a 4 KiB range of the arena (never
-  touched, so it costs no memory) whose first byte carries the readers' locks and generation.
+  IPC handles work with (:func:`warp_buffer.cuda.alloc_ipc_memory`, per allocation); on first
+  export each also gets a 4 KiB range of the arena (never touched, so it costs no memory) whose
+  first byte carries the readers' locks and generation. A CUDA block is also not reused or
+  freed before every local reader's last-use event completed (its ``cuda_uses``).
 
 An exported block is reused or freed only when (a) every peer it was sent to imported it, or a
 later descriptor (it dropped this one: keep-last), or is gone (:meth:`warp_buffer.arena.Arena.
@@ -40,7 +42,7 @@ import numpy as np
 import warp as wp
 
 from . import arena as _arena
-from . import handoff
+from . import cuda, handoff
 from .errors import EmptyBufferError, InvalidSizeError
 
 __all__ = [
@@ -97,6 +99,8 @@ class Block:
     capacity: int
     data_ptr: int
     shared: bool
+    cuda_uses: Any = None  # last-use events of local readers (cuda.BlockUses), CUDA blocks
+    cuda_pin: Any = None  # a host block pinned for CUDA staging (cuda.HostRegistration)
 
     def __init__(self) -> None:
         self.arena: _arena.Arena | None = None
@@ -172,18 +176,25 @@ class HostBlock(Block):
 
     def destroy(self) -> None:
         self._host = None  # type: ignore[assignment]
+        if self.cuda_pin:  # unpin before the pages are punched out (the GPU must not keep them)
+            self.cuda_pin.close()
+            self.cuda_pin = None
         if self.shared and self.arena is not None:
             self.arena.free(self.offset, self.capacity)
             self.arena = None
         self._private = None
 
 
-_mempool_lock = threading.Lock()
-
-
 class CudaBlock(Block):
     """A block of CUDA device memory; its arena range (lock byte, generation) comes with its
-    first export."""
+    first export.
+
+    The memory comes from :func:`warp_buffer.cuda.alloc_ipc_memory` (``cudaMalloc`` for this
+    allocation only: no global mempool flip, a user-set allocator neither used nor replaced), so
+    CUDA IPC can export it. ``cuda_uses`` keeps the block's last-use events (one per stream that
+    read it locally: a read handle's release, a clone's copy, a staging copy); the block is
+    reused or freed only once they all completed (:meth:`try_reclaim`).
+    """
 
     def __init__(self, device: Any, capacity: int) -> None:
         super().__init__()
@@ -192,12 +203,7 @@ class CudaBlock(Block):
         self.shared = True
         self._ipc_mem_handle: bytes | None = None
         self._event: Any = None
-        with _mempool_lock:
-            if device.is_mempool_supported:
-                with wp.ScopedMempool(device, False):  # CUDA IPC needs the default allocator
-                    self.storage = wp.empty(capacity, dtype=wp.uint8, device=device)
-            else:
-                self.storage = wp.empty(capacity, dtype=wp.uint8, device=device)
+        self.storage = cuda.alloc_ipc_memory(device, capacity)  # raises DeviceMemoryError
         self.data_ptr = self.storage.ptr
 
     @property
@@ -212,20 +218,31 @@ class CudaBlock(Block):
                 raise OSError("the arena has no range left for a CUDA block's lock")
             self.arena, self.offset = arena, offset
 
+    def try_reclaim(self) -> bool:
+        # Local readers first (cheap event queries): a block a local stream may still read is
+        # neither reused nor freed (freeing it would also invalidate peers' mappings).
+        if not cuda.ready_for_reuse(self):
+            return False
+        return super().try_reclaim()
+
     @property
     def event(self) -> Any:
-        """The block's CUDA event (interprocess where the device supports IPC)."""
+        """The block's write-completion event, re-recorded per write (interprocess where the
+        device supports CUDA IPC, so its handle can travel in a descriptor)."""
         if self._event is None:
-            self._event = wp.Event(self.device, interprocess=self.ipc_supported)
+            self._event = (cuda.new_ipc_event(self.device) if self.ipc_supported
+                           else wp.Event(self.device))
         return self._event
 
     def ipc_mem_handle(self) -> bytes:
+        """The allocation's CUDA IPC handle (:class:`ExportUnavailableError` if it has none:
+        the caller stages instead)."""
         if self._ipc_mem_handle is None:
-            self._ipc_mem_handle = self.storage.ipc_handle()
+            self._ipc_mem_handle = cuda.ipc_mem_handle(self.storage)
         return self._ipc_mem_handle
 
     def ipc_event_handle(self) -> bytes:
-        return self.event.ipc_handle()
+        return cuda.ipc_event_handle(self.event)
 
     def destroy(self) -> None:
         if self.arena is not None:
@@ -287,7 +304,13 @@ class BlockPool:
             self._leased += 1
         if block is None:
             try:
-                block = self._create(capacity)
+                try:
+                    block = self._create(capacity)
+                except cuda.DeviceMemoryError:
+                    # The device is full: give back what this pool keeps idle, try once more.
+                    if not self.trim(0.0):
+                        raise
+                    block = self._create(capacity)
             except BaseException:
                 with self._lock:
                     self._leased -= 1

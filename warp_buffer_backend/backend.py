@@ -64,15 +64,17 @@ class PeerMetadata:
     host_id: str
     user_id: int
     ipc: frozenset[str]
-    devices: tuple[str, ...]  # "cpu", "cuda:0@<pci bus id>", ...
+    devices: tuple[str, ...]  # "cpu", "cuda:0@<device uuid>", ...
 
     @property
-    def cuda_pci_bus_ids(self) -> frozenset[str]:
+    def cuda_uuids(self) -> frozenset[str]:
+        """The UUIDs of the peer's CUDA devices (one per GPU and per MIG instance: PCI bus ids
+        are shared by MIG instances, so they cannot say "the same device")."""
         return frozenset(d.split("@", 1)[1] for d in self.devices if "@" in d)
 
 
 def format_metadata(meta: PeerMetadata) -> str:
-    """``v=2;host=<host id>;uid=<uid>;ipc=shm+cuda_ipc;dev=cpu+cuda:0@<pci>``: no ``/``, ``,``,
+    """``v=2;host=<host id>;uid=<uid>;ipc=shm+cuda_ipc;dev=cpu+cuda:0@<uuid>``: no ``/``, ``,``,
     spaces or quotes of its own (the transport percent-encodes it anyway)."""
     return (f"v={meta.version};host={meta.host_id};uid={meta.user_id};"
             f"ipc={'+'.join(sorted(meta.ipc))};dev={'+'.join(meta.devices)}")
@@ -103,7 +105,7 @@ class PeerDecision:
 
     accepted: bool
     reason: str
-    cuda_pci_bus_ids: frozenset[str] = frozenset()
+    cuda_uuids: frozenset[str] = frozenset()
 
 
 def _refuse(reason: str) -> PeerDecision:
@@ -141,7 +143,8 @@ class WarpBufferBackend(BufferBackend):
             devices = ["cpu"]
             cuda_ipc = False
             for device in wp.get_cuda_devices():
-                devices.append(f"{device.alias}@{device.pci_bus_id}")
+                if device.uuid:
+                    devices.append(f"{device.alias}@{device.uuid}")
                 cuda_ipc = cuda_ipc or bool(device.is_ipc_supported)
             self._devices = tuple(devices)
             self._cuda_ipc = cuda_ipc
@@ -247,8 +250,8 @@ class WarpBufferBackend(BufferBackend):
             return _refuse(f"the peer says it runs as user {meta.user_id}")
         if IPC_SHM not in meta.ipc:
             return _refuse("the peer cannot import by IPC (disabled there)")
-        pcis = meta.cuda_pci_bus_ids if IPC_CUDA in meta.ipc else frozenset()
-        return PeerDecision(True, "same host and user", pcis)
+        uuids = meta.cuda_uuids if IPC_CUDA in meta.ipc else frozenset()
+        return PeerDecision(True, "same host and user", uuids)
 
     # -- descriptors ---------------------------------------------------------------------------
     def create_descriptor_with_endpoint(
@@ -271,7 +274,7 @@ class WarpBufferBackend(BufferBackend):
                 return None
         try:
             return export_buffer(impl, peer=slot,
-                                 peer_pci_bus_ids=peer.decision.cuda_pci_bus_ids)
+                                 peer_device_uuids=peer.decision.cuda_uuids)
         except ExportUnavailableError as exc:
             _log.debug("warp backend falls back to CPU for %s: %s", endpoint_info.gid.hex(), exc)
             return None
