@@ -321,3 +321,16 @@ def test_a_loaned_warp_message_reaches_another_process_zero_copy_and_blocks_go_r
     assert stats["reused"] >= count - stats["created"] and stats["created"] <= 4, stats
     assert len(pointers) == stats["created"]
 
+
+
+def test_the_loans_benchmark_reports_every_figure():
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.loans", "--quick"], cwd=ROOT,
+                          env=child_env(), capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    text = proc.stdout
+    for framework in ("torch", "numpy", "warp"):
+        assert f"\n{framework} " in text
+    assert "from_input_tensor_msg(clone=False)" in text
+    assert "end to end in process" in text and "end to end to another process" in text
+    assert "stages (median us): loan+view" in text
+    assert "nan" not in text  # every series received its messages
