@@ -289,6 +289,18 @@ def measure(quick: bool) -> dict[str, Any]:
     with Node("bench_loans", domain_id=domain, backends=backends) as node:
         report = {"loans": _loan_rows(node, repeat), "input_view_us": _input_view_us(node, repeat),
                   "intra": _e2e_in_process(node, count)}
+        # the same without read-only pages after publish (WARP_BUFFER_LOAN_PROTECT=0): what
+        # the stale-view protection costs, side by side
+        previous = os.environ.get("WARP_BUFFER_LOAN_PROTECT")
+        os.environ["WARP_BUFFER_LOAN_PROTECT"] = "0"
+        try:
+            report["loans_unprotected"] = _loan_rows(node, repeat)
+            report["intra_unprotected"] = _e2e_in_process(node, count)
+        finally:
+            if previous is None:
+                os.environ.pop("WARP_BUFFER_LOAN_PROTECT", None)
+            else:
+                os.environ["WARP_BUFFER_LOAN_PROTECT"] = previous
     with Node("bench_loans_x", domain_id=domain, backends=backends) as node:
         report["cross"] = _e2e_cross_process(node, count // 2, domain)
     return report
@@ -300,15 +312,18 @@ def format_report(report: dict[str, Any]) -> str:
              f"transport + {GOAL_E2E_OVER_US:.0f})",
              f"{'framework':<9} {'loan+view':>9} {'(median)':>9} {'/goal':>7} "
              f"{'exit=publish':>13} {'new msg+view':>13}  pool"]
-    for r in report["loans"]:
+    for r in report["loans"] + report["loans_unprotected"]:
         s = r["stats"]
+        tag = " (no page protection)" if r in report["loans_unprotected"] else ""
         lines.append(f"{r['framework']:<9} {r['loan_view_us']:9.1f} {r['loan_view_median_us']:9.1f} "
                      f"{r['loan_view_us'] / GOAL_LOAN_VIEW_US:6.2f}x {r['publish_exit_us']:13.1f} "
-                     f"{r['fresh_view_us']:13.1f}  created {s['created']}, reused {s['reused']}")
+                     f"{r['fresh_view_us']:13.1f}  created {s['created']}, reused {s['reused']}{tag}")
     iv = report["input_view_us"]
     lines.append(f"from_input_tensor_msg(clone=False) of a loaned message (torch): {iv:.1f} us "
                  f"({iv / GOAL_INPUT_VIEW_US:.2f}x goal)")
-    for key, title in (("intra", "in process"), ("cross", "to another process")):
+    for key, title in (("intra", "in process"),
+                       ("intra_unprotected", "in process, no page protection"),
+                       ("cross", "to another process")):
         e = report[key]
         over = e["loan_us"] - e["prepared_us"]
         verdict = "PASS" if over <= GOAL_E2E_OVER_US else "MISS"

@@ -12,6 +12,11 @@ through a view kept past ``publish()`` (a torch tensor, a NumPy array, a ``wp.ar
 again when the block is re-loaned and when it goes back to the pool. Blocks whose start is not
 page-aligned (never the case for the arena) and CUDA memory are not protected: there, a view
 kept past publish must not be written (documented on ``loan``).
+
+The protection costs two ``mprotect`` calls per loan (a few us each, more on a loaded machine:
+the kernel splits and merges the mapping and flushes other cores' TLBs).
+``WARP_BUFFER_LOAN_PROTECT=0`` turns it off for buffers allocated afterwards; a write through
+a stale view then changes what zero-copy readers see, as with any shared memory.
 """
 
 from __future__ import annotations
@@ -25,11 +30,18 @@ from rosidl_buffer import Buffer
 
 from .buffer_impl import WarpBufferImpl
 
-__all__ = ["LoanedBufferImpl", "loan_buffer"]
+__all__ = ["LoanedBufferImpl", "loan_buffer", "protection_enabled"]
 
 _PAGE = mmap.PAGESIZE
 _libc = ctypes.CDLL(None, use_errno=True)
 _libc.mprotect.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
+
+
+def protection_enabled() -> bool:
+    """``WARP_BUFFER_LOAN_PROTECT`` (default on): loaned host blocks are read-only between
+    publish and their next loan."""
+    value = os.environ.get("WARP_BUFFER_LOAN_PROTECT", "1").strip().lower()
+    return value not in ("0", "false", "no", "off")
 
 
 def _protect(ptr: int, nbytes: int, writable: bool) -> None:
@@ -70,7 +82,7 @@ class LoanedBufferImpl(WarpBufferImpl):
         impl = super().allocate(nbytes, device)
         assert isinstance(impl, LoanedBufferImpl)
         block = impl._block
-        if impl._host is not None and block.data_ptr % _PAGE == 0:
+        if impl._host is not None and block.data_ptr % _PAGE == 0 and protection_enabled():
             impl._protectable = True
             impl._owner = _WritableOnReturn(impl._owner, block.data_ptr, block.capacity)
         return impl
