@@ -37,6 +37,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.conversions import _batches_us
+
 GOAL_LOAN_VIEW_US = 15.0
 GOAL_INPUT_VIEW_US = 10.0
 GOAL_E2E_OVER_US = 40.0
@@ -46,18 +48,6 @@ TENSOR = "tensor_msgs/msg/ExperimentalTensor"
 
 def _best(samples: list[float]) -> float:
     return min(samples)
-
-
-def _timed(fn: Callable[[], Any], repeat: int, inner: int = 20) -> list[float]:
-    for _ in range(inner):
-        fn()
-    out = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        for _ in range(inner):
-            fn()
-        out.append((time.perf_counter() - start) / inner * 1e6)
-    return out
 
 
 def _loan_rows(node: Any, repeat: int) -> list[dict[str, Any]]:
@@ -85,7 +75,7 @@ def _loan_rows(node: Any, repeat: int) -> list[dict[str, Any]]:
             enter.append((t1 - t0) * 1e6)
             leave.append((t2 - t1) * 1e6)
         enter, leave = enter[20:], leave[20:]
-        fresh = _timed(lambda: module.from_output_tensor_msg(
+        fresh = _batches_us(lambda: module.from_output_tensor_msg(
             module.allocate_tensor_msg(SHAPE, dtype, backend="warp", device="cpu")), repeat, 5)
         rows.append({"framework": name, "loan_view_us": _best(_batch(enter)),
                      "loan_view_median_us": statistics.median(enter),
@@ -108,7 +98,7 @@ def _input_view_us(node: Any, repeat: int) -> float:
     pub = node.create_publisher(TENSOR, f"/bench_loans/in_{uuid.uuid4().hex[:6]}")
     with tc.loan_tensor_msg(pub, SHAPE, torch.float32, device="cpu") as msg:
         tc.from_output_tensor_msg(msg).fill_(1.0)
-    return _best(_timed(lambda: tc.from_input_tensor_msg(msg, clone=False), repeat))
+    return _best(_batches_us(lambda: tc.from_input_tensor_msg(msg, clone=False), repeat))
 
 
 class _Probe:

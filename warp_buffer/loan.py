@@ -88,8 +88,13 @@ class LoanedBufferImpl(WarpBufferImpl):
         return impl
 
     def seal(self) -> None:
-        """End the write (publish) and make the pages read-only in this process."""
+        """End the write (publish) and make the pages read-only in this process (CUDA: record
+        the write's completion on the device's current stream)."""
         with self._lock:
+            if self._writer is None and self._host is None:
+                # CUDA: the loan's views write without a handle; order readers after the work
+                # queued so far on the device's current stream
+                self._complete_write(None)
             self._mark_published()
             if self._protectable and not self._protected:
                 _protect(self._block.data_ptr, self._block.capacity, False)
@@ -104,7 +109,7 @@ class LoanedBufferImpl(WarpBufferImpl):
             if self._protected:
                 _protect(self._block.data_ptr, self._block.capacity, True)
                 self._protected = False
-            self._writer = None
+            self._writer = self._event = None
             self._write_opened = self._published = self._read = False
             return True
 
