@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING, Any
 from rosidl_buffer import Buffer
 from rosidl_buffer.messages import Message, iter_buffers
 
+from .errors import LoanError
+
 if TYPE_CHECKING:
     from .publisher import Publisher
 
@@ -98,6 +100,9 @@ class LoanPool:
                     return slot.msg, slot
             full = len(slots) >= self.max_loans
         msg = factory()
+        if not isinstance(msg, Message):
+            raise LoanError(f"the loan factory {factory!r} returned {type(msg).__name__}, "
+                            "not a message")
         if full:
             with self._lock:
                 self.unpooled += 1
@@ -149,7 +154,7 @@ class Loan:
 
     def __enter__(self) -> Message:
         if self._msg is not None:
-            raise RuntimeError("a Loan is entered once")
+            raise LoanError("a Loan is entered once; call publisher.loan(...) for the next one")
         self._msg, self._slot = self._publisher._loans.take(self._factory)
         return self._msg
 

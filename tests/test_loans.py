@@ -334,3 +334,18 @@ def test_the_loans_benchmark_reports_every_figure():
     assert "end to end in process" in text and "end to end to another process" in text
     assert "stages (median us): loan+view" in text
     assert "nan" not in text  # every series received its messages
+
+
+def test_loan_misuse_raises_typed_errors(domain, topic, backends):
+    from buffer_pubsub import LoanError
+
+    with Node("loan_err", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        loan = pub.loan(_cpu_factory)
+        with loan:
+            with pytest.raises(LoanError, match="entered once"):
+                loan.__enter__()
+        with pytest.raises(LoanError, match="not a message"):
+            with pub.loan(lambda: np.zeros(4)):
+                pass
+        assert isinstance(LoanError("x"), RuntimeError)
