@@ -16,8 +16,9 @@ the message or its ``Buffer``, whose references the pool counts as holds).
 The loan ends at publish. On Warp's ``cpu`` device the block's pages are read-only from publish
 to the next loan of that block, so writing through a view kept past publish faults (SIGSEGV)
 instead of changing what zero-copy subscribers read; on CUDA nothing can stop it: do not write
-a loan's views after the ``with`` block. On CUDA, fill on Warp's current stream of the device
-(or wait for your stream first): publish records completion there.
+a loan's views after the ``with`` block. On CUDA, fill on the framework's current stream when
+you call ``from_output_tensor_msg`` (torch's current stream for torch views): publish records the
+write's completion there, and readers wait for it.
 """
 
 from __future__ import annotations
@@ -52,6 +53,11 @@ class LoanState:
         return layout == self.layout and msg.data.get_impl() is self.impl
 
     def native(self, adapter: Any) -> Any:
+        view = self.view
+        if view.device != "cpu":  # CUDA: publish records completion on the framework's stream
+            stream = adapter.stream(view.device)
+            if stream is not None:
+                self.impl.write_on(stream)
         found = self.natives.get(adapter.name)
         if found is None:
             found = self.natives[adapter.name] = adapter.from_view(self.view)

@@ -349,3 +349,28 @@ def test_loan_misuse_raises_typed_errors(domain, topic, backends):
             with pub.loan(lambda: np.zeros(4)):
                 pass
         assert isinstance(LoanError("x"), RuntimeError)
+
+
+@pytest.mark.cuda
+def test_cuda_loans_deliver_and_reuse_the_block_in_process(domain, topic, backends):
+    import warp as wp
+
+    received = []
+    with Node("loan_cuda", domain_id=domain, backends=backends) as node:
+        _intra(node, topic, lambda m: received.append(
+            tc.from_input_tensor_msg(m, clone=True).cpu()))
+        pub = node.create_publisher(TENSOR, topic)
+        assert pub.wait_for_subscriptions(1)
+        pointers = set()
+        for i in range(6):
+            with wp.ScopedStream(wp.get_stream("cuda:0")):
+                with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cuda:0") as msg:
+                    out = tc.from_output_tensor_msg(msg)
+                    assert out.device.type == "cuda"
+                    out.fill_(float(i))
+                    pointers.add(out.data_ptr())
+            del msg, out
+            assert _wait(lambda: len(received) == i + 1)
+        assert [float(t[0]) for t in received] == [float(i) for i in range(6)]
+        assert all(bool(torch.all(t == t[0])) for t in received)
+        assert len(pointers) <= 2 and pub.loan_stats()["reused"] >= 4

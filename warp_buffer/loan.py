@@ -76,6 +76,7 @@ class LoanedBufferImpl(WarpBufferImpl):
 
     _protected = False  # pages read-only now
     _protectable = False  # a page-aligned host block
+    _write_stream: Any = None  # CUDA: the stream this loan's views write on
 
     @classmethod
     def allocate(cls, nbytes: int, device: Any = None) -> LoanedBufferImpl:
@@ -93,8 +94,8 @@ class LoanedBufferImpl(WarpBufferImpl):
         with self._lock:
             if self._writer is None and self._host is None:
                 # CUDA: the loan's views write without a handle; order readers after the work
-                # queued so far on the device's current stream
-                self._complete_write(None)
+                # queued on the stream they write on (write_on), else Warp's current stream
+                self._complete_write(self._write_stream)
             self._mark_published()
             if self._protectable and not self._protected:
                 _protect(self._block.data_ptr, self._block.capacity, False)
@@ -109,9 +110,18 @@ class LoanedBufferImpl(WarpBufferImpl):
             if self._protected:
                 _protect(self._block.data_ptr, self._block.capacity, True)
                 self._protected = False
-            self._writer = self._event = None
+            self._writer = self._event = self._write_stream = None
             self._write_opened = self._published = self._read = False
             return True
+
+    def write_on(self, stream: Any) -> None:
+        """CUDA: this loan's views write on ``stream`` (a ``wp.Stream``); publish records the
+        write's completion there. A second stream is ordered after the first."""
+        with self._lock:
+            current = self._write_stream
+            if current is not None and current is not stream:
+                stream.wait_stream(current)
+            self._write_stream = stream
 
     @property
     def is_protected(self) -> bool:
