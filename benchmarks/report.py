@@ -208,4 +208,9 @@ def format_table(report: dict[str, Any]) -> str:
     elif conversions:
         out += ["", f"Tensor conversions: {conversions.get('status')}: "
                     f"{conversions.get('reason', '')}"]
+    loans = report.get("loans", {})
+    if loans.get("status") == "ok" and loans.get("text"):
+        out += ["", "Loaned messages (benchmarks.loans):", loans["text"]]
+    elif loans:
+        out += ["", f"Loaned messages: {loans.get('status')}: {loans.get('reason', '')}"]
     return "\n".join(out)

@@ -55,6 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skip the copy-kernel bandwidth measurement")
     parser.add_argument("--no-conversions", action="store_true",
                         help="skip the tensor_conversions per-frame cost measurement")
+    parser.add_argument("--no-loans", action="store_true",
+                        help="skip the loaned-messages section (benchmarks.loans)")
     parser.add_argument("--no-ipc-core", action="store_true",
                         help="skip the IPC core section (benchmarks.ipc_core)")
 
@@ -153,6 +155,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     if not args.no_conversions:
         report["conversions"] = _section("conversions", "tensor conversions", args.quick,
                                          60.0 if args.quick else 180.0)
+    if not args.no_loans:
+        report["loans"] = _section("loans", "loans", args.quick, 90.0 if args.quick else 240.0)
     if not args.no_ipc_core:
         report["ipc_core"] = _section("ipc_core", "IPC core", args.quick,
                                       120.0 if args.quick else 300.0)

@@ -21,6 +21,8 @@ Quick start::
 Connectivity (no router by default; a config file or a router endpoint for multi-host use) is
 described in :mod:`buffer_pubsub.config`. QoS: keep-last ``depth`` (congestion control DROP) or
 ``history="keep_all"`` (BLOCK), reliable, volatile durability only (no late-joiner history).
+Loaned messages (``with pub.loan(factory) as msg:``, filled in place, published on exit, storage
+reused once no reader holds it) are described in :mod:`buffer_pubsub.loan`.
 Callbacks run on the node's executor thread, or on your own thread with
 ``Node(..., executor="manual")`` and ``node.spin()`` / ``node.spin_once(timeout)``.
 
@@ -33,6 +35,7 @@ from .errors import (
     ExecutorModeError,
     InvalidEndpointError,
     InvalidNameError,
+    LoanError,
     NodeClosedError,
     PayloadTooLargeError,
     PubSubError,
@@ -41,6 +44,7 @@ from .errors import (
     WireFormatError,
 )
 from ._waker import ThreadWaker, Waker
+from .loan import Loan
 from .node import Node
 from .publisher import Publisher
 from .subscription import MessageInfo, Subscription, SubscriptionCounters
@@ -50,6 +54,8 @@ __all__ = [
     "ExecutorModeError",
     "InvalidEndpointError",
     "InvalidNameError",
+    "Loan",
+    "LoanError",
     "PayloadTooLargeError",
     "ThreadWaker",
     "TransportError",

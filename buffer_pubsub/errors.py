@@ -43,3 +43,7 @@ class TransportError(PubSubError, RuntimeError):
 
 class ExecutorModeError(PubSubError, RuntimeError):
     """``spin()`` / ``spin_once()`` on a node whose callbacks run on its own executor thread."""
+
+
+class LoanError(PubSubError, RuntimeError):
+    """A loan used wrongly: entered twice, or a factory that returned no message."""

@@ -20,6 +20,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import zenoh
@@ -30,6 +31,7 @@ from rosidl_buffer.messages._schema import FieldKind
 
 from . import _process, wire
 from ._info import endpoint_gone, endpoint_info
+from .loan import Loan, LoanPool
 from ._validation import validate_message
 from ._zenoh import undeclare_quietly
 from .errors import InvalidEndpointError, NodeClosedError, PayloadTooLargeError, TransportError
@@ -130,6 +132,7 @@ class Publisher:
         self._out: bytearray | None = None
         self._out_lock = threading.Lock()
         self._flat_buffers = _flat_buffer_fields(msg_type)
+        self._loans = LoanPool()
         self._remote: tuple[_Peer, ...] = ()  # peers in other processes, rebuilt on change
         self._backends = tuple(node.backends.values())
         for backend in self._backends:
@@ -205,6 +208,25 @@ class Publisher:
             self._token.type_hash, count, timeout)
 
     # -- publishing ----------------------------------------------------------------------------
+    def loan(self, factory: Callable[[], Message], *, max_loans: int | None = None) -> Loan:
+        """Loan a message whose buffers this publisher reuses: ``with pub.loan(f) as msg:``
+        fill ``msg`` in place; it is published when the block ends (an exception publishes
+        nothing and returns the loan). See :mod:`buffer_pubsub.loan`.
+
+        ``factory`` makes a message when no pooled one is free (tensor_conversions' loan specs
+        are factories). The loan ends at publish: do not write through views taken during the
+        loan afterwards. On Warp's cpu device such a write faults (the pages are read-only
+        until the next loan of the block); elsewhere it would change what zero-copy readers
+        see. ``max_loans`` (default 16) bounds the pooled messages per factory key.
+        """
+        if max_loans is not None:
+            self._loans.max_loans = max(1, int(max_loans))
+        return Loan(self, factory)
+
+    def loan_stats(self) -> dict[str, int]:
+        """Pooled messages ``created``, loans ``reused``, ``unpooled`` loans, ``pooled`` now."""
+        return self._loans.stats()
+
     def publish(self, msg: Message) -> None:
         """Send ``msg`` to every matched subscription, each by exactly one route.
 
@@ -333,6 +355,7 @@ class Publisher:
             self._peers.clear()
             self._remote = ()
         _process.remove_publisher(self.gid)
+        self._loans.clear()
         for peer in peers:
             peer.close()
             endpoint_gone(self._backends, peer.info)

@@ -7,6 +7,7 @@ Mirrors ``rosidl::BufferImplBase<T>`` and ``rosidl::CpuBufferImpl<T>``: a backen
 from __future__ import annotations
 
 import abc
+import sys
 
 import numpy as np
 import numpy.typing as npt
@@ -54,6 +55,16 @@ class BufferImplBase(abc.ABC):
         """Give back what this impl holds (shared-memory holds, device memory) now, rather than
         when it is garbage collected. Idempotent; data access afterwards raises a backend error.
         """
+
+    def reclaim(self) -> bool:
+        """May this memory be written again for a new message (a publisher's loan)? True when
+        no reader holds it any more; the impl is then re-armed (writable, not published).
+
+        The loan pool of a publisher (``buffer_pubsub``) calls it before it hands the same
+        storage out again, after it checked that nobody holds the message or the ``Buffer``.
+        Default: False (the backend cannot tell), so a loan takes new storage.
+        """
+        return False
 
 
 class CpuBufferImpl(BufferImplBase):
@@ -132,6 +143,18 @@ class CpuBufferImpl(BufferImplBase):
         if size > old:
             self._storage[old:size] = value
         self._size = size
+
+    def reclaim(self) -> bool:
+        """Intra-process sharing is by reference: the memory is free when no NumPy view of the
+        storage is alive besides our own (readers of a shared message hold such views, or the
+        message, which the loan pool checks). Borrowed read-only bytes are never rewritten."""
+        owner = self._storage
+        if not owner.flags.writeable:
+            return False
+        while isinstance(owner.base, np.ndarray):  # NumPy views point at the owning array
+            owner = owner.base
+        # References: ``self._storage`` or the storage's ``base``, the local name, the argument.
+        return sys.getrefcount(owner) <= 3
 
     def _ensure_writable(self, capacity: int) -> None:
         if not self._storage.flags.writeable:

@@ -15,6 +15,11 @@ also the same four for ``sensor_msgs/msg/Image`` (:mod:`.image`) and
     out[:] = frame
     del out                                # or tensor_conversions.release_output(msg)
 
+A publisher's loans (:mod:`.loan`) reuse the storage and the views frame after frame::
+
+    with tc.loan_tensor_msg(pub, (480, 640, 3), torch.uint8) as msg:
+        tc.from_output_tensor_msg(msg).copy_(frame)   # published on exit
+
 Framework modules are imported on demand (``import tensor_conversions.jax``), so the core needs
 none of them; JAX, CuPy and ONNX Runtime are optional extras.
 """

@@ -29,6 +29,7 @@ from .metadata import (
     tensor_msg_type,
     write_metadata,
 )
+from .loan import loan_state
 from .storage import allocate_data, backend_of, live_write_handle, storage_device
 
 T = TypeVar("T")
@@ -81,11 +82,13 @@ def _stream(adapter: Adapter[Any], device: str) -> Any:
     return None if device == "cpu" else adapter.stream(device)
 
 
-def new_msg(layout: TensorLayout, backend: str, device: Any) -> Any:
-    """A new ExperimentalTensor with ``layout``'s metadata and storage for it."""
+def new_msg(layout: TensorLayout, backend: str, device: Any, data: Any = None) -> Any:
+    """A new ExperimentalTensor with ``layout``'s metadata and storage for it (``data``, or
+    newly allocated)."""
     if backend == "warp":
         warp_dtype(layout.dtype)  # complex has no Warp type: refused before allocating
-    data = allocate_data(layout.required_nbytes, backend, device)
+    if data is None:
+        data = allocate_data(layout.required_nbytes, backend, device)
     dt = layout.dtype
     strides = () if layout.is_contiguous else layout.strides
     return tensor_msg_type()(
@@ -105,6 +108,9 @@ def allocate_tensor_msg(adapter: Adapter[Any], shape: Sequence[int] | int, dtype
 
 def output_native(adapter: Adapter[T], msg: Any, layout: TensorLayout) -> T:
     """A writable native view of ``layout`` over ``msg.data`` (tensor and image functions)."""
+    loaned = loan_state(msg, layout)
+    if loaned is not None:  # a loan: the view cached for this block (built once)
+        return loaned.native(adapter)
     adapter.check_dtype(layout.dtype)
     device = storage_device(msg.data)
     adapter.check_view_device(device)
@@ -178,6 +184,10 @@ def write_value(adapter: Adapter[Any], msg: Any, layout: TensorLayout, value: An
     if layout.numel == 0:
         return
     data = msg.data
+    loaned = loan_state(msg, layout)
+    if loaned is not None:
+        adapter.copy_into(loaned.view, value)
+        return
     if backend_of(data) == "cpu":
         adapter.copy_into(view_of(msg, layout, writable=True), value)
         return

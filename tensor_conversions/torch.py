@@ -17,6 +17,7 @@ from typing import Any, overload
 import torch
 
 from . import _api
+from . import loan as _loan
 from . import image as _image
 from . import pointcloud as _pointcloud
 from .dlpack import TensorView, external_stream
@@ -122,6 +123,18 @@ def from_output_tensor_msg(msg: Any) -> torch.Tensor:
     view sharing it) is garbage-collected, or :func:`tensor_conversions.release_output` is called.
     """
     return _api.from_output_tensor_msg(_ADAPTER, msg)
+
+
+def loan_tensor_msg(publisher: Any, shape: Sequence[int] | int, dtype: torch.dtype | str,
+                    backend: str = "warp", device: Any = None) -> Any:
+    """``with loan_tensor_msg(pub, shape, dtype) as msg:`` a loaned ExperimentalTensor from
+    ``pub``'s pool (warp storage on ``device``), published when the block ends; an exception
+    publishes nothing. :func:`from_output_tensor_msg` of it returns the same writable torch.Tensor
+    every loan of that block (built once). The loan ends at publish: on Warp's cpu device the
+    memory is read-only until its next loan (a write through a view kept past publish faults);
+    on CUDA such a write is not stopped: don't. See :mod:`tensor_conversions.loan`.
+    """
+    return _loan.loan_tensor_msg(_ADAPTER, publisher, shape, dtype, backend, device)
 
 
 def from_input_tensor_msg(msg: Any, clone: bool = True) -> torch.Tensor:

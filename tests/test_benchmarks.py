@@ -32,7 +32,8 @@ def quick_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, str, path
     out = tmp_path_factory.mktemp("bench")
     process = subprocess.run(
         [sys.executable, "-m", "benchmarks.run", "--quick", "--sizes", QUICK_SIZES,
-         "--out", str(out), "--no-copy-bandwidth", "--no-conversions", "--no-ipc-core"],
+         "--out", str(out), "--no-copy-bandwidth", "--no-conversions", "--no-ipc-core",
+         "--no-loans"],
         cwd=ROOT, capture_output=True, text=True, timeout=240)
     assert process.returncode == 0, process.stderr[-3000:]
     with open(out / "bench.json", encoding="utf-8") as handle:

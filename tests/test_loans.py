@@ -1,0 +1,376 @@
+"""Loaned messages (issue 13 point 1): ``Publisher.loan`` and ``tensor_conversions.*.loan_tensor_msg``.
+
+Generic pool rules on CPU messages (holds by reference, the ``reclaim`` hook), then warp loans:
+cached views, steady state without allocation, intra-process holds, an exception in the block,
+the read-only pages after publish (a write through a stale view faults, in a child process),
+and a subscriber in another process.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import uuid
+
+import numpy as np
+import pytest
+import torch
+
+from tests._pubsub_helpers import ROOT, TENSOR, Child, child_env, pattern
+
+from buffer_pubsub import Node  # noqa: E402
+from rosidl_buffer import Buffer, BufferImplBase, CpuBufferImpl, registry  # noqa: E402
+from rosidl_buffer.messages import get_message_type  # noqa: E402
+from tensor_conversions import numpy as tn  # noqa: E402
+from tensor_conversions import torch as tc  # noqa: E402
+from tensor_conversions import warp as tw  # noqa: E402
+from tensor_conversions.errors import UnsupportedBackendError  # noqa: E402
+from warp_buffer import pool_stats  # noqa: E402
+from warp_buffer.loan import LoanedBufferImpl, loan_buffer  # noqa: E402
+
+_domains = itertools.count(60 + os.getpid() % 40 * 7)
+N = 1024
+
+
+@pytest.fixture
+def domain() -> int:
+    return next(_domains)
+
+
+@pytest.fixture
+def topic() -> str:
+    return f"/loan_test/t_{uuid.uuid4().hex[:10]}"
+
+
+@pytest.fixture(scope="module")
+def backends():
+    loaded, _errors = registry.load_backends()
+    assert "warp" in loaded
+    return loaded
+
+
+def _cpu_factory():
+    tensor = get_message_type(TENSOR)
+    return tensor(dtype_code=1, dtype_bits=8, dtype_lanes=1, shape=np.array([N]),
+                  data=Buffer(np.zeros(N, np.uint8)))
+
+
+def _wait(predicate, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.002)
+    return True
+
+
+# --------------------------------------------------------------------------- the reclaim hook
+def test_cpu_reclaim_is_false_while_a_view_of_the_storage_lives():
+    impl = CpuBufferImpl(np.zeros(16, np.uint8))
+    assert impl.reclaim()
+    view = impl.view()[4:]
+    assert not impl.reclaim()
+    del view
+    assert impl.reclaim()
+    borrowed = CpuBufferImpl(b"received bytes")  # read-only received bytes: never rewritten
+    assert not borrowed.reclaim()
+
+
+def test_a_backend_without_reclaim_is_never_reused():
+    class Opaque(BufferImplBase):
+        def get_backend_type(self): return "opaque"
+        def size(self): return 1
+        def to_cpu(self): return CpuBufferImpl(np.zeros(1, np.uint8))
+        def clone(self): return Opaque()
+
+    assert Opaque().reclaim() is False
+
+
+def test_warp_reclaim_rearms_a_published_buffer_and_unprotects_it():
+    buffer = loan_buffer(5000, "cpu")
+    impl = buffer.get_impl()
+    assert isinstance(impl, LoanedBufferImpl)
+    impl._host[:] = 7
+    buffer.seal()
+    assert impl.is_published and impl.is_protected
+    assert int(impl._host[0]) == 7  # still readable
+    assert impl.reclaim()
+    assert not impl.is_published and not impl.is_protected
+    impl._host[:] = 9  # writable again (a fault would kill the test process)
+    assert int(impl._host[-1]) == 9
+
+
+# --------------------------------------------------------------------------- generic pool (CPU)
+def test_cpu_loans_reuse_the_message_unless_someone_holds_it(domain, topic, backends):
+    with Node("loan_cpu", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        with pub.loan(_cpu_factory) as msg:
+            msg.data.numpy()[:] = 1
+        first = id(msg)
+        del msg
+        with pub.loan(_cpu_factory) as msg:  # nobody held it: the same message again
+            assert id(msg) == first
+        kept_view = msg.data.numpy()  # a NumPy view of the storage is a hold
+        del msg
+        with pub.loan(_cpu_factory) as msg:
+            assert id(msg) != first
+        second = msg
+        del msg
+        kept_buffer = second.data  # the Buffer alone is a hold too
+        del second
+        with pub.loan(_cpu_factory) as msg:
+            pass
+        assert pub.loan_stats()["created"] == 3
+        del msg, kept_view, kept_buffer
+        with pub.loan(_cpu_factory) as msg:
+            pass
+        del msg
+        stats = pub.loan_stats()
+        assert stats["created"] == 3 and stats["reused"] == 2
+
+
+def test_past_max_loans_a_loan_is_a_fresh_unpooled_message(domain, topic, backends):
+    with Node("loan_max", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        held = []
+        for _ in range(4):
+            with pub.loan(_cpu_factory, max_loans=2) as msg:
+                held.append(msg)
+        assert pub.loan_stats() == {"created": 2, "reused": 0, "unpooled": 2, "pooled": 2}
+
+
+# --------------------------------------------------------------------------- warp loans
+def _intra(node, topic, on_msg):
+    return node.create_subscription(TENSOR, topic, on_msg, depth=100,
+                                    acceptable_buffer_backends="warp")
+
+
+def test_loan_views_are_cached_and_steady_state_allocates_nothing(domain, topic, backends):
+    received = []
+    with Node("loan_steady", domain_id=domain, backends=backends) as node:
+        _intra(node, topic, lambda m: received.append(
+            float(tc.from_input_tensor_msg(m, clone=False)[-1])))
+        pub = node.create_publisher(TENSOR, topic)
+        assert pub.wait_for_subscriptions(1)
+        views: dict[int, torch.Tensor] = {}
+        before = None
+        for i in range(40):
+            if i == 4:
+                before = (pool_stats()["cpu"]["created"], pub.loan_stats()["created"])
+            with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+                out = tc.from_output_tensor_msg(msg)
+                assert tc.from_output_tensor_msg(msg) is out  # one view per framework
+                views.setdefault(out.data_ptr(), out)
+                assert views[out.data_ptr()] is out  # the second loan of a block reuses it
+                out.fill_(i)
+            del out
+            assert _wait(lambda: len(received) == i + 1)
+        after = (pool_stats()["cpu"]["created"], pub.loan_stats()["created"])
+        assert received == [float(i) for i in range(40)]
+    assert after == before, "a loan allocated in steady state"
+    assert len(views) <= 2  # the pointers are stable: the same blocks go round
+    assert pub.loan_stats()["reused"] >= 36
+
+
+def test_numpy_and_warp_views_of_a_loan(domain, topic, backends):
+    import warp as wp
+
+    with Node("loan_np", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        with tn.loan_tensor_msg(pub, (4, 8), np.int32, device="cpu") as msg:
+            array = tn.from_output_tensor_msg(msg)
+            warp_view = tw.from_output_tensor_msg(msg)
+            assert array.shape == (4, 8) and array.flags.writeable
+            assert warp_view.ptr == array.ctypes.data  # zero-copy, same bytes
+            array[:] = np.arange(32, dtype=np.int32).reshape(4, 8)
+            assert np.array_equal(warp_view.numpy(), array)
+        assert warp_view.dtype == wp.int32 and warp_view.shape == (4, 8)
+        with pytest.raises(UnsupportedBackendError):
+            tn.loan_tensor_msg(pub, (4,), np.float32, backend="cpu")
+
+
+def test_intra_process_reader_holding_the_message_is_never_rewritten(domain, topic, backends):
+    held = []
+    with Node("loan_hold", domain_id=domain, backends=backends) as node:
+        _intra(node, topic, held.append)
+        pub = node.create_publisher(TENSOR, topic)
+        assert pub.wait_for_subscriptions(1)
+        pointers = []
+        for i in range(6):  # the subscriber keeps every message: each loan needs a new block
+            with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+                out = tc.from_output_tensor_msg(msg)
+                out.fill_(float(i))
+                pointers.append(out.data_ptr())
+            del out, msg
+            assert _wait(lambda: len(held) == i + 1)
+        assert len(set(pointers)) == 6
+        for i, msg in enumerate(held):  # what readers hold was never overwritten
+            assert torch.all(tc.from_input_tensor_msg(msg, clone=False) == float(i))
+        del msg
+        created = pool_stats()["cpu"]["created"]
+        held.clear()  # release: the blocks go round again
+        for i in range(6):
+            with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+                out = tc.from_output_tensor_msg(msg)
+                out.fill_(100.0 + i)
+                assert out.data_ptr() in pointers
+            del out, msg
+            assert _wait(lambda: len(held) == 1)
+            assert float(tc.from_input_tensor_msg(held.pop(), clone=False)[0]) == 100.0 + i
+        assert pool_stats()["cpu"]["created"] == created
+
+
+def test_an_exception_in_the_block_publishes_nothing_and_returns_the_loan(
+        domain, topic, backends):
+    received = []
+    with Node("loan_exc", domain_id=domain, backends=backends) as node:
+        _intra(node, topic, lambda m: received.append(
+            float(tc.from_input_tensor_msg(m, clone=False)[0])))
+        pub = node.create_publisher(TENSOR, topic)
+        assert pub.wait_for_subscriptions(1)
+        with pytest.raises(ValueError, match="camera"):
+            with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+                out = tc.from_output_tensor_msg(msg)
+                out.fill_(1.0)
+                first = out.data_ptr()
+                raise ValueError("camera unplugged")
+        del msg, out
+        time.sleep(0.2)
+        assert received == [] and pub._sequence == 0  # nothing published
+        with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+            out = tc.from_output_tensor_msg(msg)
+            assert out.data_ptr() == first  # the loan came back to the pool, writable
+            out.fill_(2.0)
+        assert _wait(lambda: received == [2.0])
+        assert pub.loan_stats()["created"] == 1
+
+
+_STALE_CHILD = textwrap.dedent("""
+    import sys, torch
+    from buffer_pubsub import Node
+    from rosidl_buffer import registry
+    from tensor_conversions import torch as tc
+    backends, _ = registry.load_backends()
+    with Node("stale", domain_id=int(sys.argv[1]), backends=backends) as node:
+        pub = node.create_publisher("tensor_msgs/msg/ExperimentalTensor", sys.argv[2])
+        with tc.loan_tensor_msg(pub, (1024,), torch.float32, device="cpu") as msg:
+            out = tc.from_output_tensor_msg(msg)
+            out.fill_(1.0)
+        print("PUBLISHED", float(out[5]), flush=True)  # reading a stale view is fine
+        out[5] = 2.0  # writing through it after publish must not happen
+        print("WROTE", flush=True)
+""")
+
+
+def test_writing_through_a_view_kept_past_publish_faults(domain, topic):
+    proc = subprocess.run([sys.executable, "-c", _STALE_CHILD, str(domain), topic], cwd=ROOT,
+                          env=child_env(), capture_output=True, text=True, timeout=60)
+    assert "PUBLISHED 1.0" in proc.stdout, proc.stderr
+    assert "WROTE" not in proc.stdout
+    assert proc.returncode == -signal.SIGSEGV, (proc.returncode, proc.stderr[-2000:])
+
+
+def test_a_re_loaned_block_is_writable_through_its_cached_view(domain, topic, backends):
+    with Node("loan_relo", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+            out = tc.from_output_tensor_msg(msg)
+            out.fill_(1.0)
+        impl = msg.data.get_impl()
+        assert impl.is_protected  # read-only from publish to the next loan of the block
+        del msg
+        with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+            assert not impl.is_protected and msg.data.get_impl() is impl
+            again = tc.from_output_tensor_msg(msg)
+            assert again is out
+            again.fill_(3.0)
+        assert impl.is_protected and float(out[0]) == 3.0
+
+
+def test_a_loaned_warp_message_reaches_another_process_zero_copy_and_blocks_go_round(
+        domain, topic, backends):
+    count = 30
+    sub = Child("sub", domain=domain, topic=topic, accept="warp", expect=count)
+    try:
+        with Node("loan_inter", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic)
+            sub.wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            pointers = set()
+            for index in range(count):
+                with tn.loan_tensor_msg(pub, (N,), np.uint8, device="cpu") as msg:
+                    out = tn.from_output_tensor_msg(msg)
+                    out[:] = pattern(0, index, N)
+                    pointers.add(out.ctypes.data)
+                del out, msg
+                time.sleep(0.02)  # the subscriber checks and drops each frame meanwhile
+            result = sub.stop()
+            stats = pub.loan_stats()
+    finally:
+        sub.close()
+    records = result["records"]
+    assert [r["index"] for r in records] == list(range(count))
+    assert all(r["ok"] for r in records), "wrong bytes"
+    assert {r["backend"] for r in records} == {"warp"} and {r["route"] for r in records} == \
+        {"buffer"}  # imported from the publisher's block, not CPU bytes
+    assert stats["reused"] >= count - stats["created"] and stats["created"] <= 4, stats
+    assert len(pointers) == stats["created"]
+
+
+
+def test_the_loans_benchmark_reports_every_figure():
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.loans", "--quick"], cwd=ROOT,
+                          env=child_env(), capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    text = proc.stdout
+    for framework in ("torch", "numpy", "warp"):
+        assert f"\n{framework} " in text
+    assert "from_input_tensor_msg(clone=False)" in text
+    assert "end to end in process" in text and "end to end to another process" in text
+    assert "stages (median us): loan+view" in text
+    assert "nan" not in text  # every series received its messages
+
+
+def test_loan_misuse_raises_typed_errors(domain, topic, backends):
+    from buffer_pubsub import LoanError
+
+    with Node("loan_err", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        loan = pub.loan(_cpu_factory)
+        with loan:
+            with pytest.raises(LoanError, match="entered once"):
+                loan.__enter__()
+        with pytest.raises(LoanError, match="not a message"):
+            with pub.loan(lambda: np.zeros(4)):
+                pass
+        assert isinstance(LoanError("x"), RuntimeError)
+
+
+@pytest.mark.cuda
+def test_cuda_loans_deliver_and_reuse_the_block_in_process(domain, topic, backends):
+    import warp as wp
+
+    received = []
+    with Node("loan_cuda", domain_id=domain, backends=backends) as node:
+        _intra(node, topic, lambda m: received.append(
+            tc.from_input_tensor_msg(m, clone=True).cpu()))
+        pub = node.create_publisher(TENSOR, topic)
+        assert pub.wait_for_subscriptions(1)
+        pointers = set()
+        for i in range(6):
+            with wp.ScopedStream(wp.get_stream("cuda:0")):
+                with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cuda:0") as msg:
+                    out = tc.from_output_tensor_msg(msg)
+                    assert out.device.type == "cuda"
+                    out.fill_(float(i))
+                    pointers.add(out.data_ptr())
+            del msg, out
+            assert _wait(lambda: len(received) == i + 1)
+        assert [float(t[0]) for t in received] == [float(i) for i in range(6)]
+        assert all(bool(torch.all(t == t[0])) for t in received)
+        assert len(pointers) <= 2 and pub.loan_stats()["reused"] >= 4
