@@ -261,12 +261,12 @@ class LaneReader:
         with self._lock:
             return self._subscriber is not None and self._subscriber.has_samples()
 
-    def consume_events(self) -> None:
-        """Clear the pending wake-ups (before draining: a message written after the drain
-        raises a new one, so none is missed)."""
+    def consume_events(self) -> bool:
+        """Clear the pending wake-ups; True when there were any. Call it before draining (a
+        message written after the drain raises a new one) and again after, until it says
+        False: see :meth:`LaneWaker._deliver`."""
         with self._lock:
-            if self.listener is not None:
-                self.listener.try_wait()
+            return self.listener is not None and bool(self.listener.try_wait())
 
     def close(self) -> None:
         """Delete the ports; iceoryx2 removes the services with their last port."""
@@ -359,32 +359,35 @@ class LaneWaker:
             if self._closed:
                 return
             self._waiting = True
-            pending, self._pending = self._pending, []
         try:
-            self._apply(pending)
-            if self.busy_poll_s > 0 and self._spin(timeout):
-                return
-            if self._notified:  # notified before we got here: no need to sleep
-                self._consume_notification()
-                return
-            if timeout is None:
-                ready, _ = self._waitset.wait_and_process()
-            else:
-                ready, _ = self._waitset.wait_and_process_with_timeout(
-                    self._iox2.Duration.from_secs_f64(max(timeout, 0.0)))
-            for attachment_id in ready:
-                if attachment_id == self._wake_id:
-                    self._consume_notification()
-                else:
-                    attachment = self._by_id.get(attachment_id)
-                    if attachment is not None:
-                        self._deliver(attachment)
+            self._apply_pending()
+            self._wait_once(timeout)
+            self._apply_pending()  # requests that woke us take effect before we return
         finally:
             with self._lock:
                 self._waiting = False
                 release = self._closed
             if release:
                 self._release()
+
+    def _wait_once(self, timeout: float | None) -> None:
+        if self.busy_poll_s > 0 and self._spin(timeout):
+            return
+        if self._notified:  # notified before we got here: no need to sleep
+            self._consume_notification()
+            return
+        if timeout is None:
+            ready, _ = self._waitset.wait_and_process()
+        else:
+            ready, _ = self._waitset.wait_and_process_with_timeout(
+                self._iox2.Duration.from_secs_f64(max(timeout, 0.0)))
+        for attachment_id in ready:
+            if attachment_id == self._wake_id:
+                self._consume_notification()
+            else:
+                attachment = self._by_id.get(attachment_id)
+                if attachment is not None:
+                    self._deliver(attachment)
 
     def _spin(self, timeout: float | None) -> bool:
         """Busy-poll up to ``busy_poll_s``; True when something was handled."""
@@ -415,13 +418,22 @@ class LaneWaker:
     def _deliver(self, attachment: _Attachment) -> None:
         reader = attachment.reader
         reader.consume_events()  # first: see consume_events
-        while (data := reader.take()) is not None:
-            try:
-                attachment.on_message(data)
-            except Exception:  # one bad callback must not strand the messages behind it
-                _log.exception("lane callback of %r failed", reader)
+        while True:
+            while (data := reader.take()) is not None:
+                try:
+                    attachment.on_message(data)
+                except Exception:  # one bad callback must not strand the messages behind it
+                    _log.exception("lane callback of %r failed", reader)
+            # iceoryx2 0.10 skips the wake-up datagram while its listener state says "notified";
+            # a notify racing our first try_wait can leave that state set with the datagram
+            # already consumed, and the next notify would then wake nobody. Another try_wait
+            # resets the state; it reports the racing notification, so we drain again.
+            if not reader.consume_events():
+                return
 
-    def _apply(self, pending: list[tuple[bool, _Attachment]]) -> None:
+    def _apply_pending(self) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, []
         for attach, attachment in pending:
             key = id(attachment.reader)
             old = self._attached.pop(key, None)
