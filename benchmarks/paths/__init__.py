@@ -22,9 +22,11 @@ PATH_MODULES: dict[str, str] = {
     "warp_zero_copy": "benchmarks.paths.ours_warp",
     "cpu_fallback": "benchmarks.paths.ours_cpu",
     "intra_process": "benchmarks.paths.ours_intra",
+    "lane": "benchmarks.paths.lane",
     "zenoh_copy": "benchmarks.paths.zenoh_copy",
     "zenoh_shm": "benchmarks.paths.zenoh_shm",
     "iceoryx2": "benchmarks.paths.iceoryx2_pubsub",
+    "iceoryx2_listener": "benchmarks.paths.iceoryx2_listener",
     "torch_mp": "benchmarks.paths.torch_mp",
 }
 
