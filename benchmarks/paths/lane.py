@@ -45,16 +45,24 @@ class LaneSender:
         self._route = _route(settings)
         self._writer: Any = None
         self._message = bytearray(MESSAGE_BYTES)
+        self._sizes: list[int] = []
 
     def prepare(self, nbytes: int) -> None:
         """Open the receiver's lane (it exists once the receiver said it is ready)."""
         if self._writer is None:
             self._writer = _lane().LaneWriter(self._route)
+        self._sizes.append(nbytes)
 
     def send(self, seq: int) -> None:
         """Stamp, write (one copy of 602 B into iceoryx2's segment), wake the receiver."""
         stamp_into(self._message, seq)
         self._writer.write(self._message)
+
+    def report(self) -> dict:
+        """Bytes copied per message: the 602-byte message into iceoryx2's segment (never the
+        payload, which stays in shared memory)."""
+        return {"per_size": {str(n): {"serialized_bytes_per_message": MESSAGE_BYTES}
+                             for n in self._sizes}}
 
     def close(self) -> None:
         """Drop the writer."""
@@ -73,6 +81,7 @@ class LaneReceiver:
         self._waker = lane.LaneWaker()
         self._deliver: Callable[[bytes | memoryview], None] | None = None
         self._delivered = False
+        self._sizes: list[int] = []
         self._waker.attach(self._reader, self._on_message)
 
     def _on_message(self, data: bytes) -> None:
@@ -83,6 +92,13 @@ class LaneReceiver:
     def prepare(self, nbytes: int, deliver: Callable[[bytes | memoryview], None]) -> None:
         """The same lane carries every size."""
         self._deliver = deliver
+        self._sizes.append(nbytes)
+
+    def report(self) -> dict:
+        """Bytes copied per message: the message out of iceoryx2's segment (``take``)."""
+        return {"per_size": {str(n): {"received_wire_bytes": MESSAGE_BYTES, "backend": "lane",
+                                      "tensor_lives_in": "shared memory (not read here)"}
+                             for n in self._sizes}}
 
     def poll(self) -> bool:
         """Block up to WAIT_S for lane messages; True when one was delivered."""
