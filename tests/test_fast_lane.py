@@ -337,3 +337,18 @@ def test_unstartable_iceoryx2_gives_a_reason(monkeypatch) -> None:
     monkeypatch.setattr(fast_lane, "_probed", {})
     state = fast_lane.status()
     assert not state.available and _iox2.ENV_DOMAIN in state.reason
+
+
+def test_info_says_whether_the_lane_runs() -> None:
+    import json
+
+    command = [sys.executable, "-m", "warp_buffer_cli.main", "info", "--json"]
+    off = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=60, check=True,
+                         env={**os.environ, "WARP_BUFFER_FAST_LANE": "0"})
+    lane = json.loads(off.stdout)["fast_lane"]
+    assert lane["available"] is False and "turned off" in lane["reason"]
+    if importlib.util.find_spec("iceoryx2") is not None:
+        on = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=60,
+                            check=True)
+        lane = json.loads(on.stdout)["fast_lane"]
+        assert lane["available"] is True and lane["resource_prefix"] == _iox2.resource_prefix()
