@@ -23,6 +23,7 @@ Turn it off with ``WARP_BUFFER_FAST_LANE=0`` (the Node option proposed for the t
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import dataclasses
 import hashlib
@@ -30,7 +31,7 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from . import _iox2
@@ -121,17 +122,47 @@ def service_name(data_key: str, subscriber_gid: bytes) -> str:
     return f"{_SERVICE_ROOT}/sha256/{hashlib.sha256(name.encode()).hexdigest()}"
 
 
-def _open(iox2: Any, node: Any, name: str, create: bool, depth: int) -> tuple[Any, Any]:
-    """The publish-subscribe and event services of ``name`` (created by the reader)."""
-    service_name_ = iox2.ServiceName.new(name)
-    pubsub = node.service_builder(service_name_).publish_subscribe(iox2.Slice[ctypes.c_uint8])
-    event = node.service_builder(service_name_).event()
-    if create:
-        pubsub = (pubsub.max_publishers(MAX_WRITERS).max_subscribers(1).history_size(0)
-                  .subscriber_max_buffer_size(depth).enable_safe_overflow(True).create())
-        event = event.max_notifiers(MAX_WRITERS).max_listeners(1).create()
-        return pubsub, event
-    return pubsub.open(), event.open()
+def _services(name: str, create: bool, depth: int) -> tuple[Any, Any]:
+    """The publish-subscribe and event services of ``name`` (the reader creates them)."""
+    try:
+        iox2 = _iox2.load()
+        node = _iox2.process_node()
+    except LaneStartError as error:
+        raise LaneUnavailableError(str(error)) from None
+    service = iox2.ServiceName.new(name)
+    pubsub = node.service_builder(service).publish_subscribe(iox2.Slice[ctypes.c_uint8])
+    event = node.service_builder(service).event()
+    if not create:
+        return pubsub.open(), event.open()
+    pubsub = (pubsub.max_publishers(MAX_WRITERS).max_subscribers(1).history_size(0)
+              .subscriber_max_buffer_size(depth).enable_safe_overflow(True).create())
+    return pubsub, event.max_notifiers(MAX_WRITERS).max_listeners(1).create()
+
+
+@contextlib.contextmanager
+def _ports_of(owner: Any, failure: str) -> Iterator[None]:
+    """Create ``owner``'s ports inside: on an iceoryx2 error, delete what was made and raise
+    :class:`LaneUnavailableError` starting with ``failure``; on success, close at exit."""
+    try:
+        yield
+    except LaneUnavailableError:
+        owner.close()
+        raise
+    except Exception as error:  # iceoryx2's open / create errors: no lane for this route
+        owner.close()
+        raise LaneUnavailableError(f"{failure}: {type(error).__name__}: {error}") from None
+    _iox2.track(owner)
+
+
+def _delete_ports(owner: Any, attributes: tuple[str, ...]) -> None:
+    """Take ``owner``'s ports under its lock, then delete them (idempotent)."""
+    with owner._lock:
+        ports = [getattr(owner, a) for a in attributes]
+        for attribute in attributes:
+            setattr(owner, attribute, None)
+    for port in ports:
+        if port is not None:
+            port.delete()
 
 
 class LaneWriter:
@@ -149,21 +180,11 @@ class LaneWriter:
         self._lock = threading.Lock()
         self._publisher: Any = None
         self._notifier: Any = None
-        try:
-            iox2 = _iox2.load()
-            node = _iox2.process_node()
-        except LaneStartError as error:
-            raise LaneUnavailableError(str(error)) from None
-        try:
-            pubsub, event = _open(iox2, node, name, create=False, depth=0)
+        with _ports_of(self, f"no lane reader for {name!r}"):
+            pubsub, event = _services(name, create=False, depth=0)
             self._publisher = (pubsub.publisher_builder().initial_max_slice_len(max_payload)
                                .max_loaned_samples(1).create())
             self._notifier = event.notifier_builder().create()
-        except Exception as error:  # open / create errors of iceoryx2: no lane to this reader
-            self.close()
-            raise LaneUnavailableError(
-                f"no lane reader for {name!r}: {type(error).__name__}: {error}") from None
-        _iox2.track(self)
 
     def __repr__(self) -> str:
         return f"LaneWriter({self.name!r})"
@@ -200,12 +221,7 @@ class LaneWriter:
 
     def close(self) -> None:
         """Delete the ports (idempotent; also run at exit)."""
-        with self._lock:
-            ports = (self._notifier, self._publisher)
-            self._publisher = self._notifier = None
-        for port in ports:
-            if port is not None:
-                port.delete()
+        _delete_ports(self, ("_notifier", "_publisher"))
 
 
 class LaneReader:
@@ -224,20 +240,10 @@ class LaneReader:
         self._lock = threading.Lock()
         self._subscriber: Any = None
         self.listener: Any = None
-        try:
-            iox2 = _iox2.load()
-            node = _iox2.process_node()
-        except LaneStartError as error:
-            raise LaneUnavailableError(str(error)) from None
-        try:
-            pubsub, event = _open(iox2, node, name, create=True, depth=max(1, depth))
+        with _ports_of(self, f"cannot create lane reader {name!r}"):
+            pubsub, event = _services(name, create=True, depth=max(1, depth))
             self._subscriber = pubsub.subscriber_builder().buffer_size(max(1, depth)).create()
             self.listener = event.listener_builder().create()
-        except Exception as error:  # e.g. a service of that name exists: a bug or a stale one
-            self.close()
-            raise LaneUnavailableError(
-                f"cannot create lane reader {name!r}: {type(error).__name__}: {error}") from None
-        _iox2.track(self)
 
     def __repr__(self) -> str:
         return f"LaneReader({self.name!r})"
@@ -270,12 +276,7 @@ class LaneReader:
 
     def close(self) -> None:
         """Delete the ports; iceoryx2 removes the services with their last port."""
-        with self._lock:
-            ports = (self.listener, self._subscriber)
-            self.listener = self._subscriber = None
-        for port in ports:
-            if port is not None:
-                port.delete()
+        _delete_ports(self, ("listener", "_subscriber"))
 
 
 OnMessage = Callable[[bytes], None]

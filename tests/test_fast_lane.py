@@ -89,6 +89,14 @@ def peers():
             peer.kill()
 
 
+def reader_and_writer(start, name: str, count: int, interval_s: str = "0",
+                      depth: str = "16") -> tuple[Peer, Peer]:
+    """A reader process, ready, then a writer process that writes ``count`` messages."""
+    reader = start("reader", name, depth)
+    assert reader.line() == "ready"
+    return reader, start("writer", name, str(count), interval_s)
+
+
 def route() -> str:
     return fast_lane.service_name(f"0/test_{uuid.uuid4().hex[:8]}/T/H", os.urandom(16))
 
@@ -97,9 +105,8 @@ def route() -> str:
 def test_order_and_no_loss_between_processes() -> None:
     name = route()
     with peers() as start:
-        reader = start("reader", name, "64")
-        assert reader.line() == "ready"
-        writer = start("writer", name, "200", "0.001")  # ~1 kHz, within the reader's pace
+        # ~1 kHz, within the reader's pace
+        reader, writer = reader_and_writer(start, name, 200, "0.001", depth="64")
         got = [reader.line() for _ in range(200)]
         assert got == [f"msg m{i}" for i in range(200)]
         assert writer.line() == "done"
@@ -114,9 +121,7 @@ def test_idle_reader_sleeps_and_wakes_by_event() -> None:
     of it) and wakes at once for a message: no timeout can be what delivers it."""
     name = route()
     with peers() as start:
-        reader = start("reader", name, "16")
-        assert reader.line() == "ready"
-        writer = start("writer", name, "0", "0")
+        reader, writer = reader_and_writer(start, name, 0)
         assert writer.line() == "done"
         writer.send("cpu?")
         cpu_before = float(reader.line().split()[1])
@@ -135,9 +140,7 @@ def test_sigkilled_writer_is_cleaned_and_reader_goes_on() -> None:
     name = route()
     before = lane_files()
     with peers() as start:
-        reader = start("reader", name, "16")
-        assert reader.line() == "ready"
-        writer = start("writer", name, "3", "0")
+        reader, writer = reader_and_writer(start, name, 3)
         assert [reader.line() for _ in range(3)] == ["msg m0", "msg m1", "msg m2"]
         with_writer = lane_files()
         writer.kill()  # SIGKILL: its node, data segment and connection stay in place ...
@@ -157,9 +160,7 @@ def test_sigkilled_reader_and_writer_are_cleaned_by_the_next_process() -> None:
     name = route()
     before = lane_files()
     with peers() as start:
-        reader = start("reader", name, "16")
-        assert reader.line() == "ready"
-        writer = start("writer", name, "1", "0")
+        reader, writer = reader_and_writer(start, name, 1)
         assert reader.line() == "msg m0"
         reader.process.send_signal(signal.SIGKILL)
         writer.process.send_signal(signal.SIGTERM)  # Python's default: dies without cleanup
