@@ -40,6 +40,7 @@ _lock = threading.Lock()
 _node: Any = None
 _node_pid = 0  # the process that created _node: a forked child must not use its parent's node
 _owners: weakref.WeakSet[Any] = weakref.WeakSet()  # lane objects holding ports (see track)
+_early_owners: weakref.WeakSet[Any] = weakref.WeakSet()
 
 
 class LaneStartError(RuntimeError):
@@ -116,17 +117,23 @@ def process_node() -> Any:
         return _node
 
 
-def track(owner: Any) -> None:
+def track(owner: Any, early: bool = False) -> None:
     """Close ``owner`` (an object with ``close()`` holding iceoryx2 ports) at exit at the latest:
     objects still alive when the interpreter shuts down are not reliably dropped, and a port
-    that outlives the process keeps its node's files in place."""
-    _owners.add(owner)
+    that outlives the process keeps its node's files in place. ``early`` owners (wakers, whose
+    WaitSets watch the ports of others) close first."""
+    (_early_owners if early else _owners).add(owner)
 
 
 def close_node() -> None:
-    """Close every tracked owner, then drop this process's node: iceoryx2 removes its files."""
+    """Close every tracked owner, then drop this process's node: iceoryx2 removes its files.
+
+    Does nothing in a forked child: the node and ports it inherited are its parent's, and
+    deleting them would remove them from under the parent."""
     global _node
-    for owner in list(_owners):
+    if _node_pid != os.getpid():
+        return
+    for owner in [*_early_owners, *_owners]:
         try:
             owner.close()
         except Exception:  # exit path: close what can be closed

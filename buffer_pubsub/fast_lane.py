@@ -275,7 +275,8 @@ class LaneReader:
             return self.listener is not None and bool(self.listener.try_wait())
 
     def close(self) -> None:
-        """Delete the ports; iceoryx2 removes the services with their last port."""
+        """Delete the ports; iceoryx2 removes the services with their last port. Detach the
+        reader from its waker first (the WaitSet watches the listener)."""
         _delete_ports(self, ("listener", "_subscriber"))
 
 
@@ -294,9 +295,9 @@ class LaneWaker:
     messages and delivers them on the waiting thread.
 
     :meth:`attach` / :meth:`detach` may be called from any thread; the waiting thread applies
-    them (iceoryx2's WaitSet must not change while a wait runs). ``busy_poll_s`` > 0: each
-    :meth:`wait` first spins that long (a core at 100% and the GIL held meanwhile) checking the
-    readers and notifications, then blocks.
+    them (iceoryx2's WaitSet must not change while a wait runs); one thread waits at a time.
+    ``busy_poll_s`` > 0: each :meth:`wait` first spins that long (a core at 100% and the GIL
+    held meanwhile) checking the readers and notifications, then blocks.
     """
 
     def __init__(self, busy_poll_s: float = 0.0) -> None:
@@ -310,7 +311,8 @@ class LaneWaker:
         self._attached: dict[int, _Attachment] = {}  # id(reader) -> attachment
         self._by_id: dict[Any, _Attachment] = {}  # WaitSetAttachmentId -> attachment
         self._notified = False
-        self._waiting = False
+        self._waiter: int | None = None  # the thread in wait(), if any
+        self._released = threading.Event()
         self._closed = False
         self._eventfd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
         self._waitset = (iox2.WaitSetBuilder.new()
@@ -319,6 +321,7 @@ class LaneWaker:
         self._wake_guard = self._waitset.attach_notification_fd(
             iox2.FileDescriptor.non_owning_new(self._eventfd))
         self._wake_id = iox2.WaitSetAttachmentId.from_guard(self._wake_guard)
+        _iox2.track(self, early=True)
 
     # -- any thread ----------------------------------------------------------------------------
     def notify(self) -> None:
@@ -340,17 +343,21 @@ class LaneWaker:
             self._pending.append((False, _Attachment(reader, _ignore)))
         self.notify()
 
-    def close(self) -> None:
-        """Release the WaitSet and the eventfd (by the waiting thread if one is waiting)."""
+    def close(self, timeout: float = 1.0) -> None:
+        """Release the WaitSet and the eventfd. A thread waiting meanwhile is woken and releases
+        them itself; close waits up to ``timeout`` s for that (at exit, a wait left running
+        would keep the iceoryx2 node, and its files, alive)."""
         with self._lock:
             if self._closed:
                 return
             self._closed = True
-            waiting = self._waiting
-        if waiting:
-            self.notify()
-        else:
+            waiter = self._waiter
+        if waiter is None:
             self._release()
+            return
+        self.notify()
+        if waiter != threading.get_ident():
+            self._released.wait(timeout)
 
     # -- the waiting thread --------------------------------------------------------------------
     def wait(self, timeout: float | None = None) -> None:
@@ -359,14 +366,14 @@ class LaneWaker:
         with self._lock:
             if self._closed:
                 return
-            self._waiting = True
+            self._waiter = threading.get_ident()
         try:
             self._apply_pending()
             self._wait_once(timeout)
             self._apply_pending()  # requests that woke us take effect before we return
         finally:
             with self._lock:
-                self._waiting = False
+                self._waiter = None
                 release = self._closed
             if release:
                 self._release()
@@ -463,6 +470,7 @@ class LaneWaker:
         with self._lock:
             fd, self._eventfd = self._eventfd, -1
         os.close(fd)
+        self._released.set()
 
 
 def _ignore(data: bytes) -> None:

@@ -353,3 +353,26 @@ def test_info_says_whether_the_lane_runs() -> None:
                             check=True)
         lane = json.loads(on.stdout)["fast_lane"]
         assert lane["available"] is True and lane["resource_prefix"] == _iox2.resource_prefix()
+
+
+@requires_iceoryx2
+def test_exit_without_closing_leaves_nothing() -> None:
+    """A process that exits with its lane objects open, a daemon thread blocked in the waker,
+    leaves no iceoryx2 file behind (the exit hook closes wakers, then ports, then the node)."""
+    before = lane_files()
+    code = (
+        "import threading, time\n"
+        "from buffer_pubsub import fast_lane as f\n"
+        f"name = {route()!r}\n"
+        "reader, waker = f.LaneReader(name), f.LaneWaker()\n"
+        "writer = f.LaneWriter(name)\n"
+        "got = []\n"
+        "waker.attach(reader, got.append)\n"
+        "threading.Thread(target=lambda: [waker.wait(None) for _ in range(100)],"
+        " daemon=True).start()\n"
+        "writer.write(b'x')\n"
+        "deadline = time.monotonic() + 5\n"
+        "while not got and time.monotonic() < deadline: time.sleep(0.01)\n"
+        "assert got == [b'x'], got\n")
+    subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True, timeout=30)
+    assert lane_files() == before
