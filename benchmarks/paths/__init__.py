@@ -23,6 +23,7 @@ PATH_MODULES: dict[str, str] = {
     "cpu_fallback": "benchmarks.paths.ours_cpu",
     "intra_process": "benchmarks.paths.ours_intra",
     "lane": "benchmarks.paths.lane",
+    "lane_busy": "benchmarks.paths.lane_busy",
     "zenoh_copy": "benchmarks.paths.zenoh_copy",
     "zenoh_shm": "benchmarks.paths.zenoh_shm",
     "iceoryx2": "benchmarks.paths.iceoryx2_pubsub",

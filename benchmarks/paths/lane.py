@@ -11,6 +11,7 @@ path: ``benchmarks/lane_stages.py`` measures it, stage by stage.
 from __future__ import annotations
 
 import hashlib
+import time
 from typing import Any, Callable
 
 from benchmarks.paths import PathSettings, PathUnavailable
@@ -75,10 +76,11 @@ class LaneReceiver:
 
     polls = True
 
-    def __init__(self, settings: PathSettings) -> None:
+    def __init__(self, settings: PathSettings, busy_poll_s: float = 0.0) -> None:
         lane = _lane()
         self._reader = lane.LaneReader(_route(settings), depth=16)
-        self._waker = lane.LaneWaker()
+        self._waker = lane.LaneWaker(busy_poll_s=busy_poll_s)
+        self._started = (time.monotonic(), time.process_time())
         self._deliver: Callable[[bytes | memoryview], None] | None = None
         self._delivered = False
         self._sizes: list[int] = []
@@ -95,10 +97,13 @@ class LaneReceiver:
         self._sizes.append(nbytes)
 
     def report(self) -> dict:
-        """Bytes copied per message: the message out of iceoryx2's segment (``take``)."""
+        """Bytes copied per message (the message out of iceoryx2's segment, ``take``) and the
+        CPU this receiver process used per second of the run (1.0 = a core held)."""
+        wall = time.monotonic() - self._started[0]
         return {"per_size": {str(n): {"received_wire_bytes": MESSAGE_BYTES, "backend": "lane",
                                       "tensor_lives_in": "shared memory (not read here)"}
-                             for n in self._sizes}}
+                             for n in self._sizes},
+                "cpu_per_wall_s": (time.process_time() - self._started[1]) / wall}
 
     def poll(self) -> bool:
         """Block up to WAIT_S for lane messages; True when one was delivered."""
@@ -107,7 +112,11 @@ class LaneReceiver:
         return self._delivered
 
     def close(self) -> None:
-        """Drop the waker and the reader."""
+        """Drop the waker and the reader; say what CPU the receiver used."""
+        from benchmarks.protocol import progress
+
+        progress(f"  [lane receiver, busy_poll_s={self._waker.busy_poll_s:g}] CPU "
+                 f"{self.report()['cpu_per_wall_s']:.2f} s per s of the run")
         self._waker.close()
         self._reader.close()
 
