@@ -193,16 +193,17 @@ class LaneWriter:
         """Whether a message of ``nbytes`` can travel on the lane."""
         return nbytes <= self.max_payload
 
-    def write(self, data: bytes | bytearray | memoryview) -> bool:
-        """Send one message and wake the reader; False when no reader is connected any more
-        (the message reached nobody).
+    def write(self, *parts: bytes | bytearray | memoryview) -> bool:
+        """Send one message, the concatenation of ``parts`` (e.g. an attachment and a CDR
+        payload, copied once, straight into iceoryx2's segment), and wake the reader; False
+        when no reader is connected any more (the message reached nobody).
 
         Raises:
             LaneError: the message is larger than ``max_payload``, the writer is closed, or
                 iceoryx2 failed to loan or send.
         """
-        view = memoryview(data).cast("B")
-        nbytes = view.nbytes
+        views = [memoryview(part).cast("B") for part in parts]
+        nbytes = sum(view.nbytes for view in views)
         if nbytes > self.max_payload:
             raise LaneError(f"{nbytes} B message exceeds the lane's {self.max_payload} B")
         with self._lock:
@@ -211,8 +212,12 @@ class LaneWriter:
             try:
                 sample = self._publisher.loan_slice_uninit(nbytes)
                 if nbytes:
-                    memoryview((ctypes.c_uint8 * nbytes).from_address(
-                        sample.payload_ptr)).cast("B")[:] = view
+                    target = memoryview((ctypes.c_uint8 * nbytes).from_address(
+                        sample.payload_ptr)).cast("B")
+                    offset = 0
+                    for view in views:
+                        target[offset:offset + view.nbytes] = view
+                        offset += view.nbytes
                 reached = sample.assume_init().send()
                 self._notifier.notify()
             except Exception as error:  # LoanError / SendError / NotifierNotifyError
@@ -288,6 +293,7 @@ class _Attachment:
     reader: LaneReader
     on_message: OnMessage
     guard: Any = None
+    close_reader: bool = False  # a detach request that closes the reader once detached
 
 
 class LaneWaker:
@@ -337,10 +343,12 @@ class LaneWaker:
             self._pending.append((True, _Attachment(reader, on_message)))
         self.notify()
 
-    def detach(self, reader: LaneReader) -> None:
-        """Stop delivering ``reader``'s messages (applied before the next wait)."""
+    def detach(self, reader: LaneReader, close: bool = False) -> None:
+        """Stop delivering ``reader``'s messages (applied by the waiting thread, or when the
+        waker closes); with ``close``, close the reader once it is detached (a reader must not
+        be closed while a WaitSet watches its listener)."""
         with self._lock:
-            self._pending.append((False, _Attachment(reader, _ignore)))
+            self._pending.append((False, _Attachment(reader, _ignore, close_reader=close)))
         self.notify()
 
     def close(self, timeout: float = 1.0) -> None:
@@ -447,6 +455,8 @@ class LaneWaker:
             old = self._attached.pop(key, None)
             if old is not None:
                 self._forget(old)
+            if attachment.close_reader:
+                attachment.reader.close()
             if not attach or attachment.reader.listener is None:
                 continue
             attachment.guard = self._waitset.attach_notification(attachment.reader.listener)
@@ -462,6 +472,11 @@ class LaneWaker:
             attachment.guard = None
 
     def _release(self) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, []
+        for _attach, attachment in pending:
+            if attachment.close_reader:
+                attachment.reader.close()
         for attachment in list(self._attached.values()):
             self._forget(attachment)
         self._attached.clear()

@@ -215,6 +215,10 @@ def test_writer_without_reader_is_unavailable_and_oversize_is_refused() -> None:
         with pytest.raises(fast_lane.LaneError, match="exceeds"):
             writer.write(b"x" * 65)
         assert writer.write(bytearray(b"y" * 64)) and reader.take() == b"y" * 64
+        assert writer.write(b"head", memoryview(b"-body-"), bytearray(b"tail"))
+        assert reader.take() == b"head-body-tail"
+        with pytest.raises(fast_lane.LaneError, match="exceeds"):
+            writer.write(b"x" * 60, b"y" * 5)
         with pytest.raises(fast_lane.LaneUnavailableError, match="cannot create"):
             fast_lane.LaneReader(name)  # one reader per route
     finally:
@@ -248,6 +252,12 @@ def test_waker_notify_attach_and_close_from_other_threads() -> None:
         writer.write(b"after detach")
         waker.wait(0.1)
         assert got == [b"early", b"late"]
+        waker.attach(reader, got.append)
+        waker.wait(0.0)  # the message written while detached arrives on re-attachment
+        assert got == [b"early", b"late", b"after detach"]
+        waker.detach(reader, close=True)
+        waker.wait(0.0)
+        assert reader.listener is None and reader.take() is None  # closed by the waker
         threading.Timer(0.05, waker.close).start()
         waker.wait(5.0)  # close while waiting: the waiting thread releases the WaitSet
         waker.wait(5.0)  # closed: returns at once
