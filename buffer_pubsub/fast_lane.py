@@ -181,9 +181,15 @@ class LaneWriter:
         self._publisher: Any = None
         self._notifier: Any = None
         with _ports_of(self, f"no lane reader for {name!r}"):
+            iox2 = _iox2.load()
             pubsub, event = _services(name, create=False, depth=0)
+            # Keep-last: the service's safe overflow drops a full reader's oldest message. Say
+            # DiscardData too: iceoryx2's default, RetryUntilDelivered, blocks (GIL held) behind
+            # a full reader of any service made without safe overflow.
             self._publisher = (pubsub.publisher_builder().initial_max_slice_len(max_payload)
-                               .max_loaned_samples(1).create())
+                               .max_loaned_samples(1)
+                               .backpressure_strategy(iox2.BackpressureStrategy.DiscardData)
+                               .create())
             self._notifier = event.notifier_builder().create()
 
     def __repr__(self) -> str:

@@ -386,3 +386,29 @@ def test_exit_without_closing_leaves_nothing() -> None:
         "assert got == [b'x'], got\n")
     subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True, timeout=30)
     assert lane_files() == before
+
+
+@requires_iceoryx2
+def test_frozen_reader_never_blocks_the_writer_and_keeps_the_last_depth() -> None:
+    """Keep-last: a SIGSTOPped reader's queue drops its oldest messages; write() never waits
+    for it (a keep-last publisher must not stall behind a frozen subscriber)."""
+    name = route()
+    with peers() as start:
+        reader = start("reader", name, "8")
+        assert reader.line() == "ready"
+        writer = fast_lane.LaneWriter(name)
+        try:
+            reader.process.send_signal(signal.SIGSTOP)
+            started = time.monotonic()
+            for i in range(100):
+                writer.write(f"m{i}".encode())
+            assert time.monotonic() - started < 2.0
+            reader.process.send_signal(signal.SIGCONT)
+            writer.write(b"stop")
+            assert reader.finish() == 0
+            lines = []
+            while (line := reader._lines.get(timeout=5)) is not None:
+                lines.append(line)
+        finally:
+            writer.close()
+    assert 1 <= len(lines) <= 8 and lines[-1] == "msg m99", lines
