@@ -181,8 +181,8 @@ class LaneWriter:
         self._publisher: Any = None
         self._notifier: Any = None
         with _ports_of(self, f"no lane reader for {name!r}"):
-            iox2 = _iox2.load()
             pubsub, event = _services(name, create=False, depth=0)
+            iox2 = _iox2.load()
             # Keep-last: the service's safe overflow drops a full reader's oldest message. Say
             # DiscardData too: iceoryx2's default, RetryUntilDelivered, blocks (GIL held) behind
             # a full reader of any service made without safe overflow.
@@ -330,8 +330,9 @@ class LaneWaker:
         self._waitset = (iox2.WaitSetBuilder.new()
                          .signal_handling_mode(iox2.SignalHandlingMode.Disabled)
                          .create(iox2.ServiceType.Ipc))
-        self._wake_guard = self._waitset.attach_notification_fd(
-            iox2.FileDescriptor.non_owning_new(self._eventfd))
+        # Kept: the WaitSet's guard refers to this object without owning it.
+        self._wake_fd = iox2.FileDescriptor.non_owning_new(self._eventfd)
+        self._wake_guard = self._waitset.attach_notification_fd(self._wake_fd)
         self._wake_id = iox2.WaitSetAttachmentId.from_guard(self._wake_guard)
         _iox2.track(self, early=True)
 

@@ -337,6 +337,8 @@ def test_unavailable_iceoryx2_gives_a_reason_logged_once(monkeypatch, caplog) ->
         f"fast lane off, Zenoh carries same-host messages: {first.reason}") == 1
     with pytest.raises(fast_lane.LaneUnavailableError, match="not installed"):
         fast_lane.LaneReader(route())
+    with pytest.raises(fast_lane.LaneUnavailableError, match="^iceoryx2 is not installed"):
+        fast_lane.LaneWriter(route())
     with pytest.raises(fast_lane.LaneUnavailableError, match="not installed"):
         fast_lane.LaneWaker()
     assert _iox2.cleanup_dead_nodes() == 0
