@@ -39,8 +39,9 @@ _DOMAIN = re.compile(r"^[A-Za-z0-9]{1,32}$")
 _lock = threading.Lock()
 _node: Any = None
 _node_pid = 0  # the process that created _node: a forked child must not use its parent's node
-_owners: weakref.WeakSet[Any] = weakref.WeakSet()  # lane objects holding ports (see track)
-_early_owners: weakref.WeakSet[Any] = weakref.WeakSet()
+# Lane objects holding ports, by the process that made them (see track): (early, others).
+_owners: dict[int, tuple[weakref.WeakSet[Any], weakref.WeakSet[Any]]] = {}
+_inherited: list[Any] = []  # nodes a forked child inherited (never dropped there)
 
 
 class LaneStartError(RuntimeError):
@@ -101,6 +102,8 @@ def process_node() -> Any:
         pid = os.getpid()
         if _node is not None and _node_pid == pid:
             return _node
+        if _node is not None:  # a forked child: dropping the parent's node here would remove
+            _inherited.append(_node)  # it from under the parent, so it is kept, unused
         iox2 = load()
         _cleanup_locked(iox2)
         try:
@@ -122,18 +125,21 @@ def track(owner: Any, early: bool = False) -> None:
     objects still alive when the interpreter shuts down are not reliably dropped, and a port
     that outlives the process keeps its node's files in place. ``early`` owners (wakers, whose
     WaitSets watch the ports of others) close first."""
-    (_early_owners if early else _owners).add(owner)
+    with _lock:
+        sets = _owners.setdefault(os.getpid(), (weakref.WeakSet(), weakref.WeakSet()))
+    sets[0 if early else 1].add(owner)
 
 
 def close_node() -> None:
     """Close every tracked owner, then drop this process's node: iceoryx2 removes its files.
 
-    Does nothing in a forked child: the node and ports it inherited are its parent's, and
-    deleting them would remove them from under the parent."""
+    Only what this process made: in a forked child, the node and ports it inherited are its
+    parent's, and deleting them would remove them from under the parent."""
     global _node
     if _node_pid != os.getpid():
         return
-    for owner in [*_early_owners, *_owners]:
+    early, others = _owners.get(os.getpid(), ((), ()))
+    for owner in [*early, *others]:
         try:
             owner.close()
         except Exception:  # exit path: close what can be closed

@@ -414,3 +414,29 @@ def test_frozen_reader_never_blocks_the_writer_and_keeps_the_last_depth() -> Non
         finally:
             writer.close()
     assert 1 <= len(lines) <= 8 and lines[-1] == "msg m99", lines
+
+
+@requires_iceoryx2
+def test_a_forked_child_leaves_its_parents_lane_alone() -> None:
+    """A child forked from a process with lane ports, which then uses the lane and runs its exit
+    hook, must not remove the parent's node or ports (iceoryx2 removes them in whichever
+    process deletes the objects)."""
+    name = route()
+    reader = fast_lane.LaneReader(name)
+    writer = fast_lane.LaneWriter(name)
+    try:
+        pid = os.fork()
+        if pid == 0:  # the child: a lane of its own, then what its exit hook does
+            code = 1
+            try:
+                fast_lane.LaneReader(route())  # left open: the exit hook closes it
+                _iox2.close_node()
+                code = 0
+            finally:
+                os._exit(code)
+        _, status = os.waitpid(pid, 0)
+        assert os.waitstatus_to_exitcode(status) == 0
+        assert writer.write(b"after the child") and reader.take() == b"after the child"
+    finally:
+        writer.close()
+        reader.close()
