@@ -96,6 +96,9 @@ def ratios(paths: dict[str, Any]) -> dict[str, dict[str, Any]]:
             **_verdict(flat, 1.2, False, _missing(paths, (zc,), (SIZE_64M, SIZE_4K)))},
     }
     result.update(transport_ratios(paths))
+    from benchmarks.lane_report import lane_ratios
+
+    result.update(lane_ratios(paths, _verdict, _missing))
     largest = max((int(s) for s in (paths.get(zc, {}).get("latency_us") or {})), default=None)
     if largest is not None and largest > SIZE_64M:
         result[f"flatness_{format_size(largest).replace(' ', '')}_over_4KiB"] = {
