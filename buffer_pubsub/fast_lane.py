@@ -323,6 +323,7 @@ class LaneWaker:
         self._attached: dict[int, _Attachment] = {}  # id(reader) -> attachment
         self._by_id: dict[Any, _Attachment] = {}  # WaitSetAttachmentId -> attachment
         self._notified = False
+        self.lost_wakeups = 0  # messages found by the timeout's check, not by an event
         self._waiter: int | None = None  # the thread in wait(), if any
         self._released = threading.Event()
         self._closed = False
@@ -410,6 +411,14 @@ class LaneWaker:
             else:
                 attachment = self._by_id.get(attachment_id)
                 if attachment is not None:
+                    self._deliver(attachment)
+        if not ready:
+            # Timed out (the executor's tick): a safety net for a wake-up iceoryx2 lost (see
+            # _deliver), so a message waits at most one tick instead of until the next one.
+            for attachment in list(self._attached.values()):
+                if attachment.reader.has_samples():
+                    self.lost_wakeups += 1
+                    _log.debug("lane %r: message found without its wake-up", attachment.reader)
                     self._deliver(attachment)
 
     def _spin(self, timeout: float | None) -> bool:
