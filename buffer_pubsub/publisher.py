@@ -176,11 +176,6 @@ class Publisher:
                     info, existing, info.supported_backends)
                 if accepted:
                     peer.served.add(name)
-        node = self.node
-        if node._lane is not None and _lane_routes.serves(
-                node.locality, token, individual=peer.individual, served=bool(peer.served),
-                keep_all=wire.KEEP_ALL in (self.history, wire.qos_history(token.qos))):
-            peer.lane = _lane_routes.open_writer(self.base_key, gid)  # None: Zenoh serves it
         # Negotiation ran unlocked; keep the peer only if it is still in the graph (checked
         # under the node's lock, which its DELETE takes before calling us), else a DELETE that
         # overtook us would leave a ghost peer pinning a block per publish.
@@ -193,8 +188,27 @@ class Publisher:
                         self._peers[gid] = peer
                         self._update_remote()
         if not keep:
-            peer.close()
             endpoint_gone(self._backends, info)
+            return
+        self._open_lane(peer)
+
+    def _open_lane(self, peer: _Peer) -> None:
+        """Give a kept peer the same-host lane if it has one (~12 ms, once per match). Opened
+        after the peer is kept, so publish() reaches it over Zenoh meanwhile."""
+        node = self.node
+        token = peer.token
+        if node._lane is None or not _lane_routes.serves(
+                node.locality, token, individual=peer.individual, served=bool(peer.served),
+                keep_all=wire.KEEP_ALL in (self.history, wire.qos_history(token.qos))):
+            return
+        writer = _lane_routes.open_writer(self.base_key, token.gid)  # None: Zenoh serves it
+        if writer is None:
+            return
+        with peer.lock:
+            if not peer.gone:
+                peer.lane, writer = writer, None
+        if writer is not None:  # it vanished meanwhile
+            writer.close()
 
     def _update_remote(self) -> None:
         """Rebuild the peers publish() serves through Zenoh; call with ``self._lock`` held.
