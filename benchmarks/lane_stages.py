@@ -164,7 +164,7 @@ def _trim_warp_pool() -> None:
     import warp_buffer
 
     gc.collect()
-    warp_buffer.trim_pools(0.0, inflight_grace=0.0)
+    warp_buffer.trim_pools(0.0)
 
 
 def _pipe() -> tuple[Connection, Connection]:
