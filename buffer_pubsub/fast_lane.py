@@ -341,6 +341,8 @@ class LaneWaker:
     def notify(self) -> None:
         """Wake the waiting thread (or make its next wait return at once)."""
         self._notified = True
+        if self._waiter == threading.get_ident():
+            return  # a lane callback on the waiting thread: wait() sees the flag, no syscall
         with self._lock:  # never write to a closed (and maybe reused) descriptor number
             if self._eventfd >= 0:
                 os.eventfd_write(self._eventfd, 1)

@@ -84,7 +84,8 @@ def _close(*children: Child) -> None:
 
 def _check_all(records, *, backend: str, route: str, count: int, pub: int = 0) -> None:
     mine = [r for r in records if r["pub"] == pub]
-    assert len(mine) == count, f"expected {count} frames from publisher {pub}, got {len(mine)}"
+    assert len(mine) == count, (f"expected {count} frames from publisher {pub}, got "
+                                f"{sorted(r['index'] for r in mine)} by {[r['route'] for r in mine]}")
     assert sorted(r["index"] for r in mine) == list(range(count))
     assert all(r["ok"] for r in mine), "payload checksum mismatch"
     assert {r["backend"] for r in mine} == {backend}
