@@ -27,7 +27,7 @@ RATE_BEFORE = 2445.0
 
 def _worst(paths: dict[str, Any], stat: str, path: str = LANE) -> float | None:
     latency = paths.get(path, {}).get("latency_us") or {}
-    values = [figures[f"{stat}_us"] for figures in latency.values()]
+    values = [v for figures in latency.values() if (v := figures.get(f"{stat}_us")) is not None]
     return max(values) if values else None
 
 

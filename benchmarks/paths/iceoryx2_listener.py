@@ -10,12 +10,15 @@ from __future__ import annotations
 from typing import Any
 
 from benchmarks.paths import PathSettings
-from benchmarks.paths.iceoryx2_pubsub import Iceoryx2Receiver, Iceoryx2Sender
+from benchmarks.paths.iceoryx2_pubsub import (  # noqa: F401 - shm_prefixes: the runner's
+    Iceoryx2Receiver,
+    Iceoryx2Sender,
+    shm_prefixes,
+)
 
 LABEL = "iceoryx2 (zero-copy, blocking listener)"
 KIND = "peer"
 TOPOLOGY = "pair"
-SHM_PREFIXES = ("iox2_",)
 WAIT_S = 0.05  # the receiver loop checks its control pipe this often while idle
 
 
