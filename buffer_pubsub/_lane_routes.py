@@ -71,12 +71,15 @@ def split_frame(data: bytes) -> tuple[wire.Attachment, memoryview]:
 
 class DeadPeerSweeper:
     """Runs iceoryx2's dead-node clean-up when a same-host peer of another process vanished,
-    at most once per ``interval_s`` (a burst of DELETEs from one dead process cleans once, and
-    one more time after the burst so a node that died last is not missed)."""
+    at most once per ``interval_s`` (a burst of DELETEs from one dead process cleans once), and
+    once more ``settle_s`` later: Zenoh may report the death before the kernel has released
+    the dead process's locks, which is how iceoryx2 tells a dead node from a live one."""
 
-    def __init__(self, local: wire.Locality, interval_s: float = 0.1) -> None:
+    def __init__(self, local: wire.Locality, interval_s: float = 0.1,
+                 settle_s: float = 0.5) -> None:
         self._local = local
         self._interval_s = interval_s
+        self._settle_s = max(settle_s, interval_s)
         self._lock = threading.Lock()
         self._last = 0.0
         self._timer: threading.Timer | None = None
@@ -89,15 +92,13 @@ class DeadPeerSweeper:
             return
         with self._lock:
             now = time.monotonic()
-            if now - self._last >= self._interval_s:
+            run_now = now - self._last >= self._interval_s
+            if run_now:
                 self._last = now
-                run_now = True
-            else:
-                run_now = False
-                if self._timer is None:
-                    self._timer = threading.Timer(self._interval_s, self._sweep_later)
-                    self._timer.daemon = True
-                    self._timer.start()
+            if self._timer is None:  # the follow-up sweep, one per burst
+                self._timer = threading.Timer(self._settle_s, self._sweep_later)
+                self._timer.daemon = True
+                self._timer.start()
         if run_now:
             self._sweep()
 

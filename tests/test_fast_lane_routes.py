@@ -74,7 +74,7 @@ def test_sweeper_cleans_a_sigkilled_peer_once_per_burst() -> None:
         assert reader.line() == "ready"
         reader.kill()
         assert lane_files() - before  # the dead reader's files are still there
-        sweeper = _lane_routes.DeadPeerSweeper(HERE, interval_s=0.2)
+        sweeper = _lane_routes.DeadPeerSweeper(HERE, interval_s=0.2, settle_s=0.3)
         sweeper.peer_gone(token(HERE))  # our own process vanishing is no reason to sweep
         assert sweeper.sweeps == 0
         gone = token(dataclasses.replace(HERE, process_id=reader.process.pid))
