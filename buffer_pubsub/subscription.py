@@ -219,11 +219,7 @@ class Subscription:
                 return
         # ZBytes has no buffer protocol in zenoh 1.10: to_bytes() is the one copy out of Zenoh
         # (deserialization then aliases these bytes).
-        item = (sample.payload.to_bytes(), attachment, route, received_ns, False)
-        if route == ROUTE_BUFFER and node._publisher_token(gid) is None:
-            self._park(item)
-            return
-        self._accept(item)
+        self._arrived((sample.payload.to_bytes(), attachment, route, received_ns, False))
 
     def _on_lane(self, data: bytes) -> None:
         """A lane message (on the executor thread or in spin(), inside the waker's wait)."""
@@ -234,11 +230,15 @@ class Subscription:
             with self._lock:
                 self._refuse(REFUSED_ATTACHMENT)
             return
-        gid = attachment.publisher_gid
-        if _process.is_local_publisher(gid):
+        if _process.is_local_publisher(attachment.publisher_gid):
             return  # delivered intra-process already (never sent here; a forged frame)
-        item = (payload, attachment, ROUTE_LANE, received_ns, False)
-        if self.node._publisher_token(gid) is None:
+        self._arrived((payload, attachment, ROUTE_LANE, received_ns, False))
+
+    def _arrived(self, item: tuple[Any, ...]) -> None:
+        """A sample built for us waits (parked) for its publisher's token, which its
+        descriptors need; anything else is accepted at once."""
+        if item[2] in _DESCRIPTOR_ROUTES and \
+                self.node._publisher_token(item[1].publisher_gid) is None:
             self._park(item)
             return
         self._accept(item)

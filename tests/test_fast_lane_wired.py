@@ -20,7 +20,7 @@ pytestmark = [pytest.mark.multiprocess, requires_iceoryx2]
 
 use_fake_backend()
 
-from buffer_pubsub import Node, fast_lane  # noqa: E402
+from buffer_pubsub import Node, _iox2, fast_lane  # noqa: E402
 from rosidl_buffer import registry  # noqa: E402
 
 _domains = itertools.count(6000 + os.getpid() % 50 * 40)
@@ -48,6 +48,7 @@ def test_sigkilled_lane_subscriber_is_cleaned_and_publishing_goes_on(setting):
     try:
         with Node("lane_kill_pub", domain_id=domain, backends=backends) as node:
             pub = node.create_publisher(TENSOR, topic)
+            _iox2.process_node()  # made lazily (again after the guard closed it last test)
             baseline = lane_files()  # this process's own node
             for round_ in range(2):  # the second subscriber gets the lane again
                 sub = Child("sub", domain=domain, topic=topic, accept="fake", expect=5)
@@ -80,6 +81,7 @@ def test_sigkilled_lane_publisher_is_cleaned_and_the_next_one_uses_the_lane(sett
             sub = node.create_subscription(TENSOR, topic, lambda m, i: got.append((m, i)),
                                            depth=100, acceptable_buffer_backends="fake",
                                            with_info=True)
+            _iox2.process_node()
             baseline = lane_files()  # this process's node and the reader's services
             for pub_id in (1, 2):
                 pub = Child("pub", domain=domain, topic=topic, backend="fake", pub_id=pub_id,
