@@ -16,8 +16,8 @@ lane message or anything else (a Zenoh-route delivery, a timer) needs it, and ru
 callbacks itself: no extra thread hop. ``LaneWaker(busy_poll_s=...)`` spins that long before it
 blocks: lower latency, at the price of a core held at 100% (and the GIL) while it spins.
 
-Turn it off with ``WARP_BUFFER_FAST_LANE=0`` (the Node option proposed for the transport is
-``fast_lane=False``, see :func:`enabled`). When iceoryx2 is missing or cannot start,
+Turn it off with ``WARP_BUFFER_FAST_LANE=0`` (or ``Node(..., fast_lane=False)``, see
+:func:`enabled`). When iceoryx2 is missing or cannot start,
 :func:`status` says why (logged once per process) and the transport keeps using Zenoh.
 """
 
@@ -46,7 +46,7 @@ _log = logging.getLogger(__name__)
 
 #: ``WARP_BUFFER_FAST_LANE=0`` (or ``false``/``off``/``no``) turns the lane off in a process.
 ENV_SWITCH = "WARP_BUFFER_FAST_LANE"
-#: The ``Node`` keyword proposed to the transport: ``Node(..., fast_lane=False)``.
+#: The ``Node`` keyword that turns the lane on or off per node: ``Node(..., fast_lane=False)``.
 NODE_OPTION = "fast_lane"
 #: Largest message the lane carries; bigger ones take the Zenoh route. A descriptor is at most
 #: 4096 B (rosidl::Buffer's kMaxBufferDescriptorSize); the rest is the message's other fields.
