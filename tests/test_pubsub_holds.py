@@ -59,7 +59,8 @@ def test_frames_a_blocked_depth_1_subscriber_evicts_are_released_at_once(monkeyp
             result = slow.stop()
     finally:
         slow.close()
-    assert grown <= BURST // 4, f"{grown} new blocks for {BURST} frames: evicted frames stayed pinned"
+    assert grown <= BURST // 4, \
+        f"{grown} new blocks for {BURST} frames: evicted frames stayed pinned"
     assert result["errors"] == 0 and result["seen"][0] == 0
     assert result["seen"][-1] == BURST  # the newest frame is the one kept
     assert result["dropped"] >= BURST - 3
