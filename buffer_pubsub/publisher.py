@@ -8,9 +8,9 @@ Per publish:
 - a remote subscription that advertises a backend besides CPU gets its own channel
   ``<key>/_buf/<its gid>`` (over the same-host iceoryx2 lane when its process is on this host
   and user and has the lane on, see :mod:`._lane_routes`; else on Zenoh): a payload
-  serialized for it alone when a backend agreed to serve it (``on_discovering_endpoint``) and holds one of the message's buffers
-  (``create_descriptor_with_endpoint`` per buffer, CPU bytes where that returns None), else the
-  shared CPU serialization;
+  serialized for it alone when a backend agreed to serve it (``on_discovering_endpoint``)
+  and holds one of the message's buffers (``create_descriptor_with_endpoint`` per buffer,
+  CPU bytes where that returns None), else the shared CPU serialization;
 - subscriptions that accept only CPU share one CPU serialization on ``<key>/_buf_cpu``;
 - subscriptions that know nothing of buffers (no extra segment) get CPU bytes on the base key.
 """
