@@ -57,7 +57,8 @@ class Node:
     path of a Zenoh JSON5 file, ``router`` a Zenoh router endpoint (see
     :mod:`buffer_pubsub.config` for the defaults); ``domain_id`` defaults to env
     ``ROS_DOMAIN_ID`` or 0; ``backends`` overrides the buffer backends (by default every
-    backend registered in :mod:`rosidl_buffer.registry`, loaded once per process). ``executor="thread"`` runs callbacks on a thread of the node;
+    backend registered in :mod:`rosidl_buffer.registry`, loaded once per process).
+    ``executor="thread"`` runs callbacks on a thread of the node;
     ``"manual"`` runs them only inside :meth:`spin` / :meth:`spin_once` on the caller's thread.
     ``waker`` replaces the executor's wake-up source (see :mod:`buffer_pubsub._waker`).
     ``fast_lane``: carry descriptors to same-host subscriptions of other processes over iceoryx2
