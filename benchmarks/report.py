@@ -60,9 +60,11 @@ def p50(paths: dict[str, Any], name: str, nbytes: int) -> float | None:
 
 def _verdict(value: float | None, target: float, at_least: bool, why_missing: str) -> dict:
     if value is None:
-        return {"value": None, "target": target, "verdict": "N/A", "detail": why_missing}
+        return {"value": None, "target": target, "verdict": "N/A", "detail": why_missing,
+                "at_least": at_least}
     ok = value >= target if at_least else value <= target
-    return {"value": value, "target": target, "verdict": "PASS" if ok else "MISS", "detail": ""}
+    return {"value": value, "target": target, "verdict": "PASS" if ok else "MISS", "detail": "",
+            "at_least": at_least}
 
 
 def _missing(paths: dict[str, Any], names: tuple[str, ...], sizes: tuple[int, ...]) -> str:
@@ -96,6 +98,9 @@ def ratios(paths: dict[str, Any]) -> dict[str, dict[str, Any]]:
             **_verdict(flat, 1.2, False, _missing(paths, (zc,), (SIZE_64M, SIZE_4K)))},
     }
     result.update(transport_ratios(paths))
+    from benchmarks.lane_report import lane_ratios
+
+    result.update(lane_ratios(paths, _verdict, _missing))
     largest = max((int(s) for s in (paths.get(zc, {}).get("latency_us") or {})), default=None)
     if largest is not None and largest > SIZE_64M:
         result[f"flatness_{format_size(largest).replace(' ', '')}_over_4KiB"] = {
@@ -181,7 +186,7 @@ def format_table(report: dict[str, Any]) -> str:
         unit = r.get("unit", "x")
         unit = " us" if unit == "us" else unit
         value = "n/a" if r["value"] is None else f"{r['value']:.2f}{unit}"
-        target = "" if r["target"] is None else f" (target {'>=' if 'speedup' in name else '<='} "\
+        target = "" if r["target"] is None else f" (target {'>=' if r.get('at_least') else '<='} "\
                                                  f"{r['target']:g}{unit})"
         detail = f"  [{r['detail']}]" if r.get("detail") else ""
         out.append(f"  {r['verdict']:<5} {r['description']}: {value}{target}{detail}")

@@ -27,7 +27,7 @@ import zenoh
 from rosidl_buffer import BufferBackend, local_host_id
 from rosidl_buffer.messages import Message, get_message_type, get_type_hash
 
-from . import _process, wire
+from . import _lane_routes, _process, fast_lane as _fast_lane, wire
 from ._executor import Executor
 from ._waker import Waker
 from ._zenoh import run_bounded, typed_zenoh_errors, undeclare_quietly
@@ -53,13 +53,18 @@ class Node:
     """A participant of the pub/sub graph.
 
     ``Node(name, config=None, namespace="", domain_id=None, *, router=None, backends=None,
-    executor="thread", waker=None)``: ``config`` is a ``zenoh.Config`` or the path of a Zenoh
-    JSON5 file, ``router`` a Zenoh router endpoint (see :mod:`buffer_pubsub.config` for the
-    defaults); ``domain_id`` defaults to env ``ROS_DOMAIN_ID`` or 0; ``backends`` overrides the
-    buffer backends (by default every backend registered in :mod:`rosidl_buffer.registry`, loaded
-    once per process). ``executor="thread"`` runs callbacks on a thread of the node;
+    executor="thread", waker=None, fast_lane=None)``: ``config`` is a ``zenoh.Config`` or the
+    path of a Zenoh JSON5 file, ``router`` a Zenoh router endpoint (see
+    :mod:`buffer_pubsub.config` for the defaults); ``domain_id`` defaults to env
+    ``ROS_DOMAIN_ID`` or 0; ``backends`` overrides the buffer backends (by default every
+    backend registered in :mod:`rosidl_buffer.registry`, loaded once per process).
+    ``executor="thread"`` runs callbacks on a thread of the node;
     ``"manual"`` runs them only inside :meth:`spin` / :meth:`spin_once` on the caller's thread.
     ``waker`` replaces the executor's wake-up source (see :mod:`buffer_pubsub._waker`).
+    ``fast_lane``: carry descriptors to same-host subscriptions of other processes over iceoryx2
+    (:mod:`buffer_pubsub.fast_lane`); None follows env ``WARP_BUFFER_FAST_LANE`` (on by
+    default). The lane's waker is then the executor's (lane callbacks run on the executor
+    thread or in :meth:`spin`); a custom ``waker`` that is not a ``LaneWaker`` turns it off.
     Use as a context manager or call :meth:`close`, which undeclares everything.
     """
 
@@ -74,6 +79,7 @@ class Node:
         backends: Mapping[str, BufferBackend] | None = None,
         executor: str = "thread",
         waker: Waker | None = None,
+        fast_lane: bool | None = None,
     ) -> None:
         self.name = validate_node_name(name)
         self.namespace = validate_namespace(namespace)
@@ -92,7 +98,10 @@ class Node:
         self._keys: dict[str, bytes] = {}  # liveliness key -> gid
         self._publishers: list[Publisher] = []
         self._subscriptions: list[Subscription] = []
+        self._own_lane = waker is None  # a LaneWaker the user gave stays the user's to close
+        waker, self._lane = _lane_waker(waker, fast_lane)
         self._executor = Executor(waker, self._housekeeping)
+        self._sweeper = _lane_routes.DeadPeerSweeper(self.locality)
         self._thread: threading.Thread | None = None
 
         config_obj = make_config(config, router)
@@ -114,6 +123,7 @@ class Node:
         except BaseException:
             self._executor.stop()
             run_bounded(self.session.close, CLOSE_TIMEOUT_S, "closing the Zenoh session")
+            self._close_lane()
             raise
 
     # -- context manager -----------------------------------------------------------------------
@@ -165,7 +175,14 @@ class Node:
         run_bounded(undeclare, left(), f"undeclaring node {self.name}")
         if self._thread is not None and threading.current_thread() is not self._thread:
             self._thread.join(timeout=left())
+        self._close_lane()
         run_bounded(self.session.close, left(), f"closing node {self.name}'s session")
+
+    def _close_lane(self) -> None:
+        # After the executor stopped: the waker closes the readers detached from it.
+        if self._lane is not None and self._own_lane:
+            self._lane.close()
+        self._sweeper.close()
 
     def _check_open(self) -> None:
         if self._closed:
@@ -329,6 +346,7 @@ class Node:
                 if gid is None:
                     return
                 token = self._graph.pop(gid, token)
+                self._sweeper.peer_gone(token)  # a SIGKILLed peer's iceoryx2 files
                 if token.is_publisher:
                     self._gone[gid] = token
                     while len(self._gone) > RECENTLY_GONE:
@@ -384,6 +402,21 @@ class Node:
             for token in self._graph.values():
                 topics.setdefault(token.topic, set()).add(token.type_name)
         return sorted((topic, sorted(types)) for topic, types in topics.items())
+
+
+def _lane_waker(waker: Waker | None, option: bool | None
+                ) -> tuple[Waker | None, _fast_lane.LaneWaker | None]:
+    """The executor's waker and the lane waker it is (None: the lane is off for this node)."""
+    if isinstance(waker, _fast_lane.LaneWaker):
+        return waker, waker if _fast_lane.status(option).available else None
+    if waker is not None or not _fast_lane.status(option).available:
+        return waker, None
+    try:
+        lane = _fast_lane.LaneWaker()
+    except _fast_lane.LaneError as error:
+        _log.info("fast lane off for this node: %s", error)
+        return None, None
+    return lane, lane
 
 
 #: Zenoh 1.10 delivers no network message over 1 GiB, whatever ``max_message_size`` says

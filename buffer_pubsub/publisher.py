@@ -6,10 +6,11 @@ Per publish:
   no copy of the payload) when they accept every backend the message's buffers live in, else a
   CPU copy; they are never served through Zenoh as well;
 - a remote subscription that advertises a backend besides CPU gets its own channel
-  ``<key>/_buf/<its gid>``: a payload serialized for it alone when a backend agreed to serve it
-  (``on_discovering_endpoint``) and holds one of the message's buffers
-  (``create_descriptor_with_endpoint`` per buffer, CPU bytes where that returns None), else the
-  shared CPU serialization;
+  ``<key>/_buf/<its gid>`` (over the same-host iceoryx2 lane when its process is on this host
+  and user and has the lane on, see :mod:`._lane_routes`; else on Zenoh): a payload
+  serialized for it alone when a backend agreed to serve it (``on_discovering_endpoint``)
+  and holds one of the message's buffers (``create_descriptor_with_endpoint`` per buffer,
+  CPU bytes where that returns None), else the shared CPU serialization;
 - subscriptions that accept only CPU share one CPU serialization on ``<key>/_buf_cpu``;
 - subscriptions that know nothing of buffers (no extra segment) get CPU bytes on the base key.
 """
@@ -29,7 +30,7 @@ from rosidl_buffer import Buffer, EndpointInfo
 from rosidl_buffer.messages import Message, deserialize_message, iter_buffers, serialize_message
 from rosidl_buffer.messages._schema import FieldKind
 
-from . import _process, wire
+from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info
 from .loan import Loan, LoanPool
 from ._validation import validate_message
@@ -85,6 +86,7 @@ class _Peer:
     info: EndpointInfo
     served: set[str] = field(default_factory=set)  # backends that agreed to serve this peer
     channel: Any = None  # zenoh.Publisher on <key>/_buf/<gid>, declared on first use
+    lane: fast_lane.LaneWriter | None = None  # the same-host lane to it, opened at matching
     gone: bool = False  # vanished: its channel is (being) undeclared, puts are skipped
     # Serializes put and undeclare of the channel: a peer may vanish (discovery thread) while
     # publish() is putting to it, and a zenoh.Publisher must not be used from both at once.
@@ -94,8 +96,11 @@ class _Peer:
         with self.lock:
             self.gone = True
             channel, self.channel = self.channel, None
+            lane, self.lane = self.lane, None
         if channel is not None:
             undeclare_quietly(channel)
+        if lane is not None:
+            lane.close()
 
     @property
     def individual(self) -> bool:
@@ -187,6 +192,26 @@ class Publisher:
                         self._update_remote()
         if not keep:
             endpoint_gone(self._backends, info)
+            return
+        self._open_lane(peer)
+
+    def _open_lane(self, peer: _Peer) -> None:
+        """Give a kept peer the same-host lane if it has one (~12 ms, once per match). Opened
+        after the peer is kept, so publish() reaches it over Zenoh meanwhile."""
+        node = self.node
+        token = peer.token
+        if node._lane is None or not _lane_routes.serves(
+                node.locality, token, individual=peer.individual, served=bool(peer.served),
+                keep_all=wire.KEEP_ALL in (self.history, wire.qos_history(token.qos))):
+            return
+        writer = _lane_routes.open_writer(self.base_key, token.gid)  # None: Zenoh serves it
+        if writer is None:
+            return
+        with peer.lock:
+            if not peer.gone:
+                peer.lane, writer = writer, None
+        if writer is not None:  # it vanished meanwhile
+            writer.close()
 
     def _update_remote(self) -> None:
         """Rebuild the peers publish() serves through Zenoh; call with ``self._lock`` held.
@@ -330,6 +355,18 @@ class Publisher:
         with peer.lock:
             if peer.gone:
                 return  # the subscription vanished while we were publishing: nobody to send to
+            lane = peer.lane
+            if lane is not None and lane.fits(len(attachment) + len(payload)):
+                try:
+                    if lane.write(attachment, payload):
+                        return  # one route per message: the lane reached it
+                except fast_lane.LaneError as exc:  # Zenoh carries this one; logged once
+                    peer.lane = None
+                    lane.close()
+                    _log.warning("lane to %s failed, Zenoh carries it: %s",
+                                 peer.token.gid.hex(), exc)
+                # False: iceoryx2 reached no reader (it died before its DELETE came), so the
+                # Zenoh put below cannot duplicate the message.
             if peer.channel is None:
                 peer.channel = self._declare_channel(
                     wire.buffer_channel_key(self.base_key, peer.token.gid))

@@ -38,7 +38,7 @@ import zenoh
 from rosidl_buffer import RosidlBufferError
 from rosidl_buffer.messages import Message, deserialize_message, release_buffers
 
-from . import _process, wire
+from . import _lane_routes, _process, wire
 from ._info import endpoint_gone, endpoint_info
 from ._zenoh import undeclare_quietly
 from .errors import PubSubError
@@ -61,6 +61,10 @@ ROUTE_INTRA = "intra"  # same process, message object shared (or CPU copy)
 ROUTE_BUFFER = "buffer"  # <key>/_buf/<gid>: serialized for this subscription (descriptor or CPU)
 ROUTE_CPU = "cpu"  # <key>/_buf_cpu: shared CPU stream
 ROUTE_BASE = "base"  # base key: plain ROS 2 publishers (rmw_zenoh or others)
+ROUTE_LANE = "lane"  # the same-host iceoryx2 lane: what _buf/<gid> carries, off Zenoh
+#: Routes whose payload was built for this subscription and may carry descriptors: decoded on
+#: arrival, so a backend's hold is taken when a message arrives and dropped with it.
+_DESCRIPTOR_ROUTES = (ROUTE_BUFFER, ROUTE_LANE)
 
 REFUSED_ATTACHMENT = "attachment"
 REFUSED_DUPLICATE = "duplicate"
@@ -77,14 +81,15 @@ class MessageInfo:
     source_timestamp_ns: int
     received_timestamp_ns: int
     publisher_gid: bytes
-    route: str  # "intra", "buffer", "cpu" or "base"
+    route: str  # "intra", "buffer", "lane", "cpu" or "base"
 
 
 @dataclass
 class SubscriptionCounters:
     received: int = 0  # callbacks delivered
-    lost: int = 0  # sequence gaps (within LOST_WINDOW) seen on arrival
-    errors: int = 0  # messages that failed to deserialize
+    lost: int = 0  # sequence gaps (within LOST_WINDOW) seen on arrival (on the lane, also
+    # iceoryx2's keep-last overwrite when the executor falls more than depth messages behind)
+    errors: int = 0  # messages that failed to deserialize (on arrival for descriptor routes)
     dropped: int = 0  # overwritten in the keep-last queue before the callback ran
     rejected: int = 0  # samples refused for a reason other than "duplicate" (see refused)
     callback_errors: int = 0  # exceptions raised by the user callback
@@ -137,6 +142,17 @@ class Subscription:
             session.declare_subscriber(
                 self.base_key, lambda s: self._on_sample(s, ROUTE_BASE), allowed_origin=remote),
         ]
+        # The lane reader exists before the token: a publisher that discovers us finds the
+        # service, so its writer decides the route at once. The Zenoh channel stays for
+        # publishers that cannot open the lane (other host or user, lane off, older peers).
+        self._lane_reader = None
+        lane = node._lane
+        # (Keep-all stays on Zenoh: iceoryx2's keep-last queue would drop.)
+        if (lane is not None and history == wire.KEEP_LAST
+                and wire.accepts_backends(token.backends)):
+            self._lane_reader = _lane_routes.open_reader(self.base_key, self.gid, depth)
+            if self._lane_reader is not None:
+                lane.attach(self._lane_reader, self._on_lane)
         _process.add_subscription(self.base_key, self)
         # Declared last: a publisher that discovers us finds our Zenoh subscribers in place.
         self._liveliness = session.liveliness().declare_token(token.key())
@@ -203,14 +219,58 @@ class Subscription:
                 return
         # ZBytes has no buffer protocol in zenoh 1.10: to_bytes() is the one copy out of Zenoh
         # (deserialization then aliases these bytes).
-        item = (sample.payload.to_bytes(), attachment, route, received_ns)
-        if route == ROUTE_BUFFER and node._publisher_token(gid) is None:
+        self._arrived((sample.payload.to_bytes(), attachment, route, received_ns, False))
+
+    def _on_lane(self, data: bytes) -> None:
+        """A lane message (on the executor thread or in spin(), inside the waker's wait)."""
+        received_ns = time.time_ns()
+        try:
+            attachment, payload = _lane_routes.split_frame(data)
+        except PubSubError:
+            with self._lock:
+                self._refuse(REFUSED_ATTACHMENT)
+            return
+        if _process.is_local_publisher(attachment.publisher_gid):
+            return  # delivered intra-process already (never sent here; a forged frame)
+        self._arrived((payload, attachment, ROUTE_LANE, received_ns, False))
+
+    def _arrived(self, item: tuple[Any, ...]) -> None:
+        """A sample built for us waits (parked) for its publisher's token, which its
+        descriptors need; anything else is accepted at once."""
+        if item[2] in _DESCRIPTOR_ROUTES and \
+                self.node._publisher_token(item[1].publisher_gid) is None:
             self._park(item)
             return
+        self._accept(item)
+
+    def _accept(self, item: tuple[Any, ...]) -> None:
+        """Queue an arrived sample; one built for us is deserialized now (descriptors imported,
+        holds taken) and queued as the message, released if it is dropped before delivery."""
+        payload, attachment, route, received_ns, _ = item
+        if route in _DESCRIPTOR_ROUTES:
+            try:
+                msg = self._deserialize(payload, attachment, route)
+            except Exception as exc:  # typed errors expected; a backend bug is counted too
+                self._count_error(exc, attachment, arrived=True)
+                return
+            item = (msg, attachment, route, received_ns, True)
         self._enqueue(item)
 
+    def _count_error(self, exc: BaseException, attachment: wire.Attachment,
+                     arrived: bool = False) -> None:
+        """Count a message that failed to deserialize (``arrived``: on arrival, before the
+        queue saw its sequence number, so it is an error and not also a gap)."""
+        with self._lock:
+            if arrived:
+                self._track_sequence(attachment)
+            self.counters.errors += 1
+        self.last_error = exc
+        _log.warning("%r: dropped a message from %s: %s", self,
+                     attachment.publisher_gid.hex(), exc,
+                     exc_info=not isinstance(exc, RosidlBufferError))
+
     def _deliver_intra(self, msg: Message, attachment: wire.Attachment) -> None:
-        self._enqueue((msg, attachment, ROUTE_INTRA, time.time_ns()))
+        self._enqueue((msg, attachment, ROUTE_INTRA, time.time_ns(), False))
 
     def _track_sequence(self, attachment: wire.Attachment) -> None:
         """Count gaps in the publisher's sequence; call with ``self._lock`` held."""
@@ -233,21 +293,30 @@ class Subscription:
         last_seen[gid] = sequence
 
     def _enqueue(self, item: tuple[Any, ...]) -> None:
+        """Queue ``(payload or message, attachment, route, received_ns, owned)``; ``owned``:
+        a message decoded for us alone, whose buffers are released if it is dropped."""
+        evicted = None
         with self._lock:
             if self._closed:
-                return
-            self._track_sequence(item[1])
-            queue = self._queue
-            if len(queue) == queue.maxlen:
-                self.counters.dropped += 1
-                # The evicted item is serialized bytes (nothing imported yet) or an intra-process
-                # message object shared with the publisher and other subscriptions (not ours to
-                # release), so eviction has no buffer to release.
-            queue.append(item)
-            if self._scheduled:
-                return
-            self._scheduled = True
-        self.node._executor.schedule(self)
+                closed = True
+            else:
+                closed = False
+                self._track_sequence(item[1])
+                queue = self._queue
+                if len(queue) == queue.maxlen:
+                    self.counters.dropped += 1
+                    evicted = queue[0]
+                queue.append(item)
+                schedule = not self._scheduled
+                self._scheduled = True
+        if closed:
+            evicted = item
+        elif schedule:
+            self.node._executor.schedule(self)
+        # Only an owned message holds anything: serialized bytes hold nothing, an intra-process
+        # message is shared with the publisher and other subscriptions (not ours to release).
+        if evicted is not None and evicted[4]:
+            release_buffers(evicted[0])
 
     # -- samples waiting for their publisher's token -------------------------------------------
     def _park(self, item: tuple[Any, ...]) -> None:
@@ -280,7 +349,7 @@ class Subscription:
             self._parked = collections.deque(
                 entry for entry in self._parked if entry[1][1].publisher_gid != gid)
         for item in ready:
-            self._enqueue(item)
+            self._accept(item)
 
     def _expire_parked(self, now: float) -> None:
         """Drop (and count) parked samples whose publisher never appeared in time."""
@@ -301,27 +370,23 @@ class Subscription:
             if self._closed or not self._queue:
                 self._scheduled = False
                 return
-            payload, attachment, route, received_ns = self._queue.popleft()
+            payload, attachment, route, received_ns, owned = self._queue.popleft()
             again = bool(self._queue)
             self._scheduled = again
         if again:  # others wait: take turns with the node's other subscriptions
             self.node._executor.schedule(self)
-        if route == ROUTE_INTRA:
+        if owned or route == ROUTE_INTRA:
             msg = payload
         else:
             try:
                 msg = self._deserialize(payload, attachment, route)
             except Exception as exc:  # typed errors expected; a backend bug is counted too
-                with self._lock:
-                    self.counters.errors += 1
-                self.last_error = exc
-                _log.warning("%r: dropped a message from %s: %s", self,
-                             attachment.publisher_gid.hex(), exc,
-                             exc_info=not isinstance(exc, RosidlBufferError))
+                self._count_error(exc, attachment)
                 return
-            if self._closed:
+        if self._closed:
+            if owned:
                 release_buffers(msg)  # imported for us alone, and nobody will read it
-                return
+            return
         with self._lock:
             self.counters.received += 1
         try:
@@ -341,7 +406,7 @@ class Subscription:
         # Only a payload built for us may hold descriptors, which need the publisher's info; it
         # was parked until the token arrived. CPU payloads need no publisher info.
         info = None
-        if route == ROUTE_BUFFER:
+        if route in _DESCRIPTOR_ROUTES:
             token = self.node._publisher_token(attachment.publisher_gid)
             info = None if token is None else endpoint_info(token)
         return deserialize_message(payload, self.msg_type, backends=self.node.backends,
@@ -358,9 +423,14 @@ class Subscription:
             if self._closed:
                 return
             self._closed = True
-            self._queue.clear()  # serialized bytes or shared intra messages: nothing imported
+            owned = [item[0] for item in self._queue if item[4]]
+            self._queue.clear()  # the rest: serialized bytes or shared intra messages
             self._parked.clear()
+        for msg in owned:
+            release_buffers(msg)
         _process.remove_subscription(self.base_key, self)
         undeclare_quietly(self._liveliness, *self._subscribers)
+        if self._lane_reader is not None:  # the waker closes it once detached
+            self.node._lane.detach(self._lane_reader, close=True)
         endpoint_gone(self._backends, self.info)
 

@@ -30,7 +30,13 @@ pytestmark = pytest.mark.multiprocess
 
 use_fake_backend()
 
-from buffer_pubsub import InvalidEndpointError, Node, NodeClosedError, wire  # noqa: E402
+from buffer_pubsub import (  # noqa: E402
+    InvalidEndpointError,
+    Node,
+    NodeClosedError,
+    fast_lane,
+    wire,
+)
 from rosidl_buffer import registry  # noqa: E402
 from rosidl_buffer.messages import get_message_type, serialize_message  # noqa: E402
 
@@ -48,6 +54,15 @@ def domain() -> int:
 @pytest.fixture
 def topic() -> str:
     return f"/pubsub_test/t_{uuid.uuid4().hex[:10]}"
+
+
+@pytest.fixture(params=["lane_on", "lane_off"])
+def same_host(request, monkeypatch) -> str:
+    """Run a topology with the iceoryx2 lane on (children inherit the switch) and off; the
+    route a same-host inter-process backend subscription should then see."""
+    on = request.param == "lane_on"
+    monkeypatch.setenv(fast_lane.ENV_SWITCH, "1" if on else "0")
+    return "lane" if on and fast_lane.status().available else "buffer"
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +84,8 @@ def _close(*children: Child) -> None:
 
 def _check_all(records, *, backend: str, route: str, count: int, pub: int = 0) -> None:
     mine = [r for r in records if r["pub"] == pub]
-    assert len(mine) == count, f"expected {count} frames from publisher {pub}, got {len(mine)}"
+    assert len(mine) == count, (f"expected {count} frames from publisher {pub}, got "
+                                f"{sorted(r['index'] for r in mine)} by {[r['route'] for r in mine]}")
     assert sorted(r["index"] for r in mine) == list(range(count))
     assert all(r["ok"] for r in mine), "payload checksum mismatch"
     assert {r["backend"] for r in mine} == {backend}
@@ -117,7 +133,7 @@ def test_intra_process_shares_the_message_and_gives_cpu_only_a_copy(domain, topi
 
 
 # --------------------------------------------------------------------------- 2. inter-process
-def test_inter_process_same_host_uses_the_backend(domain, topic, backends):
+def test_inter_process_same_host_uses_the_backend(domain, topic, backends, same_host):
     sub = Child("sub", domain=domain, topic=topic, accept=BACKEND, expect=COUNT)
     try:
         with Node("inter_pub", domain_id=domain, backends=backends) as node:
@@ -128,12 +144,12 @@ def test_inter_process_same_host_uses_the_backend(domain, topic, backends):
             result = sub.stop()
     finally:
         _close(sub)
-    _check_all(result["records"], backend=BACKEND, route="buffer", count=COUNT)
+    _check_all(result["records"], backend=BACKEND, route=same_host, count=COUNT)
     assert result["counters"]["lost"] == 0 and result["counters"]["errors"] == 0
 
 
 # --------------------------------------------------------------------------- 3 + 5. mixed, fallback
-def test_mixed_intra_inter_and_cpu_fallback(domain, topic, backends):
+def test_mixed_intra_inter_and_cpu_fallback(domain, topic, backends, same_host):
     """One publisher; an intra-process subscription, a backend subscription in another process,
     and a CPU-only subscription beside it that must get correct bytes as "cpu"."""
     accel = Child("sub", domain=domain, topic=topic, accept=BACKEND, expect=COUNT)
@@ -152,7 +168,7 @@ def test_mixed_intra_inter_and_cpu_fallback(domain, topic, backends):
             accel_result, cpu_result = accel.stop(), cpu.stop()
     finally:
         _close(accel, cpu)
-    _check_all(accel_result["records"], backend=BACKEND, route="buffer", count=COUNT)
+    _check_all(accel_result["records"], backend=BACKEND, route=same_host, count=COUNT)
     _check_all(cpu_result["records"], backend="cpu", route="cpu", count=COUNT)
     assert [check_frame(m)["index"] for m, _ in local] == list(range(COUNT))
     assert {i.route for _, i in local} == {"intra"}
@@ -160,7 +176,7 @@ def test_mixed_intra_inter_and_cpu_fallback(domain, topic, backends):
 
 
 # --------------------------------------------------------------------------- 4. fan-in
-def test_multi_publisher_fan_in(domain, topic, backends):
+def test_multi_publisher_fan_in(domain, topic, backends, same_host):
     pubs = [Child("pub", domain=domain, topic=topic, backend=BACKEND, pub_id=k, count=COUNT)
             for k in (1, 2)]
     received = []
@@ -182,12 +198,12 @@ def test_multi_publisher_fan_in(domain, topic, backends):
     finally:
         _close(*pubs)
     for pub_id in (1, 2):
-        _check_all(records, backend=BACKEND, route="buffer", count=COUNT, pub=pub_id)
+        _check_all(records, backend=BACKEND, route=same_host, count=COUNT, pub=pub_id)
     assert len(records) == 2 * COUNT
 
 
 # --------------------------------------------------------------------------- 6. no duplicates
-def test_mixed_no_duplicate(domain, topic, backends):
+def test_mixed_no_duplicate(domain, topic, backends, same_host):
     """Subscriptions accepting the backend and CPU, while CPU and backend frames alternate and a
     CPU-only subscription shares the topic: each gets every frame once (never more)."""
     both = Child("sub", domain=domain, topic=topic, accept=f"{BACKEND},cpu", expect=COUNT)
@@ -212,12 +228,13 @@ def test_mixed_no_duplicate(domain, topic, backends):
         assert all(r["ok"] for r in result["records"])
     for result in results[:2]:
         assert {r["backend"] for r in result["records"] if r["index"] % 2} == {BACKEND}
+        assert {r["route"] for r in result["records"] if r["index"] % 2} == {same_host}
         assert {r["backend"] for r in result["records"] if not r["index"] % 2} == {"cpu"}
     assert {r["backend"] for r in results[2]["records"]} == {"cpu"}
 
 
 # --------------------------------------------------------------------------- relay pipeline
-def test_relay_pipeline_runs_a_warp_kernel(domain, topic, backends):
+def test_relay_pipeline_runs_a_warp_kernel(domain, topic, backends, same_host):
     out_topic = topic + "_out"
     key = 0x5A
     relay = Child("relay", domain=domain, topic=topic, out_topic=out_topic, accept=BACKEND,
@@ -234,7 +251,7 @@ def test_relay_pipeline_runs_a_warp_kernel(domain, topic, backends):
     finally:
         _close(relay, sink)
     assert relay_result["backends"] == [BACKEND] * COUNT
-    _check_all(sink_result["records"], backend=BACKEND, route="buffer", count=COUNT)
+    _check_all(sink_result["records"], backend=BACKEND, route=same_host, count=COUNT)
 
 
 # --------------------------------------------------------------------------- discovery
@@ -274,7 +291,7 @@ def test_negotiation_hooks_are_called(domain, topic, backends):
 
 
 # --------------------------------------------------------------------------- errors and wire
-def test_stale_descriptor_is_counted_and_the_subscription_goes_on(domain, topic, backends):
+def test_stale_descriptor_is_counted_and_the_subscription_goes_on(domain, topic, backends, same_host):
     """Frame 1 arrives with a descriptor the backend rejects (a typed error): it is counted, and
     the frames around it are delivered."""
     pub = Child("pub", domain=domain, topic=topic, backend="fake", count=3, stale_index=1)

@@ -23,7 +23,16 @@ def collect() -> dict[str, Any]:
                              "status": "loaded"})
         else:
             backends.append({"name": name, "metadata": "", "status": f"error: {errors[name]}"})
-    return {"backends": backends, "warp_devices": _warp_devices()}
+    return {"backends": backends, "warp_devices": _warp_devices(), "fast_lane": _fast_lane()}
+
+
+def _fast_lane() -> dict[str, Any]:
+    """Whether the same-host iceoryx2 lane runs here, and why not."""
+    from buffer_pubsub import fast_lane
+
+    state = fast_lane.status()
+    return {"available": state.available, "reason": state.reason,
+            "resource_prefix": fast_lane.resource_prefix() if state.available else ""}
 
 
 def _warp_devices() -> list[dict[str, Any]]:
@@ -59,4 +68,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"  (Warp unavailable: {device['error']})")
         else:
             print(f"  {device['name']:<8} IPC: {device['ipc']}")
+    lane = report["fast_lane"]
+    print("Same-host fast lane (iceoryx2): " + (
+        f"available (files {lane['resource_prefix']}*)" if lane["available"]
+        else f"off: {lane['reason']}"))
     return 0

@@ -24,9 +24,12 @@ PATH_MODULES: dict[str, str] = {
     "intra_process": "benchmarks.paths.ours_intra",
     "intra_prepared": "benchmarks.paths.ours_intra_prepared",
     "thread_handoff": "benchmarks.paths.thread_handoff",
+    "lane": "benchmarks.paths.lane",
+    "lane_busy": "benchmarks.paths.lane_busy",
     "zenoh_copy": "benchmarks.paths.zenoh_copy",
     "zenoh_shm": "benchmarks.paths.zenoh_shm",
     "iceoryx2": "benchmarks.paths.iceoryx2_pubsub",
+    "iceoryx2_listener": "benchmarks.paths.iceoryx2_listener",
     "torch_mp": "benchmarks.paths.torch_mp",
 }
 

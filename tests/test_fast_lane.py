@@ -1,0 +1,442 @@
+"""The iceoryx2 fast lane with real processes: order, no loss, event wake-ups, crash clean-up,
+the switch, and a clean fallback reason when iceoryx2 is missing."""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import os
+import pathlib
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+import uuid
+
+import pytest
+
+from buffer_pubsub import _iox2, fast_lane
+from tests.conftest import lane_files
+
+# The lane is optional (iceoryx2 comes with the bench extra); the fallback tests run without it.
+requires_iceoryx2 = pytest.mark.skipif(importlib.util.find_spec("iceoryx2") is None,
+                                       reason="iceoryx2 not installed")
+
+CHILD = pathlib.Path(__file__).with_name("_lane_child.py")
+ROOT = CHILD.parent.parent
+
+
+class Peer:
+    """A lane child process whose stdout lines the test reads with a timeout."""
+
+    def __init__(self, *args: str, env: dict[str, str] | None = None) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, str(CHILD), *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            text=True, cwd=ROOT, env={**os.environ, **(env or {})})
+        self._lines: queue.SimpleQueue[str | None] = queue.SimpleQueue()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            self._lines.put(line.strip())
+        self._lines.put(None)
+
+    def line(self, timeout: float = 10.0) -> str:
+        try:
+            line = self._lines.get(timeout=timeout)
+        except queue.Empty:
+            raise AssertionError(f"no output from {self.process.args[2:]} in {timeout} s") from None
+        if line is None:
+            raise AssertionError(f"{self.process.args[2:]} exited ({self.process.wait()})")
+        return line
+
+    def send(self, text: str) -> None:
+        self.process.stdin.write(text + "\n")
+        self.process.stdin.flush()
+
+    def finish(self, timeout: float = 10.0) -> int:
+        with contextlib.suppress(OSError):
+            self.process.stdin.close()
+        return self.process.wait(timeout)
+
+    def kill(self) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+        self.process.wait()
+        self._reader.join(timeout=5)
+        for stream in (self.process.stdin, self.process.stdout):
+            with contextlib.suppress(OSError):
+                stream.close()
+
+
+@contextlib.contextmanager
+def peers():
+    """Every Peer made inside is reaped, whatever happens."""
+    started: list[Peer] = []
+
+    def start(*args: str, **kwargs) -> Peer:
+        peer = Peer(*args, **kwargs)
+        started.append(peer)
+        return peer
+
+    try:
+        yield start
+    finally:
+        for peer in started:
+            peer.kill()
+
+
+def reader_and_writer(start, name: str, count: int, interval_s: str = "0",
+                      depth: str = "16") -> tuple[Peer, Peer]:
+    """A reader process, ready, then a writer process that writes ``count`` messages."""
+    reader = start("reader", name, depth)
+    assert reader.line() == "ready"
+    return reader, start("writer", name, str(count), interval_s)
+
+
+def route() -> str:
+    return fast_lane.service_name(f"0/test_{uuid.uuid4().hex[:8]}/T/H", os.urandom(16))
+
+
+@requires_iceoryx2
+def test_order_and_no_loss_between_processes() -> None:
+    name = route()
+    with peers() as start:
+        # ~1 kHz, within the reader's pace
+        reader, writer = reader_and_writer(start, name, 200, "0.001", depth="64")
+        got = [reader.line() for _ in range(200)]
+        assert got == [f"msg m{i}" for i in range(200)]
+        assert writer.line() == "done"
+        writer.send("stop")
+        assert writer.finish() == 0
+        assert reader.finish() == 0
+
+
+@requires_iceoryx2
+def test_idle_reader_sleeps_and_wakes_by_event() -> None:
+    """A reader blocked in ``wait(None)`` uses no CPU while idle (a busy-poll would burn ~1 s
+    of it) and wakes at once for a message: no timeout can be what delivers it."""
+    name = route()
+    with peers() as start:
+        reader, writer = reader_and_writer(start, name, 0)
+        assert writer.line() == "done"
+        writer.send("cpu?")
+        cpu_before = float(reader.line().split()[1])
+        time.sleep(1.0)
+        sent = time.monotonic()
+        writer.send("cpu?")
+        cpu_after = float(reader.line().split()[1])
+        assert time.monotonic() - sent < 0.5
+        assert cpu_after - cpu_before < 0.1, f"idle reader used {cpu_after - cpu_before:.3f} s"
+        writer.send("stop")
+        assert writer.finish() == 0 and reader.finish() == 0
+
+
+@requires_iceoryx2
+def test_sigkilled_writer_is_cleaned_and_reader_goes_on() -> None:
+    name = route()
+    before = lane_files()
+    with peers() as start:
+        reader, writer = reader_and_writer(start, name, 3)
+        assert [reader.line() for _ in range(3)] == ["msg m0", "msg m1", "msg m2"]
+        with_writer = lane_files()
+        writer.kill()  # SIGKILL: its node, data segment and connection stay in place ...
+        assert lane_files() == with_writer
+        assert _iox2.cleanup_dead_nodes() >= 1  # ... until a peer that learns of it cleans up
+        left = lane_files()
+        assert left < with_writer
+        second = start("writer", name, "1", "0")  # the reader serves a new writer
+        assert reader.line() == "msg m0"
+        second.send("stop")
+        assert second.finish() == 0 and reader.finish() == 0
+    assert lane_files() == before
+
+
+@requires_iceoryx2
+def test_sigkilled_reader_and_writer_are_cleaned_by_the_next_process() -> None:
+    name = route()
+    before = lane_files()
+    with peers() as start:
+        reader, writer = reader_and_writer(start, name, 1)
+        assert reader.line() == "msg m0"
+        reader.process.send_signal(signal.SIGKILL)
+        writer.process.send_signal(signal.SIGTERM)  # Python's default: dies without cleanup
+        reader.kill()
+        writer.kill()
+        assert lane_files() - before, "expected the dead processes' files to remain"
+        # Any later process that starts the lane removes dead nodes' resources.
+        code = "from buffer_pubsub import fast_lane; assert fast_lane.status().available"
+        subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True, timeout=30)
+    assert lane_files() == before
+
+
+@requires_iceoryx2
+def test_shm_does_not_grow_with_messages_or_readers_coming_and_going() -> None:
+    before = lane_files()
+    name = route()
+    reader = fast_lane.LaneReader(name, depth=4)
+    writer = fast_lane.LaneWriter(name)
+    steady = lane_files()
+    for i in range(2000):
+        assert writer.write(b"x" * (i % 600))
+        reader.take()
+    assert lane_files() == steady
+    writer.close()
+    reader.close()
+    _iox2.close_node()  # this process's node (kept for the process's life) goes last
+    assert lane_files() == before
+    with peers() as start:  # reader processes joining and leaving a writer in this process
+        for _ in range(3):
+            name = route()
+            peer = start("reader", name, "16")
+            assert peer.line() == "ready"
+            lane = fast_lane.LaneWriter(name)
+            lane.write(b"hello")
+            assert peer.line() == "msg hello"
+            lane.write(b"stop")
+            assert peer.finish() == 0
+            lane.close()
+            _iox2.close_node()
+            assert lane_files() == before
+
+
+@requires_iceoryx2
+def test_writer_without_reader_is_unavailable_and_oversize_is_refused() -> None:
+    with pytest.raises(fast_lane.LaneUnavailableError, match="no lane reader"):
+        fast_lane.LaneWriter(route())
+    name = route()
+    reader = fast_lane.LaneReader(name)
+    writer = fast_lane.LaneWriter(name, max_payload=64)
+    try:
+        assert writer.fits(64) and not writer.fits(65)
+        with pytest.raises(fast_lane.LaneError, match="exceeds"):
+            writer.write(b"x" * 65)
+        assert writer.write(bytearray(b"y" * 64)) and reader.take() == b"y" * 64
+        assert writer.write(b"head", memoryview(b"-body-"), bytearray(b"tail"))
+        assert reader.take() == b"head-body-tail"
+        with pytest.raises(fast_lane.LaneError, match="exceeds"):
+            writer.write(b"x" * 60, b"y" * 5)
+        with pytest.raises(fast_lane.LaneUnavailableError, match="cannot create"):
+            fast_lane.LaneReader(name)  # one reader per route
+    finally:
+        writer.close()
+        reader.close()
+    with pytest.raises(fast_lane.LaneError, match="closed"):
+        writer.write(b"late")
+
+
+@requires_iceoryx2
+def test_waker_notify_attach_and_close_from_other_threads() -> None:
+    waker = fast_lane.LaneWaker()
+    name = route()
+    reader = fast_lane.LaneReader(name)
+    writer = fast_lane.LaneWriter(name)
+    got: list[bytes] = []
+    try:
+        threading.Timer(0.05, waker.notify).start()
+        started = time.monotonic()
+        waker.wait(5.0)
+        assert time.monotonic() - started < 1.0  # woken by notify, not the timeout
+        writer.write(b"early")  # written before the attachment: delivered when it applies
+        threading.Timer(0.05, waker.attach, (reader, got.append)).start()
+        waker.wait(5.0)
+        assert got == [b"early"]
+        threading.Timer(0.05, writer.write, (b"late",)).start()
+        waker.wait(5.0)
+        assert got == [b"early", b"late"]
+        waker.detach(reader)
+        waker.wait(0.0)
+        writer.write(b"after detach")
+        waker.wait(0.1)
+        assert got == [b"early", b"late"]
+        waker.attach(reader, got.append)
+        waker.wait(0.0)  # the message written while detached arrives on re-attachment
+        assert got == [b"early", b"late", b"after detach"]
+        waker.detach(reader, close=True)
+        waker.wait(0.0)
+        assert reader.listener is None and reader.take() is None  # closed by the waker
+        threading.Timer(0.05, waker.close).start()
+        waker.wait(5.0)  # close while waiting: the waiting thread releases the WaitSet
+        waker.wait(5.0)  # closed: returns at once
+        assert time.monotonic() - started < 4.0
+    finally:
+        waker.close()
+        writer.close()
+        reader.close()
+
+
+@requires_iceoryx2
+def test_busy_poll_delivers_without_blocking() -> None:
+    waker = fast_lane.LaneWaker(busy_poll_s=0.2)
+    name = route()
+    reader, writer = fast_lane.LaneReader(name), fast_lane.LaneWriter(name)
+    got: list[bytes] = []
+    try:
+        waker.attach(reader, got.append)
+        waker.wait(0.0)
+        threading.Timer(0.02, writer.write, (b"spun",)).start()
+        waker.wait(1.0)
+        assert got == [b"spun"]
+    finally:
+        waker.close()
+        writer.close()
+        reader.close()
+
+
+@requires_iceoryx2
+def test_ctrl_c_interrupts_a_wait() -> None:
+    """iceoryx2 leaves SIGINT to Python: a KeyboardInterrupt ends a wait at once."""
+    waker = fast_lane.LaneWaker()
+    timer = threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGINT))
+    started = time.monotonic()
+    try:
+        timer.start()
+        with pytest.raises(KeyboardInterrupt):
+            waker.wait(5.0)
+            time.sleep(1.0)  # a signal handled after the wait would still raise here
+        assert time.monotonic() - started < 1.0
+    finally:
+        timer.cancel()
+        waker.close()
+
+
+def test_service_name_is_stable_and_hashed_when_too_long() -> None:
+    gid = bytes(range(16))
+    short = fast_lane.service_name("0/t/T/H", gid)
+    assert short == "warp_buffer/0/t/T/H/_buf/" + gid.hex()
+    long = fast_lane.service_name("0/" + "t" * 300 + "/T/H", gid)
+    assert long == fast_lane.service_name("0/" + "t" * 300 + "/T/H", gid)
+    assert long.startswith("warp_buffer/sha256/") and len(long) < 100
+    assert fast_lane.service_name("0/é/T/H", gid).startswith("warp_buffer/sha256/")
+
+
+@requires_iceoryx2
+def test_switch_off() -> None:
+    assert not fast_lane.enabled(False) and fast_lane.enabled(True)
+    code = ("from buffer_pubsub import fast_lane as f; s = f.status(); "
+            "assert not s.available and 'turned off' in s.reason, s; "
+            "assert f.status(True).available")
+    for off in ("0", "false", "OFF"):
+        env = {**os.environ, "WARP_BUFFER_FAST_LANE": off}
+        subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, check=True, timeout=30)
+
+
+def test_unavailable_iceoryx2_gives_a_reason_logged_once(monkeypatch, caplog) -> None:
+    _iox2.close_node()
+    monkeypatch.setitem(sys.modules, "iceoryx2", None)  # import iceoryx2 -> ImportError
+    monkeypatch.setattr(fast_lane, "_probed", {})
+    monkeypatch.setattr(fast_lane, "_logged", False)
+    with caplog.at_level("INFO", logger="buffer_pubsub.fast_lane"):
+        first, second = fast_lane.status(), fast_lane.status()
+    assert not first.available and "iceoryx2 is not installed" in first.reason
+    assert second == first
+    assert [r.getMessage() for r in caplog.records].count(
+        f"fast lane off, Zenoh carries same-host messages: {first.reason}") == 1
+    with pytest.raises(fast_lane.LaneUnavailableError, match="not installed"):
+        fast_lane.LaneReader(route())
+    with pytest.raises(fast_lane.LaneUnavailableError, match="^iceoryx2 is not installed"):
+        fast_lane.LaneWriter(route())
+    with pytest.raises(fast_lane.LaneUnavailableError, match="not installed"):
+        fast_lane.LaneWaker()
+    assert _iox2.cleanup_dead_nodes() == 0
+
+
+def test_unstartable_iceoryx2_gives_a_reason(monkeypatch) -> None:
+    _iox2.close_node()
+    monkeypatch.setenv(_iox2.ENV_DOMAIN, "not a domain!")
+    monkeypatch.setattr(fast_lane, "_probed", {})
+    state = fast_lane.status()
+    assert not state.available and _iox2.ENV_DOMAIN in state.reason
+
+
+def test_info_says_whether_the_lane_runs() -> None:
+    import json
+
+    command = [sys.executable, "-m", "warp_buffer_cli.main", "info", "--json"]
+    off = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=60, check=True,
+                         env={**os.environ, "WARP_BUFFER_FAST_LANE": "0"})
+    lane = json.loads(off.stdout)["fast_lane"]
+    assert lane["available"] is False and "turned off" in lane["reason"]
+    if importlib.util.find_spec("iceoryx2") is not None:
+        on = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=60,
+                            check=True)
+        lane = json.loads(on.stdout)["fast_lane"]
+        assert lane["available"] is True and lane["resource_prefix"] == _iox2.resource_prefix()
+
+
+@requires_iceoryx2
+def test_exit_without_closing_leaves_nothing() -> None:
+    """A process that exits with its lane objects open, a daemon thread blocked in the waker,
+    leaves no iceoryx2 file behind (the exit hook closes wakers, then ports, then the node)."""
+    before = lane_files()
+    code = (
+        "import threading, time\n"
+        "from buffer_pubsub import fast_lane as f\n"
+        f"name = {route()!r}\n"
+        "reader, waker = f.LaneReader(name), f.LaneWaker()\n"
+        "writer = f.LaneWriter(name)\n"
+        "got = []\n"
+        "waker.attach(reader, got.append)\n"
+        "threading.Thread(target=lambda: [waker.wait(None) for _ in range(100)],"
+        " daemon=True).start()\n"
+        "writer.write(b'x')\n"
+        "deadline = time.monotonic() + 5\n"
+        "while not got and time.monotonic() < deadline: time.sleep(0.01)\n"
+        "assert got == [b'x'], got\n")
+    subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True, timeout=30)
+    assert lane_files() == before
+
+
+@requires_iceoryx2
+def test_frozen_reader_never_blocks_the_writer_and_keeps_the_last_depth() -> None:
+    """Keep-last: a SIGSTOPped reader's queue drops its oldest messages; write() never waits
+    for it (a keep-last publisher must not stall behind a frozen subscriber)."""
+    name = route()
+    with peers() as start:
+        reader = start("reader", name, "8")
+        assert reader.line() == "ready"
+        writer = fast_lane.LaneWriter(name)
+        try:
+            reader.process.send_signal(signal.SIGSTOP)
+            started = time.monotonic()
+            for i in range(100):
+                writer.write(f"m{i}".encode())
+            assert time.monotonic() - started < 2.0
+            reader.process.send_signal(signal.SIGCONT)
+            writer.write(b"stop")
+            assert reader.finish() == 0
+            lines = []
+            while (line := reader._lines.get(timeout=5)) is not None:
+                lines.append(line)
+        finally:
+            writer.close()
+    assert 1 <= len(lines) <= 8 and lines[-1] == "msg m99", lines
+
+
+@requires_iceoryx2
+def test_a_forked_child_leaves_its_parents_lane_alone() -> None:
+    """A child forked from a process with lane ports, which then uses the lane and runs its exit
+    hook, must not remove the parent's node or ports (iceoryx2 removes them in whichever
+    process deletes the objects)."""
+    name = route()
+    reader = fast_lane.LaneReader(name)
+    writer = fast_lane.LaneWriter(name)
+    try:
+        pid = os.fork()
+        if pid == 0:  # the child: a lane of its own, then what its exit hook does
+            code = 1
+            try:
+                fast_lane.LaneReader(route())  # left open: the exit hook closes it
+                _iox2.close_node()
+                code = 0
+            finally:
+                os._exit(code)
+        _, status = os.waitpid(pid, 0)
+        assert os.waitstatus_to_exitcode(status) == 0
+        assert writer.write(b"after the child") and reader.take() == b"after the child"
+    finally:
+        writer.close()
+        reader.close()

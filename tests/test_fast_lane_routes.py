@@ -1,0 +1,88 @@
+"""The transport's lane pieces: route decision, frame, and clean-up when a peer process dies."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+
+import pytest
+
+from buffer_pubsub import _iox2, _lane_routes, fast_lane, wire
+from rosidl_buffer import local_host_id
+from tests.conftest import lane_files
+from tests.test_fast_lane import peers, requires_iceoryx2
+
+HERE = wire.Locality(local_host_id(), os.getpid(), os.getuid())
+
+
+def token(locality: wire.Locality, buffer_aware: bool = True) -> wire.EndpointToken:
+    return wire.EndpointToken(
+        domain_id=0, zid="0" * 32, node_id=1, entity_id=2, kind=wire.SUBSCRIPTION_KIND,
+        namespace="", node_name="n", topic="/t", type_name="std_msgs/msg/String",
+        type_hash="RIHS01_00", qos=wire.qos_segment(10), buffer_aware=buffer_aware,
+        locality=locality, backends={"warp": ""})
+
+
+def test_serves_only_same_host_user_other_process_keep_last_served_individual() -> None:
+    other = dataclasses.replace(HERE, process_id=HERE.process_id + 1)
+    assert _lane_routes.serves(HERE, token(other), individual=True, served=True)
+    refused = [
+        (token(HERE), {}),  # this process: intra-process route
+        (token(dataclasses.replace(other, host_id="elsewhere")), {}),
+        (token(dataclasses.replace(other, user_id=HERE.user_id + 1)), {}),
+        (token(other, buffer_aware=False), {}),
+        (token(other), {"individual": False}),
+        (token(other), {"served": False}),
+        (token(other), {"keep_all": True}),
+    ]
+    for peer, change in refused:
+        flags = {"individual": True, "served": True, **change}
+        assert not _lane_routes.serves(HERE, peer, **flags), (peer.locality, change)
+
+
+def test_split_frame_round_trip_and_malformed() -> None:
+    attachment = wire.Attachment(7, 123, bytes(range(16)))
+    head, payload = _lane_routes.split_frame(attachment.encode() + b"cdr")
+    assert head == attachment and bytes(payload) == b"cdr"
+    with pytest.raises(wire.WireFormatError):
+        _lane_routes.split_frame(b"short")
+
+
+@requires_iceoryx2
+def test_open_writer_without_reader_is_none_and_with_one_delivers() -> None:
+    gid = os.urandom(16)
+    assert _lane_routes.open_writer("0/routes/T/H", gid) is None
+    reader = _lane_routes.open_reader("0/routes/T/H", gid, depth=4)
+    writer = _lane_routes.open_writer("0/routes/T/H", gid)
+    try:
+        attachment = wire.Attachment(1, 2, gid).encode()
+        assert writer.write(attachment, b"payload")
+        head, payload = _lane_routes.split_frame(reader.take())
+        assert head.sequence_number == 1 and bytes(payload) == b"payload"
+    finally:
+        writer.close()
+        reader.close()
+
+
+@requires_iceoryx2
+def test_sweeper_cleans_a_sigkilled_peer_once_per_burst() -> None:
+    name = fast_lane.service_name("0/sweep/T/H", os.urandom(16))
+    before = lane_files()
+    with peers() as start:
+        reader = start("reader", name, "16")
+        assert reader.line() == "ready"
+        reader.kill()
+        assert lane_files() - before  # the dead reader's files are still there
+        sweeper = _lane_routes.DeadPeerSweeper(HERE, interval_s=0.2, settle_s=0.3)
+        sweeper.peer_gone(token(HERE))  # our own process vanishing is no reason to sweep
+        assert sweeper.sweeps == 0
+        gone = token(dataclasses.replace(HERE, process_id=reader.process.pid))
+        for _ in range(5):  # a burst: the node token, its endpoints ...
+            sweeper.peer_gone(gone)
+        assert sweeper.sweeps == 1
+        time.sleep(0.4)
+        assert sweeper.sweeps == 2  # ... and once more after it
+        sweeper.close()
+    _iox2.close_node()
+    assert lane_files() == before

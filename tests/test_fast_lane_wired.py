@@ -1,0 +1,105 @@
+"""The fast lane wired into the transport, with real processes: a SIGKILLed lane subscriber or
+lane publisher leaves no iceoryx2 file behind (the surviving node's sweeper runs iceoryx2's
+dead-node clean-up on the liveliness DELETE), publishing goes on, and a new peer gets the lane.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import time
+import uuid
+
+import pytest
+
+from tests._pubsub_helpers import TENSOR, Child, check_frame, make_frame, use_fake_backend
+from tests.conftest import lane_files
+from tests.test_fast_lane import requires_iceoryx2
+
+pytestmark = [pytest.mark.multiprocess, requires_iceoryx2]
+
+use_fake_backend()
+
+from buffer_pubsub import Node, _iox2, fast_lane  # noqa: E402
+from rosidl_buffer import registry  # noqa: E402
+
+_domains = itertools.count(6000 + os.getpid() % 50 * 40)
+
+
+@pytest.fixture
+def setting(monkeypatch):
+    monkeypatch.setenv(fast_lane.ENV_SWITCH, "1")
+    loaded, _errors = registry.load_backends()
+    return next(_domains), f"/lane_wired/t_{uuid.uuid4().hex[:10]}", loaded
+
+
+def _settles(predicate, timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def test_sigkilled_lane_subscriber_is_cleaned_and_publishing_goes_on(setting):
+    domain, topic, backends = setting
+    children = []
+    try:
+        with Node("lane_kill_pub", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic)
+            _iox2.process_node()  # made lazily (again after the guard closed it last test)
+            baseline = lane_files()  # this process's own node
+            for round_ in range(2):  # the second subscriber gets the lane again
+                sub = Child("sub", domain=domain, topic=topic, accept="fake", expect=5)
+                children.append(sub)
+                sub.wait_ready()
+                assert pub.wait_for_subscriptions(1, timeout=10)
+                peer = next(iter(pub._peers.values()))
+                assert _settles(lambda: peer.lane is not None), "no lane to the subscriber"
+                for index in range(5):
+                    pub.publish(make_frame(0, index, 256, "fake"))
+                    time.sleep(0.005)
+                assert lane_files() > baseline
+                sub.proc.kill()
+                sub.proc.wait(timeout=10)
+                assert _settles(lambda: pub.get_subscription_count() == 0)
+                pub.publish(make_frame(0, 99, 256, "fake"))  # nobody left: must not fail
+                assert _settles(lambda: lane_files() <= baseline), \
+                    f"left by the killed subscriber: {sorted(lane_files() - baseline)}"
+    finally:
+        for child in children:
+            child.close()
+
+
+def test_sigkilled_lane_publisher_is_cleaned_and_the_next_one_uses_the_lane(setting):
+    domain, topic, backends = setting
+    got = []
+    children = []
+    try:
+        with Node("lane_kill_sub", domain_id=domain, backends=backends) as node:
+            sub = node.create_subscription(TENSOR, topic, lambda m, i: got.append((m, i)),
+                                           depth=100, acceptable_buffer_backends="fake",
+                                           with_info=True)
+            _iox2.process_node()
+            baseline = lane_files()  # this process's node and the reader's services
+            for pub_id in (1, 2):
+                pub = Child("pub", domain=domain, topic=topic, backend="fake", pub_id=pub_id,
+                            count=10, interval=0.01)
+                children.append(pub)
+                pub.wait_ready()
+                assert _settles(lambda: sum(check_frame(m)["pub"] == pub_id
+                                            for m, _ in got) >= 5)
+                pub.proc.kill()
+                pub.proc.wait(timeout=10)
+                assert _settles(lambda: sub.get_publisher_count() == 0)
+                assert _settles(lambda: lane_files() <= baseline), \
+                    f"left by the killed publisher: {sorted(lane_files() - baseline)}"
+            assert sub.counters.errors == 0
+    finally:
+        for child in children:
+            child.close()
+    routes = {pub_id: {i.route for m, i in got if check_frame(m)["pub"] == pub_id}
+              for pub_id in (1, 2)}
+    assert routes == {1: {"lane"}, 2: {"lane"}}
+    assert all(check_frame(m)["ok"] for m, _ in got)
