@@ -3,9 +3,11 @@ and a guard that fails the run if a test leaves shared memory or child processes
 
 from __future__ import annotations
 
+import itertools
 import os
 import pathlib
 import re
+import uuid
 
 import pytest
 
@@ -31,6 +33,24 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if "cuda" in item.keywords:
             item.add_marker(skip_cuda)
+
+
+# --------------------------------------------------------------------------- isolation
+# Domain ids of this run: a block of its own per process, so concurrent runs (another checkout's
+# suite, a demo) do not share a ROS domain with ours; topics are unique names as well.
+_domains = itertools.count(1000 + os.getpid() % 4000 * 50)
+
+
+@pytest.fixture
+def domain() -> int:
+    """A ROS domain id used by this test alone."""
+    return next(_domains)
+
+
+@pytest.fixture
+def topic(request: pytest.FixtureRequest) -> str:
+    """A topic name used by this test alone (its module in the name, for reading logs)."""
+    return f"/{request.module.__name__.rsplit('.', 1)[-1]}/t_{uuid.uuid4().hex[:10]}"
 
 
 # --------------------------------------------------------------------------- leak guard

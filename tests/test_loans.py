@@ -8,14 +8,11 @@ and a subscriber in another process.
 
 from __future__ import annotations
 
-import itertools
-import os
 import signal
 import subprocess
 import sys
 import textwrap
 import time
-import uuid
 
 import numpy as np
 import pytest
@@ -33,18 +30,9 @@ from tensor_conversions.errors import UnsupportedBackendError  # noqa: E402
 from warp_buffer import pool_stats  # noqa: E402
 from warp_buffer.loan import LoanedBufferImpl, loan_buffer  # noqa: E402
 
-_domains = itertools.count(60 + os.getpid() % 40 * 7)
 N = 1024
 
 
-@pytest.fixture
-def domain() -> int:
-    return next(_domains)
-
-
-@pytest.fixture
-def topic() -> str:
-    return f"/loan_test/t_{uuid.uuid4().hex[:10]}"
 
 
 @pytest.fixture(scope="module")
@@ -316,8 +304,9 @@ def test_a_loaned_warp_message_reaches_another_process_zero_copy_and_blocks_go_r
     records = result["records"]
     assert [r["index"] for r in records] == list(range(count))
     assert all(r["ok"] for r in records), "wrong bytes"
-    assert {r["backend"] for r in records} == {"warp"} and {r["route"] for r in records} == \
-        {"buffer"}  # imported from the publisher's block, not CPU bytes
+    # imported from the publisher's block (over Zenoh or the same-host fast lane), not CPU bytes
+    assert {r["backend"] for r in records} == {"warp"}
+    assert len({r["route"] for r in records}) == 1 and records[0]["route"] in ("buffer", "lane")
     assert stats["reused"] >= count - stats["created"] and stats["created"] <= 4, stats
     assert len(pointers) == stats["created"]
 

@@ -7,11 +7,9 @@ Topology tests use the ``warp`` backend once it is installed and the test-only `
 
 from __future__ import annotations
 
-import itertools
 import os
 import signal
 import time
-import uuid
 
 import numpy as np
 import pytest
@@ -41,19 +39,10 @@ from rosidl_buffer import registry  # noqa: E402
 from rosidl_buffer.messages import get_message_type, serialize_message  # noqa: E402
 
 BACKEND = pick_backend()
-_domains = itertools.count(100 + os.getpid() % 50 * 40)
 COUNT = 20
 SIZE = 2048  # the fake backend carries payloads inline: stay under its 4000-byte bound
 
 
-@pytest.fixture
-def domain() -> int:
-    return next(_domains)
-
-
-@pytest.fixture
-def topic() -> str:
-    return f"/pubsub_test/t_{uuid.uuid4().hex[:10]}"
 
 
 @pytest.fixture(params=["lane_on", "lane_off"])

@@ -7,14 +7,12 @@ Every child is reaped in ``finally`` (a stopped one is killed and continued).
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import signal
 import subprocess
 import threading
 import time
-import uuid
 import zlib
 
 import numpy as np
@@ -40,17 +38,8 @@ from rosidl_buffer.errors import SerializationError  # noqa: E402
 from rosidl_buffer.messages import get_message_type  # noqa: E402
 
 HELPERS = "tests._transport_helpers"
-_domains = itertools.count(150 + os.getpid() % 50 * 40)
 
 
-@pytest.fixture
-def domain() -> int:
-    return next(_domains)
-
-
-@pytest.fixture
-def topic() -> str:
-    return f"/transport_test/t_{uuid.uuid4().hex[:10]}"
 
 
 @pytest.fixture(scope="module")

@@ -7,12 +7,10 @@ Every child is reaped in ``finally``; pool blocks of this process are given back
 
 from __future__ import annotations
 
-import itertools
 import os
 import signal
 import socket
 import stat
-import uuid
 import zlib
 
 import pytest
@@ -32,17 +30,8 @@ pytestmark = pytest.mark.multiprocess
 
 SIZE = 2048  # one 4 KiB size class: pool growth is counted in blocks
 HOLD = 12
-_domains = itertools.count(4000 + os.getpid() % 50 * 40)
 
 
-@pytest.fixture
-def domain() -> int:
-    return next(_domains)
-
-
-@pytest.fixture
-def topic() -> str:
-    return f"/reliability/t_{uuid.uuid4().hex[:10]}"
 
 
 @pytest.fixture(autouse=True)

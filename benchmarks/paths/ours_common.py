@@ -71,17 +71,15 @@ def _topic(settings: PathSettings) -> str:
 class TensorSender:
     """Publishes one tensor message per send.
 
-    ``backend="warp"``: a new warp-backed message per send (one write handle per buffer, ever),
-    the clock read before the allocation (the loan). ``backend="cpu"``: one CPU message per
+    ``backend="warp"``: a loaned warp-backed message per send (``loan_tensor_msg``: the
+    publisher's pool reuses a block and its cached view once every reader released it), the
+    clock read before the loan. ``backend="cpu"``: one CPU message per
     size and its output view, made untimed in ``prepare`` and reused (serialization copies the
     payload anyway, as the raw Zenoh peer's prepared bytearray), stamped in place.
     """
 
     def __init__(self, settings: PathSettings, backend: str) -> None:
         _, publisher_module, _, self._tc = _imports()
-        import tensor_conversions
-
-        self._release = tensor_conversions.release_output
         if backend == "warp":
             require_warp_backend(export=False)
         self._backend = backend
@@ -119,15 +117,17 @@ class TensorSender:
         if self._reused is not None:
             msg = self._reused
             stamp_into(self._view, seq)
+            self._publisher.publish(msg)
         else:
+            # A loaned message (what a user of the warp path does per frame): the clock starts
+            # before the loan; the loan publishes when its block ends.
             t_send = time.perf_counter_ns()
-            msg = self._tc.allocate_tensor_msg((self._nbytes,), np.uint8, backend=self._backend)
-            array = self._tc.from_output_tensor_msg(msg)
-            stamp_into(array[:STAMP_SIZE], seq, t_send)
-            copies.PUBLISHED_POINTERS[seq] = int(array.ctypes.data)
-            del array
-            self._release(msg)
-        self._publisher.publish(msg)
+            with self._tc.loan_tensor_msg(self._publisher, (self._nbytes,), np.uint8,
+                                          backend=self._backend) as msg:
+                array = self._tc.from_output_tensor_msg(msg)
+                stamp_into(array[:STAMP_SIZE], seq, t_send)
+                copies.PUBLISHED_POINTERS[seq] = int(array.ctypes.data)
+                del array
         self._published += 1
         calls, nbytes = self._serialized.take()  # what this publish serialized
         self._per_size.setdefault(str(self._nbytes), {
