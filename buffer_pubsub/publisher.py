@@ -88,6 +88,7 @@ class _Peer:
     channel: Any = None  # zenoh.Publisher on <key>/_buf/<gid>, declared on first use
     lane: fast_lane.LaneWriter | None = None  # the same-host lane to it, opened at matching
     gone: bool = False  # vanished: its channel is (being) undeclared, puts are skipped
+    ready: bool = False  # its route is settled (lane opened or not): wait_for_subscriptions
     # Serializes put and undeclare of the channel: a peer may vanish (discovery thread) while
     # publish() is putting to it, and a zenoh.Publisher must not be used from both at once.
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
@@ -124,6 +125,7 @@ class Publisher:
         self.base_key = wire.data_key(node.domain_id, token.topic, msg_type.__msgtype__)
         self._intra_key = self.base_key
         self._lock = threading.Lock()
+        self._ready = threading.Condition(self._lock)  # a peer's route settled, or it left
         self._peers: dict[bytes, _Peer] = {}
         self._sequence = 0
         self._closed = False
@@ -163,6 +165,7 @@ class Publisher:
             with self._lock:
                 peer = self._peers.pop(gid, None)
                 self._update_remote()
+                self._ready.notify_all()
             if peer is not None:
                 peer.close()
                 endpoint_gone(self._backends, peer.info)
@@ -193,7 +196,12 @@ class Publisher:
         if not keep:
             endpoint_gone(self._backends, info)
             return
-        self._open_lane(peer)
+        try:
+            self._open_lane(peer)
+        finally:
+            with self._lock:
+                peer.ready = True
+                self._ready.notify_all()
 
     def _open_lane(self, peer: _Peer) -> None:
         """Give a kept peer the same-host lane if it has one (~12 ms, once per match). Opened
@@ -227,10 +235,21 @@ class Publisher:
             self._token.type_hash)
 
     def wait_for_subscriptions(self, count: int = 1, timeout: float | None = 10.0) -> bool:
-        """Block until at least ``count`` subscriptions are matched; False on timeout."""
-        return self.node._wait_matching(
-            wire.SUBSCRIPTION_KIND, self._token.topic, self._token.type_name,
-            self._token.type_hash, count, timeout)
+        """Block until at least ``count`` subscriptions are matched and this publisher has
+        settled the route to each (negotiated, same-host lane opened where one serves), so the
+        next publish() takes the route it keeps; False on timeout."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        if not self.node._wait_matching(
+                wire.SUBSCRIPTION_KIND, self._token.topic, self._token.type_name,
+                self._token.type_hash, count, timeout):
+            return False
+        with self._ready:
+            while sum(peer.ready for peer in self._peers.values()) < count:
+                left = None if deadline is None else deadline - time.monotonic()
+                if self._closed or (left is not None and left <= 0):
+                    return False
+                self._ready.wait(left)
+        return True
 
     # -- publishing ----------------------------------------------------------------------------
     def loan(self, factory: Callable[[], Message], *, max_loans: int | None = None) -> Loan:
@@ -391,6 +410,7 @@ class Publisher:
             peers = list(self._peers.values())
             self._peers.clear()
             self._remote = ()
+            self._ready.notify_all()
         _process.remove_publisher(self.gid)
         self._loans.clear()
         for peer in peers:
