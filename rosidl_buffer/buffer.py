@@ -56,6 +56,14 @@ class Buffer(Generic[T]):
                     f"{getattr(data, 'dtype', '')} data in a "
                     f"{np.dtype(np.uint8 if dtype is None else dtype)} buffer: {exc}") from None
 
+    @classmethod
+    def _of(cls, impl: BufferImplBase) -> Buffer[Any]:
+        """A Buffer over ``impl`` without the checks of ``__init__`` (decoders call it once per
+        field per message; the caller guarantees ``impl`` is a BufferImplBase)."""
+        buffer = cls.__new__(cls)
+        buffer._impl = impl
+        return buffer
+
     # -- every backend -------------------------------------------------------------------------
     def get_impl(self) -> BufferImplBase:
         return self._impl

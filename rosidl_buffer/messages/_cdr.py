@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import struct
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -26,7 +27,7 @@ import numpy as np
 
 from ..backend import MAX_BUFFER_DESCRIPTOR_SIZE, BufferBackend
 from ..buffer import Buffer
-from ..buffer_impl import CpuBufferImpl
+from ..buffer_impl import BufferImplBase, CpuBufferImpl
 from ..endpoint import EndpointInfo
 from ..errors import (
     DeserializationError,
@@ -51,6 +52,8 @@ _ORIGIN = len(CDR_HEADER)  # alignment counts from the end of the header
 BUFFER_DESCRIPTOR_MARKER = 0xFFFFFFFF
 _U32 = struct.Struct("<I")
 _NUMPY_COPY_THRESHOLD = 1 << 16
+_ZEROS = tuple(bytes(n) for n in range(8))  # padding, by length
+_LITTLE_ENDIAN = sys.byteorder == "little"
 
 #: Decides, per buffer field, whether it travels as a descriptor: returns ``(backend_name,
 #: descriptor)`` or None for the ordinary CPU sequence.
@@ -64,10 +67,11 @@ def _align(pos: int, alignment: int) -> int:
 def _pad(out: bytearray, pos: int, alignment: int) -> int:
     """``_align`` for the write pass: zero the padding, so a reused output buffer (see
     :func:`serialize_message`'s ``out``) carries no bytes of an earlier message."""
-    end = pos + (-(pos - _ORIGIN) % alignment)
-    if end != pos:
-        out[pos:end] = bytes(end - pos)
-    return end
+    pad = -(pos - _ORIGIN) % alignment
+    if pad:
+        out[pos:pos + pad] = _ZEROS[pad]
+        return pos + pad
+    return pos
 
 
 @dataclass
@@ -216,6 +220,10 @@ class _NumericArray(_Field):
         super().__init__(spec)
         self.dtype = numpy_dtype(spec.element).newbyteorder("<")
         self.width = self.dtype.itemsize
+        # Arrays are read in this dtype; on a little-endian host it is the builtin one, so a
+        # received array that is published again passes the ``is`` check of :meth:`write`.
+        self.native = numpy_dtype(spec.element) if _LITTLE_ENDIAN else self.dtype
+        self.unchecked = _LITTLE_ENDIAN and not (spec.array_length or spec.sequence_bound)
 
     def _array(self, value: Any) -> np.ndarray:
         try:
@@ -231,22 +239,30 @@ class _NumericArray(_Field):
             raise self._fail(f"{n} elements exceed the bound {self.spec.sequence_bound}")
         return array
 
-    def _body_size(self, n: int, pos: int) -> int:
-        if self.spec.is_sequence:
-            pos = _align(pos, 4) + 4
-        return _align(pos, self.width) + n * self.width if n else pos
-
     def size(self, value: Any, pos: int, ctx: _SizeContext) -> int:
         n = len(value) if hasattr(value, "__len__") else self._array(value).shape[0]
-        return self._body_size(n, pos)
+        if self.spec.is_sequence:
+            pos += 4 + (-(pos - _ORIGIN) % 4)
+        return pos + (-(pos - _ORIGIN) % self.width) + n * self.width if n else pos
 
     def write(self, value: Any, out: bytearray, pos: int, decisions: list[Any]) -> int:
-        array = self._array(value)
+        # An array already in the wire form is written as it is (the common case: metadata a
+        # conversions package built, or one received); anything else is converted and checked.
+        if (value.__class__ is np.ndarray and value.dtype is self.native and self.unchecked
+                and value.ndim == 1 and value.flags.c_contiguous):
+            array = value
+        else:
+            array = self._array(value)
         return _write_array(array, out, pos, self.spec.is_sequence, self.width)
 
     def read(self, ctx: _ReadContext, pos: int) -> tuple[Any, int]:
+        data = ctx.data
         if self.spec.is_sequence:
-            n, pos = _read_count(ctx, pos, self.name)
+            pos += -(pos - _ORIGIN) % 4
+            if pos + 4 > len(data):
+                _need(ctx, pos, 4, self.name)
+            n = _U32.unpack_from(data, pos)[0]
+            pos += 4
             if self.spec.sequence_bound and n > self.spec.sequence_bound:
                 raise DeserializationError(
                     f"field {self.name!r}: {n} elements exceed the bound {self.spec.sequence_bound}"
@@ -254,10 +270,12 @@ class _NumericArray(_Field):
         else:
             n = self.spec.array_length
         if n:
-            pos = _align(pos, self.width)
-        _need(ctx, pos, n * self.width, self.name)
-        array = np.frombuffer(ctx.data, dtype=self.dtype, count=n, offset=pos).copy()
-        return array.astype(self.dtype.newbyteorder("="), copy=False), pos + n * self.width
+            pos += -(pos - _ORIGIN) % self.width
+        nbytes = n * self.width
+        if pos + nbytes > len(data):
+            _need(ctx, pos, nbytes, self.name)
+        array = np.frombuffer(data, dtype=self.dtype, count=n, offset=pos).astype(self.native)
+        return array, pos + nbytes
 
 
 def _write_array(array: np.ndarray, out: bytearray, pos: int, counted: bool, width: int) -> int:
@@ -272,6 +290,8 @@ def _write_array(array: np.ndarray, out: bytearray, pos: int, counted: bool, wid
         if nbytes >= _NUMPY_COPY_THRESHOLD:
             # NumPy's copy runs at memcpy speed; bytearray slice assignment is several times slower.
             np.frombuffer(out, np.uint8, nbytes, pos)[:] = array.view(np.uint8)
+        elif nbytes <= 1024:  # a few metadata integers: tobytes is the cheapest small copy
+            out[pos:pos + nbytes] = array.tobytes()
         else:
             out[pos:pos + nbytes] = memoryview(array).cast("B")
         pos += nbytes
@@ -379,7 +399,7 @@ class _BufferField(_Field):
         if n != BUFFER_DESCRIPTOR_MARKER:
             _need(ctx, pos, n, self.name)
             view = np.frombuffer(ctx.owner, dtype=np.uint8, count=n, offset=pos)
-            return Buffer(CpuBufferImpl.wrap(view)), pos + n
+            return Buffer._of(CpuBufferImpl.wrap(view)), pos + n
         backend_name, pos = _read_string(ctx, pos, self.name)
         backend = (ctx.backends or {}).get(backend_name)
         if backend is None:
@@ -400,7 +420,11 @@ class _BufferField(_Field):
                 f"field {self.name!r}: a backend descriptor needs the publisher's endpoint info"
             )
         impl = backend.from_descriptor_with_endpoint(descriptor, ctx.endpoint_info)
-        return Buffer(impl), pos
+        if not isinstance(impl, BufferImplBase):
+            raise DeserializationError(
+                f"field {self.name!r}: backend {backend_name!r} returned "
+                f"{type(impl).__name__}, not a BufferImplBase")
+        return Buffer._of(impl), pos
 
 
 # --------------------------------------------------------------------------- message codec
@@ -573,6 +597,10 @@ def _codec(type_name: str) -> _MessageCodec:
     return _MessageCodec(type_name)
 
 
+#: deserialize_message's codec per ``msg_type`` argument (a class or a type name as given).
+_decoders: dict[Any, _MessageCodec] = {}
+
+
 def _plan(message: Message, route: BufferRoute | None) -> tuple[_MessageCodec, int, list[Any]]:
     if not isinstance(message, Message):
         raise SerializationError(f"not a generated message: {type(message).__name__}")
@@ -621,8 +649,11 @@ def deserialize_message(
     with ``endpoint_info`` describing the publisher. Malformed input raises
     :class:`DeserializationError`; a backend's own typed errors propagate unchanged.
     """
-    type_name = msg_type if isinstance(msg_type, str) else msg_type.__msgtype__
-    codec = _codec(get_message_type(type_name).__msgtype__)
+    codec = _decoders.get(msg_type)
+    if codec is None:
+        type_name = msg_type if isinstance(msg_type, str) else msg_type.__msgtype__
+        codec = _decoders[msg_type] = _codec(get_message_type(type_name).__msgtype__)
+    type_name = codec.cls.__msgtype__
     view = memoryview(data).cast("B") if not isinstance(data, bytes) else memoryview(data)
     if len(view) < _ORIGIN:
         raise DeserializationError(f"{len(view)} bytes is shorter than the CDR header")
