@@ -358,6 +358,10 @@ def _descriptor_size(codec: _MessageCodec, descriptor: Any) -> int:
 class _BufferField(_Field):
     """An unbounded ``uint8[]``: CPU sequence, or marker + backend name + descriptor."""
 
+    def __init__(self, spec: FieldSpec) -> None:
+        super().__init__(spec)
+        self.backend_name = _String(spec)  # the name written before a descriptor
+
     def size(self, value: Buffer, pos: int, ctx: _SizeContext) -> int:
         if not isinstance(value, Buffer):
             value = Buffer(value)
@@ -370,7 +374,7 @@ class _BufferField(_Field):
         decision = _Decision(None, backend_name, descriptor)
         ctx.decisions.append(decision)
         pos = _align(pos, 4) + 4
-        pos = _String(self.spec).size(backend_name, pos, ctx)
+        pos = self.backend_name.size(backend_name, pos, ctx)
         codec = _codec(descriptor.__msgtype__)
         nbytes = _descriptor_size(codec, descriptor)
         if nbytes > MAX_BUFFER_DESCRIPTOR_SIZE:
@@ -390,7 +394,7 @@ class _BufferField(_Field):
             return _write_array(decision.host, out, pos, True, 1)
         pos = _pad(out, pos, 4)
         _U32.pack_into(out, pos, BUFFER_DESCRIPTOR_MARKER)
-        pos = _String(self.spec).write(decision.backend_name, out, pos + 4, decisions)
+        pos = self.backend_name.write(decision.backend_name, out, pos + 4, decisions)
         codec = _codec(decision.descriptor.__msgtype__)
         return codec.write(decision.descriptor, out, pos, decision.descriptor_decisions)
 
