@@ -1,0 +1,106 @@
+"""The compiled per-type CDR functions keep the generic codec's errors and edge cases.
+
+Byte identity with rosbags for every type is tested in test_cdr_identity.py; these tests aim at
+what the compiled form added: inline primitive runs and their per-field fallbacks, the wire-form
+fast path for numeric arrays, per-argument decoder caching and the backend's returned impl.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rosidl_buffer import Buffer
+from rosidl_buffer.errors import DeserializationError, SerializationError
+from rosidl_buffer.messages import deserialize_message, get_message_type, serialize_message
+from rosidl_buffer.messages._cdr import _codec
+
+TENSOR = "tensor_msgs/msg/ExperimentalTensor"
+
+
+def _tensor(**fields):
+    return get_message_type(TENSOR)(dtype_code=1, dtype_bits=8, dtype_lanes=1,
+                                    shape=np.array([4], np.int64), data=b"abcd", **fields)
+
+
+def test_every_codec_has_readable_compiled_source():
+    source = _codec(TENSOR).source
+    assert "def size(m, pos, ctx):" in source and "def write(" in source
+    assert "def read(ctx, pos):" in source
+    # The three leading uint8/uint8/uint16 fields are one struct call, not three.
+    assert source.count("packer.pack_into(out, pos, m.dtype_code, m.dtype_bits, m.dtype_lanes)") == 1
+
+
+@pytest.mark.parametrize("field, value, words", [
+    ("dtype_bits", 256, "dtype_bits"),
+    ("dtype_lanes", -1, "dtype_lanes"),
+    ("byte_offset", "seven", "byte_offset"),
+])
+def test_a_bad_value_in_a_primitive_run_names_its_field(field, value, words):
+    msg = _tensor()
+    setattr(msg, field, value)
+    with pytest.raises(SerializationError, match=words):
+        serialize_message(msg)
+
+
+def test_a_truncated_primitive_run_raises_a_typed_error():
+    data = bytes(serialize_message(_tensor()))
+    with pytest.raises(DeserializationError, match="truncated"):
+        deserialize_message(data[:6], TENSOR)
+
+
+def test_arrays_not_in_wire_form_are_converted_and_checked():
+    big_endian = np.array([2, 3], dtype=">i8")
+    as_list = [2, 3]
+    reference = bytes(serialize_message(_tensor(strides=np.array([2, 3], np.int64))))
+    assert bytes(serialize_message(_tensor(strides=big_endian))) == reference
+    assert bytes(serialize_message(_tensor(strides=as_list))) == reference
+    strided = np.array([2, 0, 3], np.int64)[::2]  # not contiguous
+    assert bytes(serialize_message(_tensor(strides=strided))) == reference
+    with pytest.raises(SerializationError, match="1-D"):
+        serialize_message(_tensor(strides=np.zeros((2, 2), np.int64)))
+    with pytest.raises(SerializationError, match="strides"):
+        serialize_message(_tensor(strides=np.array([1.5])))
+
+
+def test_a_received_message_republishes_byte_identically_and_owns_its_arrays():
+    original = _tensor(strides=np.array([1], np.int64))
+    data = bytearray(serialize_message(original))
+    received = deserialize_message(data, TENSOR)
+    assert received.shape.dtype is np.dtype(np.int64)  # the native dtype: the fast path
+    assert bytes(serialize_message(received)) == bytes(data)
+    data[:] = bytes(len(data))  # the arrays were copied out of the wire bytes
+    assert list(received.shape) == [4] and list(received.strides) == [1]
+
+
+def test_decoders_by_class_and_by_name_agree():
+    data = bytes(serialize_message(_tensor()))
+    by_class = deserialize_message(data, get_message_type(TENSOR))
+    by_name = deserialize_message(data, TENSOR)
+    by_short_name = deserialize_message(data, "tensor_msgs/ExperimentalTensor")
+    assert by_class == by_name == by_short_name == _tensor()
+
+
+def test_a_reused_output_buffer_carries_no_bytes_of_an_earlier_message():
+    out = bytearray(serialize_message(_tensor()))
+    out[:] = b"\xff" * len(out)  # poison: padding must be written as zeros again
+    again = serialize_message(_tensor(), out=out)
+    assert again is out
+    assert bytes(again) == bytes(serialize_message(_tensor()))
+
+
+def test_a_backend_returning_something_other_than_an_impl_is_a_typed_error():
+    from plugins.fake_backend import FakeBackend, FakeBufferImpl
+
+    class Broken(FakeBackend):
+        def from_descriptor_with_endpoint(self, descriptor, endpoint_info):
+            return b"not an impl"
+
+    backend = Broken()
+    msg = _tensor()
+    msg.data = Buffer(FakeBufferImpl(np.frombuffer(b"abcd", np.uint8)))
+    descriptor = backend.create_descriptor_with_endpoint(msg.data.get_impl(), None)
+    data = serialize_message(msg, route=lambda buffer: (backend.get_backend_type(), descriptor))
+    with pytest.raises(DeserializationError, match="not a BufferImplBase"):
+        deserialize_message(data, TENSOR, backends={backend.get_backend_type(): backend},
+                            endpoint_info=object())
