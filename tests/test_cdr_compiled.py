@@ -104,3 +104,17 @@ def test_a_backend_returning_something_other_than_an_impl_is_a_typed_error():
     with pytest.raises(DeserializationError, match="not a BufferImplBase"):
         deserialize_message(data, TENSOR, backends={backend.get_backend_type(): backend},
                             endpoint_info=object())
+
+
+def test_fields_named_like_python_keywords_round_trip():
+    from rosidl_buffer.messages import register_message_definitions
+
+    register_message_definitions({"cdr_compiled_test/msg/Keywords":
+                                  "uint8 from\nstring class\nint64[] lambda\nuint16 import\n"})
+    cls = get_message_type("cdr_compiled_test/msg/Keywords")
+    msg = cls()
+    setattr(msg, "from", 3)
+    setattr(msg, "class", "x")
+    setattr(msg, "lambda", np.array([5, 6], np.int64))
+    setattr(msg, "import", 9)
+    assert deserialize_message(serialize_message(msg), cls) == msg

@@ -17,6 +17,8 @@ payload is copied exactly once. Deserialization returns buffers that alias the i
 from __future__ import annotations
 
 import functools
+import keyword
+import operator
 import struct
 import sys
 from collections.abc import Callable, Mapping
@@ -547,7 +549,14 @@ def _codec_namespace(codec: _MessageCodec) -> dict[str, Any]:
             names = (step.name,)
         for name in names:  # the slot's own setter: no Message.__setattr__ per field
             namespace[f"set_{name}"] = codec.cls.__dict__[name].__set__
+            namespace[f"get_{name}"] = operator.attrgetter(name)  # see _get
     return namespace
+
+
+def _get(name: str) -> str:
+    """The expression reading field ``name`` of message ``m``: an attribute access, or for a
+    field named like a Python keyword (valid in a .msg file) its getter."""
+    return f"get_{name}(m)" if keyword.iskeyword(name) else f"m.{name}"
 
 
 def _codec_source(steps: list[Any]) -> str:
@@ -565,7 +574,7 @@ def _codec_source(steps: list[Any]) -> str:
     for i, step in enumerate(steps):
         kind = type(step)
         if kind is _PrimitiveRun:
-            values = ", ".join(f"m.{name}" for name in step.names)
+            values = ", ".join(_get(name) for name in step.names)
             targets = ", ".join(f"v_{name}" for name in step.names)
             size.append(f"    pos += N{i}[(pos - 4) & 7]")
             write += [f"    packer, length = L{i}[(pos - 4) & 7]",
@@ -583,12 +592,12 @@ def _codec_source(steps: list[Any]) -> str:
                      *(f"        set_{name}(m, v_{name})" for name in step.names),
                      "        pos += length"]
         elif kind is _Nested:
-            size.append(f"    pos = CS{i}(m.{step.name}, pos, ctx)")
-            write.append(f"    pos = CW{i}(m.{step.name}, out, pos, decisions)")
+            size.append(f"    pos = CS{i}({_get(step.name)}, pos, ctx)")
+            write.append(f"    pos = CW{i}({_get(step.name)}, out, pos, decisions)")
             read += [f"    value, pos = CR{i}(ctx, pos)", f"    set_{step.name}(m, value)"]
         else:
-            size.append(f"    pos = S{i}.size(m.{step.name}, pos, ctx)")
-            write.append(f"    pos = S{i}.write(m.{step.name}, out, pos, decisions)")
+            size.append(f"    pos = S{i}.size({_get(step.name)}, pos, ctx)")
+            write.append(f"    pos = S{i}.write({_get(step.name)}, out, pos, decisions)")
             read += [f"    value, pos = S{i}.read(ctx, pos)", f"    set_{step.name}(m, value)"]
     size.append("    return pos")
     write.append("    return pos")
