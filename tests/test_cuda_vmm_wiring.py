@@ -222,7 +222,7 @@ def test_a_vmm_blocks_fd_travels_over_the_session_socket(vmm_device, monkeypatch
                 assert os.fstat(fd).st_ino == os.fstat(block.vmm.fd).st_ino  # the very memory
             finally:
                 os.close(fd)
-        assert _fds() == before  # nothing accumulates, on either side of the socket
+        assert _fds() <= before  # nothing accumulates, on either side of the socket
         with pytest.raises(StaleBufferError):  # another allocation at that offset: refused
             handoff.fetch_cuda_block(os.getpid(), d.session, d.offset, block.serial + 1)
         with pytest.raises(StaleBufferError):  # no VMM block there
@@ -252,7 +252,7 @@ def test_an_import_maps_the_fd_read_only_once_per_block(vmm_device, monkeypatch)
             if round_ == 0:
                 before = _fds()
         assert len(FakeVmm.imported) == 1 and FakeVmm.imported[0].read_only  # one read-only map
-        assert _fds() == before  # the received fds were closed: the import holds the memory
+        assert _fds() <= before  # the received fds were closed: the import holds the memory
         for imported in imports:
             imported.release()
         for event in stream.recorded:

@@ -935,9 +935,10 @@ class VmmMemory:
         with self._lock:
             if not self._handle:
                 raise StaleBufferError("this VMM allocation was closed")
-            _check(_driver().cuMemExportToShareableHandle(
-                ctypes.byref(fd), _u64(self._handle), _CU_MEM_HANDLE_TYPE_POSIX_FILE_DESCRIPTOR,
-                0), "cuMemExportToShareableHandle")
+            with self.device.context_guard:  # called from the hand-off server's thread too
+                _check(_driver().cuMemExportToShareableHandle(
+                    ctypes.byref(fd), _u64(self._handle),
+                    _CU_MEM_HANDLE_TYPE_POSIX_FILE_DESCRIPTOR, 0), "cuMemExportToShareableHandle")
         return fd.value
 
     def array(self, offset: int = 0, nbytes: int | None = None) -> wp.array:

@@ -242,6 +242,15 @@ def _connect(owner_pid: int, session: int, where: str) -> socket.socket:
     return sock
 
 
+def _ask(sock: socket.socket, request: bytes) -> None:
+    """Send ``request``; a server that already answered and closed (EPIPE) is judged by what
+    it sent, which stays readable."""
+    try:
+        sock.sendall(request)
+    except (BrokenPipeError, ConnectionResetError):
+        pass
+
+
 def fetch_arena(owner_pid: int, session: int) -> tuple[int, Geometry]:
     """Connect to session ``(owner_pid, session)`` of this user and receive its arena fd, checked
     (seals, size, credentials); returns ``(fd, geometry)``. The fd shares the publisher's open
@@ -252,7 +261,7 @@ def fetch_arena(owner_pid: int, session: int) -> tuple[int, Geometry]:
     fds: list[int] = []
     try:
         try:
-            sock.sendall(REQUEST.pack(ASK_ARENA, 0, 0))
+            _ask(sock, REQUEST.pack(ASK_ARENA, 0, 0))
             data, fds, _flags, _addr = socket.recv_fds(sock, HELLO.size, 1)
         except OSError as exc:
             raise StaleBufferError(f"{where}: the hand-off failed ({exc})") from None
@@ -284,7 +293,7 @@ def fetch_cuda_block(owner_pid: int, session: int, offset: int, serial: int) -> 
     fds: list[int] = []
     try:
         try:
-            sock.sendall(REQUEST.pack(ASK_CUDA_VMM, offset, serial))
+            _ask(sock, REQUEST.pack(ASK_CUDA_VMM, offset, serial))
             data, fds, _flags, _addr = socket.recv_fds(sock, VMM_REPLY.size, 1)
         except OSError as exc:
             raise StaleBufferError(f"{where}: the hand-off failed ({exc})") from None
