@@ -50,7 +50,7 @@ import warp as wp
 from . import arena as _arena
 from . import cuda, handoff
 from . import descriptor as _desc
-from .errors import EmptyBufferError, ExportError, InvalidSizeError
+from .errors import EmptyBufferError, ExportError, ExportUnavailableError, InvalidSizeError
 
 __all__ = [
     "MIN_BLOCK",
@@ -298,7 +298,7 @@ class VmmBlock(CudaBlock):
             self.arena.cuda_exports[self.offset] = self  # type: ignore[union-attr]
 
     def ipc_mem_handle(self) -> bytes:
-        raise cuda.ExportUnavailableError("a VMM block has no legacy CUDA IPC handle")
+        raise ExportUnavailableError("a VMM block has no legacy CUDA IPC handle")
 
     def mem_words(self) -> tuple[int, ...]:
         return _desc.vmm_words(self.serial, self.vmm_bytes)
