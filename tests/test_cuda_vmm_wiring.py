@@ -344,12 +344,12 @@ def test_a_closed_hand_off_connection_reports_the_session_gone(monkeypatch) -> N
         fd, _geometry = handoff.fetch_arena(*key)
         os.close(fd)
         assert _wait_for(lambda: server.peers == 1)
-        assert gone == []  # alive: nothing reported
+        assert key not in gone  # alive: nothing reported
         server.close()  # the session ends: the kept connection closes
-        assert _wait_for(lambda: gone == [key])
+        assert _wait_for(lambda: gone.count(key) == 1)
         with pytest.raises(StaleBufferError):
             handoff.fetch_arena(*key)  # its socket refuses: reported again
-        assert gone == [key, key]
+        assert gone.count(key) == 2
     finally:
         server.close()
         memory.unmap(other.base, other.size)
@@ -397,7 +397,7 @@ def test_a_publisher_process_that_dies_is_reported_gone_at_once(monkeypatch) -> 
         fd, _geometry = handoff.fetch_arena(pid, session)
         os.close(fd)
         time.sleep(2 * handoff.WATCH_POLL_S)
-        assert gone == []
+        assert (pid, session) not in gone  # alive: nothing reported
         child.kill()  # no clean exit: the kernel closes its end
         child.wait(timeout=30)
         assert _wait_for(lambda: (pid, session) in gone)
