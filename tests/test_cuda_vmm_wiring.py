@@ -347,6 +347,7 @@ def test_a_closed_hand_off_connection_reports_the_session_gone(monkeypatch) -> N
         assert key not in gone  # alive: nothing reported
         server.close()  # the session ends: the kept connection closes
         assert _wait_for(lambda: gone.count(key) == 1)
+        assert key in dropped  # ipc's hook forgot the session's cached CUDA imports
         with pytest.raises(StaleBufferError):
             handoff.fetch_arena(*key)  # its socket refuses: reported again
         assert gone.count(key) == 2
