@@ -609,10 +609,17 @@ def check_capabilities(ctx: Context) -> dict[str, Any]:
     need(caps.uuid in meta.cuda_uuids, f"the backend metadata does not advertise {caps.uuid}")
     from warp_buffer.buffer_impl import WarpBufferImpl
 
+    from warp_buffer import pool
+
     block = WarpBufferImpl.allocate(4096, ctx.device)._block
-    need(cuda.is_ipc_allocation(block.storage),
-         "a pool block is not a whole default-allocator allocation (CUDA IPC cannot export it)")
-    return {"ipc": caps.ipc, "mempool": caps.mempool_supported, "vmm": caps.vmm,
+    if caps.vmm and caps.ipc:  # VMM blocks where the device exports POSIX fds
+        need(isinstance(block, pool.VmmBlock), f"VMM is supported but the pool made a "
+             f"{type(block).__name__} ({pool._vmm_refused.get(ctx.device)})")
+    else:
+        need(cuda.is_ipc_allocation(block.storage), "a pool block is not a whole "
+             "default-allocator allocation (CUDA IPC cannot export it)")
+    return {"blocks": type(block).__name__, "ipc": caps.ipc, "mempool": caps.mempool_supported,
+            "vmm": caps.vmm,
             "uuid": caps.uuid, "name": caps.name, "advertised": sorted(meta.cuda_uuids),
             "driver": wp._src.context.runtime.driver_version}
 
@@ -931,6 +938,80 @@ def _child_publish_and_exit(args: dict[str, Any]) -> dict[str, Any]:
     return {"published": args["count"]}
 
 
+def check_vmm(ctx: Context) -> dict[str, Any]:
+    """A child publishes a pool VMM block; another child imports it (its fd over the session's
+    hand-off socket), reads it (CRC) and has a write kernel through it refused; we import it,
+    the publisher exits, and our import still reads the same bytes, while the gone session's
+    cached imports are dropped at once."""
+    _need_cuda(ctx)
+    from warp_buffer import cuda, descriptor, ipc
+
+    if not cuda.vmm_supported(ctx.device):
+        raise Skip("no VMM with POSIX fd export here: CUDA blocks use legacy CUDA IPC")
+    nbytes, seed = 4 << 20, 21
+    pub = spawn(ctx, "vmm_publish", {"device": ctx.device, "nbytes": nbytes, "seed": seed})
+    line = _readline(pub, 120)
+    need(line.startswith("DESC "), f"the publisher said {line!r} {_drain_stderr(pub)}")
+    hexed = line.split()[1].strip()
+    wait_ready(pub)
+    exported = descriptor.unpack(bytes.fromhex(hexed))
+    need(exported.kind == descriptor.KIND_CUDA_VMM, f"exported as kind {exported.kind}, not VMM")
+    expected = expected_crc(nbytes, seed, 0)
+    writer = spawn(ctx, "vmm_import", {"descriptor": hexed, "nbytes": nbytes})
+    other = finish(ctx, writer, timeout=120)
+    need(other["crc"] == expected, f"the child read CRC {other['crc']}, not {expected}")
+    need(other["refused"], "a write kernel through a read-only VMM import was not refused")
+    imported = ipc.import_buffer(exported)
+    key = (exported.owner_pid, exported.session)
+    before = frame_crc(imported.to_cpu().view())[1]
+    finish(ctx, pub)  # the publisher exits (clean exit: it closes its hand-off connections)
+    deadline = time.monotonic() + 5
+    while any(k[0] == key for k in ipc._cuda_imports._strong["memory"]):
+        need(time.monotonic() < deadline, "the gone session's cached imports were not dropped")
+        time.sleep(0.05)
+    after = frame_crc(imported.to_cpu().view())[1]
+    imported.release()
+    cuda.flush_releases(10)
+    need(before == after == expected,
+         f"CRC before/after the publisher exited {before}/{after}, expected {expected}")
+    return {"child_crc_ok": True, "write_refused": True, "read_after_exit": True}
+
+
+def _child_vmm_publish(args: dict[str, Any]) -> dict[str, Any]:
+    import warp as wp
+
+    import warp_buffer
+    from warp_buffer import descriptor, ipc
+
+    device = wp.get_device(args["device"])
+    buffer = warp_buffer.allocate_buffer(args["nbytes"], device.alias)
+    _write_frame(buffer, args["seed"], 0, 1)
+    exported = ipc.export_buffer(buffer, peer_device_uuids={device.uuid})
+    _emit("DESC " + descriptor.pack(exported).hex())
+    _emit("READY")
+    _stop_event(120).wait()
+    return {"kind": exported.kind}
+
+
+def _child_vmm_import(args: dict[str, Any]) -> dict[str, Any]:
+    import warp as wp
+
+    from warp_buffer import descriptor, ipc
+
+    impl = ipc.import_buffer(descriptor.unpack(bytes.fromhex(args["descriptor"])))
+    crc = frame_crc(impl.to_cpu().view())[1]
+    target = wp.array(ptr=impl.array.ptr, dtype=wp.uint8, shape=(args["nbytes"],),
+                      device=impl.array.device)
+    refused = False
+    try:  # a kernel writing through the read-only mapping must fault (this child's context)
+        wp.launch(kernels()["slow_fill"], dim=args["nbytes"], inputs=[target, 7, 1],
+                  device=target.device)
+        wp.synchronize_device(target.device)
+    except Exception:  # noqa: BLE001 - the expected outcome
+        refused = True
+    return {"crc": crc, "refused": refused, "device": str(impl.device)}
+
+
 def check_forced_staging(ctx: Context) -> dict[str, Any]:
     _need_cuda(ctx)
     where = _node_env(ctx)
@@ -1154,6 +1235,8 @@ CHILD_ROLES: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {
     "subscriber": _child_subscriber,
     "publish_and_exit": _child_publish_and_exit,
     "latency": _child_latency,
+    "vmm_publish": _child_vmm_publish,
+    "vmm_import": _child_vmm_import,
 }
 
 CHECKS: list[Check] = [
@@ -1167,6 +1250,8 @@ CHECKS: list[Check] = [
     Check("ipc_child", check_ipc_child, doc="child imports while the writer runs; twice; release"),
     Check("failure_injection", check_failure_injection, cuda_errors_expected=True,
           doc="forged handles, publisher exited: typed errors, no wrong data"),
+    Check("vmm", check_vmm, cuda_errors_expected=True,
+          doc="VMM block: child import (CRC), write refused, import outlives the publisher"),
     Check("forced_staging", check_forced_staging, doc="subscriber without the GPU gets cpu bytes"),
     Check("end_to_end", check_end_to_end, doc="Node, 200 x 16 MiB to warp and cpu subscribers"),
     Check("tensor_conversions", check_tensor_conversions, doc="torch on the GPU, no device sync"),

@@ -6,6 +6,12 @@ with its CUDA IPC memory and event handles, wait for a line on stdin, exit.
 at once (the parent maps it after we are gone).
 ``vmm_write_readonly SOCKET``: receive a VMM fd, map it read-only, try to write through it and
 print whether the write was refused.
+``vmm_publish``: allocate a warp buffer on cuda:0 from the pool (a VMM block where the device
+exports POSIX fds), fill it with :func:`pattern`, export it for a same-GPU peer, print one JSON
+line (descriptor bytes as hex, its kind), wait for a line on stdin, exit.
+``vmm_import DESCRIPTOR``: import the descriptor (the block's fd comes over the publisher's
+hand-off socket), print the CRC it reads, then launch a write kernel through the import and
+print whether it was refused.
 """
 
 from __future__ import annotations
@@ -83,6 +89,48 @@ def vmm_write_readonly(path: str) -> int:
     return 0
 
 
+def vmm_publish() -> int:
+    import warp as wp
+
+    import warp_buffer
+    from warp_buffer import descriptor, ipc
+
+    wp.config.quiet = True
+    device = wp.get_device("cuda:0")
+    buffer = warp_buffer.allocate_buffer(NBYTES, "cuda:0")
+    with warp_buffer.from_output_buffer(buffer) as out:
+        wp.copy(out.array, wp.array(pattern(), dtype=wp.uint8, device=device))
+    exported = ipc.export_buffer(buffer, peer_device_uuids={device.uuid})
+    print(json.dumps({"descriptor": descriptor.pack(exported).hex(), "kind": exported.kind}),
+          flush=True)
+    sys.stdin.readline()
+    return 0
+
+
+def vmm_import(hexed: str) -> int:
+    import zlib
+
+    import warp as wp
+
+    from benchmarks import gpu_check
+    from warp_buffer import descriptor, ipc
+
+    wp.config.quiet = True
+    impl = ipc.import_buffer(descriptor.unpack(bytes.fromhex(hexed)))
+    crc = zlib.crc32(impl.to_cpu().view().tobytes())
+    print(json.dumps({"crc": crc, "device": str(impl.device)}), flush=True)
+    target = wp.array(ptr=impl.array.ptr, dtype=wp.uint8, shape=(NBYTES,), device="cuda:0")
+    refused = False
+    try:  # a kernel writing through the read-only mapping must fault, not change the bytes
+        wp.launch(gpu_check.kernels()["slow_fill"], dim=NBYTES, inputs=[target, 7, 1],
+                  device="cuda:0")
+        wp.synchronize_device("cuda:0")
+    except Exception:  # noqa: BLE001 - a fault is the expected outcome
+        refused = True
+    print(json.dumps({"refused": refused}), flush=True)
+    return 0
+
+
 if __name__ == "__main__":
     role = sys.argv[1]
     if role == "export":
@@ -91,5 +139,9 @@ if __name__ == "__main__":
         sys.exit(vmm_export(sys.argv[2]))
     if role == "vmm_write_readonly":
         sys.exit(vmm_write_readonly(sys.argv[2]))
+    if role == "vmm_publish":
+        sys.exit(vmm_publish())
+    if role == "vmm_import":
+        sys.exit(vmm_import(sys.argv[2]))
     raise SystemExit(f"unknown role {role!r}")
 

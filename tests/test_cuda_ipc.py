@@ -4,8 +4,10 @@
 2. stream-ordered reuse: last-use events per block, deferred release, the public reuse hazard;
 3. write completion on the stream that ran the write (torch's current stream, DLPack streams);
 4. no device-wide synchronisation (staging returns an event; tensor_conversions doesn't sync);
-5. exporter-independent lifetime and read-only imports (VMM), devices by UUID, allocation that
-   ignores the mempool flip and user allocators, pinned staging, the import cache on real handles.
+5. exporter-independent lifetime and read-only imports (VMM, also through the pool and the
+   session's hand-off socket; the legacy fallback), devices by UUID, allocation that ignores the
+   mempool flip and user allocators, pinned staging, the import cache on real handles, a gone
+   session's cached imports dropped at once.
 
 Written against :mod:`warp_buffer.cuda`, the public API and the wired core (pool, ipc,
 buffer_impl, api; their cpu bookkeeping is in tests/test_cuda_wiring.py); nothing here has run on
@@ -23,6 +25,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import time
 import zlib
 from collections.abc import Iterator
 
@@ -491,6 +494,87 @@ def test_vmm_read_only_import_refuses_writes() -> None:
     assert zlib.crc32(memory.array(0, NBYTES).numpy().tobytes()) == zlib.crc32(
         pattern().tobytes())  # the exporter's bytes are unchanged
     memory.close()
+
+
+# --------------------------------------------------------------------------- VMM through the pool
+def _vmm_pool_or_skip() -> None:
+    _vmm_or_skip()
+    from warp_buffer import pool
+
+    if not pool.uses_vmm(wp.get_device(DEVICE)):
+        pytest.skip(f"the pool does not use VMM here: {pool._vmm_refused}")
+
+
+def _reap(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait(timeout=60)
+
+
+def test_vmm_block_published_and_imported_by_a_child_read_only() -> None:
+    """The pool's VMM block, exported for a same-GPU peer, is imported by a child over the
+    session's hand-off socket: right bytes (CRC), and a write kernel through the import fails
+    there (read-only mapping) while our bytes stay as they were."""
+    _vmm_pool_or_skip()
+    from warp_buffer import descriptor, ipc
+
+    device = wp.get_device(DEVICE)
+    buffer = warp_buffer.allocate_buffer(NBYTES, DEVICE)
+    assert buffer.get_impl()._block.cuda_kind == descriptor.KIND_CUDA_VMM
+    with warp_buffer.from_output_buffer(buffer) as out:
+        wp.copy(out.array, wp.array(pattern(), dtype=wp.uint8, device=DEVICE))
+    exported = ipc.export_buffer(buffer, peer_device_uuids={device.uuid})
+    assert exported.kind == descriptor.KIND_CUDA_VMM
+    child = _child("vmm_import", descriptor.pack(exported).hex())
+    try:
+        out, _ = child.communicate(timeout=180)
+    finally:
+        _reap(child)
+    read, written = (json.loads(line) for line in out.strip().splitlines()[-2:])
+    assert read == {"crc": zlib.crc32(pattern().tobytes()), "device": DEVICE}
+    assert written["refused"] is True
+    assert zlib.crc32(buffer.to_numpy().tobytes()) == zlib.crc32(pattern().tobytes())
+
+
+def test_vmm_import_through_the_pool_outlives_its_publisher() -> None:
+    """A child publishes a VMM block and exits (SIGKILL: no linger) after we imported it: our
+    import still reads its bytes, and the gone session's cached imports are dropped at once
+    (the hand-off connection closed) while our buffer keeps its own mapping."""
+    _vmm_pool_or_skip()
+    from warp_buffer import descriptor, ipc
+
+    child = _child("vmm_publish")
+    try:
+        line = json.loads(child.stdout.readline())
+        assert line["kind"] == descriptor.KIND_CUDA_VMM
+        exported = descriptor.unpack(bytes.fromhex(line["descriptor"]))
+        imported = ipc.import_buffer(exported)
+        key = (exported.owner_pid, exported.session)
+        assert any(k[0] == key for k in ipc._cuda_imports._strong["memory"])
+        child.kill()
+        child.wait(timeout=60)
+    finally:
+        _reap(child)
+    deadline = time.monotonic() + 5
+    while any(k[0] == key for k in ipc._cuda_imports._strong["memory"]):
+        assert time.monotonic() < deadline, "the gone session's imports were not dropped"
+        time.sleep(0.05)
+    assert zlib.crc32(imported.to_cpu().view().tobytes()) == zlib.crc32(pattern().tobytes())
+    imported.release()
+    assert cuda.flush_releases(10)
+
+
+def test_vmm_switched_off_falls_back_to_legacy_ipc(monkeypatch: pytest.MonkeyPatch) -> None:
+    from warp_buffer import descriptor, pool
+
+    monkeypatch.setenv("WARP_BUFFER_CUDA_VMM", "0")
+    monkeypatch.setattr(pool, "_vmm_refused", {})
+    block = pool.cuda_block(wp.get_device(DEVICE), 4096)
+    try:
+        assert type(block) is pool.CudaBlock and block.cuda_kind == descriptor.KIND_CUDA_IPC
+        assert cuda.is_ipc_allocation(block.storage)
+    finally:
+        block.destroy()
 
 
 @pytest.mark.slow

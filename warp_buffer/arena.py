@@ -194,6 +194,9 @@ class Arena:
         self._epochs = [0] * MAX_PEERS
         self._last_liveness = 0.0
         self.server: Any = None
+        # CUDA VMM blocks by the offset of their lock range: the server hands a peer holding
+        # one of them its fd (warp_buffer.handoff.ASK_CUDA_VMM).
+        self.cuda_exports: dict[int, Any] = {}
 
     def hello(self) -> bytes:
         g = self.geometry

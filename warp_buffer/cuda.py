@@ -360,10 +360,12 @@ class ImportCache:
         self.opens = 0  # handles opened (a test and benchmark counter)
 
     def memory(self, session: Hashable, block: Hashable, handle: bytes, nbytes: int,
-               device: Any) -> Any:
-        """The opened allocation of ``block`` of publisher ``session`` (a ``wp.array``)."""
+               device: Any, opener: Callable[[], Any] | None = None) -> Any:
+        """The opened allocation of ``block`` of publisher ``session`` (a ``wp.array``);
+        ``opener`` (default: open ``handle`` as CUDA IPC memory) opens it when not cached, e.g.
+        a VMM import whose ``handle`` words only identify the allocation."""
         return self._get("memory", (session, block), handle,
-                         lambda: self._open_memory(handle, nbytes, device))
+                         opener or (lambda: self._open_memory(handle, nbytes, device)))
 
     def event(self, session: Hashable, block: Hashable, handle: bytes, device: Any) -> Any:
         """The opened interprocess event of ``block`` of publisher ``session``."""
@@ -403,14 +405,19 @@ class ImportCache:
     def drop(self, session: Hashable, block: Hashable | None = None) -> int:
         """Forget the entries of ``session`` (one ``block`` of it, or all); returns how many.
         Their mappings close once nothing views them."""
-        dropped = 0
+        return len(self.take(session, block))
+
+    def take(self, session: Hashable, block: Hashable | None = None) -> list[Any]:
+        """Forget the entries of ``session`` (one ``block`` of it, or all) and return their
+        opened objects, so the caller decides when the cache's references go (a close ordered
+        after the streams that may still read them)."""
+        taken = []
         with self._lock:
             for strong in self._strong.values():
                 doomed = [k for k in strong if k[0] == session and (block is None or k[1] == block)]
                 for key in doomed:
-                    del strong[key]
-                    dropped += 1
-        return dropped
+                    taken.append(strong.pop(key).value)
+        return taken
 
     def clear(self) -> None:
         with self._lock:
@@ -706,6 +713,7 @@ _CU_MEM_ALLOC_GRANULARITY_MINIMUM = 0x0
 _CU_DEVICE_ATTRIBUTE_VIRTUAL_MEMORY_MANAGEMENT_SUPPORTED = 102
 _CU_DEVICE_ATTRIBUTE_HANDLE_TYPE_POSIX_FILE_DESCRIPTOR_SUPPORTED = 103
 _CU_MEMHOSTREGISTER_PORTABLE = 0x1
+_CUDA_ERROR_OUT_OF_MEMORY = 2
 
 
 class _MemLocation(ctypes.Structure):
@@ -818,9 +826,10 @@ def vmm_granularity(device: Any) -> int:
     device = _cuda_device(device)
     granularity = _size(0)
     prop = _allocation_prop(device)
-    _check(_driver().cuMemGetAllocationGranularity(ctypes.byref(granularity), ctypes.byref(prop),
-                                                   _CU_MEM_ALLOC_GRANULARITY_MINIMUM),
-           "cuMemGetAllocationGranularity")
+    with device.context_guard:
+        _check(_driver().cuMemGetAllocationGranularity(
+            ctypes.byref(granularity), ctypes.byref(prop), _CU_MEM_ALLOC_GRANULARITY_MINIMUM),
+            "cuMemGetAllocationGranularity")
     return int(granularity.value)
 
 
@@ -894,8 +903,11 @@ class VmmMemory:
         handle = _u64(0)
         prop = _allocation_prop(device)
         with device.context_guard:
-            _check(_driver().cuMemCreate(ctypes.byref(handle), nbytes, ctypes.byref(prop), 0),
-                   "cuMemCreate", DeviceMemoryError)
+            result = _driver().cuMemCreate(ctypes.byref(handle), nbytes, ctypes.byref(prop), 0)
+        # Out of memory is DeviceMemoryError (the pool trims and retries); anything else means
+        # the driver refuses VMM here (CudaDriverError: the pool falls back to legacy IPC).
+        _check(result, "cuMemCreate",
+               DeviceMemoryError if result == _CUDA_ERROR_OUT_OF_MEMORY else CudaDriverError)
         return cls(device, int(handle.value), nbytes, read_only=False)
 
     @classmethod
@@ -923,9 +935,10 @@ class VmmMemory:
         with self._lock:
             if not self._handle:
                 raise StaleBufferError("this VMM allocation was closed")
-            _check(_driver().cuMemExportToShareableHandle(
-                ctypes.byref(fd), _u64(self._handle), _CU_MEM_HANDLE_TYPE_POSIX_FILE_DESCRIPTOR,
-                0), "cuMemExportToShareableHandle")
+            with self.device.context_guard:  # called from the hand-off server's thread too
+                _check(_driver().cuMemExportToShareableHandle(
+                    ctypes.byref(fd), _u64(self._handle),
+                    _CU_MEM_HANDLE_TYPE_POSIX_FILE_DESCRIPTOR, 0), "cuMemExportToShareableHandle")
         return fd.value
 
     def array(self, offset: int = 0, nbytes: int | None = None) -> wp.array:

@@ -25,6 +25,8 @@ __all__ = [
     "KIND_HOST",
     "KIND_CUDA_IPC",
     "KIND_CUDA_STAGING",
+    "KIND_CUDA_VMM",
+    "CUDA_ZERO_COPY",
     "FIELDS",
     "LAYOUT",
     "descriptor_type",
@@ -41,7 +43,10 @@ VERSION = 2
 KIND_HOST = 0
 KIND_CUDA_IPC = 1
 KIND_CUDA_STAGING = 2
-KINDS = (KIND_HOST, KIND_CUDA_IPC, KIND_CUDA_STAGING)
+KIND_CUDA_VMM = 3
+KINDS = (KIND_HOST, KIND_CUDA_IPC, KIND_CUDA_STAGING, KIND_CUDA_VMM)
+#: Kinds whose bytes stay in the publisher's device memory (the arena range is a lock only).
+CUDA_ZERO_COPY = (KIND_CUDA_IPC, KIND_CUDA_VMM)
 HANDLE_WORDS = 8
 
 FIELDS = ("version", "kind", "peer_slot", "owner_pid", "session", "offset", "capacity", "size",
@@ -117,6 +122,12 @@ def handle_words(handle: bytes) -> tuple[int, ...]:
 
 def handle_bytes(words: tuple[int, ...] | list[int]) -> bytes:
     return struct.pack("<8Q", *words)
+
+
+def vmm_words(serial: int, nbytes: int) -> tuple[int, ...]:
+    """The ``mem_handle`` words of a ``KIND_CUDA_VMM`` block: its allocation serial (unique in
+    the session, so an importer re-imports a block whose memory changed) and its bytes."""
+    return (serial, nbytes) + (0,) * (HANDLE_WORDS - 2)
 
 
 def uuid_word(uuid: str | None) -> int:

@@ -1,4 +1,4 @@
-"""Hand-off of an arena's fd to a same-user peer: an abstract Unix socket and ``SCM_RIGHTS``.
+"""Hand-off of a session's fds to a same-user peer: an abstract Unix socket and ``SCM_RIGHTS``.
 
 The publisher session listens on the abstract name ``warp_buffer.<uid>.<pid>.<session:016x>``
 (numbers only; abstract names live in the network namespace, leave nothing in the filesystem and
@@ -7,10 +7,18 @@ vanish with the process). A peer connects once per (its process, publisher sessi
 - both sides check the other's credentials with ``SO_PEERCRED`` (the kernel's word, not the
   peer's): the server serves only its own uid; the client accepts only a server of its own uid
   whose pid is the session's owner pid (a squatter on a dead owner's name cannot pass);
-- the server sends the arena hello (:data:`warp_buffer.arena.HELLO`) with the memfd attached;
-- the client checks the hello (magic, version, session, geometry), that the fd carries the seals
-  ``F_SEAL_SHRINK | F_SEAL_GROW | F_SEAL_SEAL`` (nobody can shrink it: no SIGBUS) and that its
-  size is the arena's, before anything is mapped.
+- the client sends one :data:`REQUEST` and the server answers it:
+
+  - ``ASK_ARENA``: the arena hello (:data:`warp_buffer.arena.HELLO`) with the memfd attached;
+    the client checks the hello (magic, version, session, geometry), that the fd carries the
+    seals ``F_SEAL_SHRINK | F_SEAL_GROW | F_SEAL_SEAL`` (nobody can shrink it: no SIGBUS) and
+    that its size is the arena's, before anything is mapped. Both ends then keep this
+    connection open and silent: it closes when the publisher's session ends (clean exit,
+    crash, SIGKILL: the kernel closes it), which is how the peer learns the session is gone
+    (:data:`session_gone_hooks`, run by a watcher thread).
+  - ``ASK_CUDA_VMM``: a :data:`VMM_REPLY` with a POSIX fd of one CUDA VMM block
+    (``cuMemExportToShareableHandle``), named by its arena offset and its allocation serial
+    (both from a descriptor the peer holds), or a refusal without an fd.
 
 Every failure is a typed :mod:`warp_buffer.errors` error, never a raw ``OSError``.
 """
@@ -21,20 +29,35 @@ import errno
 import fcntl
 import logging
 import os
+import select
 import socket
 import struct
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 from .arena import HELLO, MAGIC, SEALS, VERSION, Arena, Geometry, alive
 from .errors import DescriptorError, ExportError, ForeignExportError, StaleBufferError
 
-__all__ = ["socket_name", "Server", "fetch_arena", "linger_s"]
+__all__ = ["socket_name", "Server", "fetch_arena", "fetch_cuda_block", "linger_s",
+           "session_gone_hooks"]
 
 _log = logging.getLogger(__name__)
 _UCRED = struct.Struct("3i")
 CONNECT_TIMEOUT_S = 5.0
+WATCH_POLL_S = 0.2  # how soon a newly fetched session is watched
+#: A peer's request: what, block offset, allocation serial (both 0 for the arena).
+REQUEST = struct.Struct("<8sQQ")
+ASK_ARENA = b"WBARENA2"
+ASK_CUDA_VMM = b"WBVMM\x00\x00\x01"
+#: The answer to ``ASK_CUDA_VMM``: magic, offset, serial, allocation bytes (0: refused, no fd).
+VMM_REPLY = struct.Struct("<8sQQQ")
+
+#: Called with ``(owner_pid, session)`` when the hand-off socket of a session this process
+#: fetched reports its publisher gone (the kept connection closed, or a connection refused), so
+#: caches keyed by session (the CUDA import cache) let it go at once.
+session_gone_hooks: list[Callable[[tuple[int, int]], None]] = []
 
 
 def socket_name(uid: int, pid: int, session: int) -> bytes:
@@ -56,14 +79,37 @@ def _peer_cred(sock: socket.socket) -> tuple[int, int]:
     return pid, uid
 
 
+def _recv_exact(sock: socket.socket, nbytes: int) -> bytes:
+    data = b""
+    while len(data) < nbytes:
+        chunk = sock.recv(nbytes - len(data))
+        if not chunk:
+            raise ConnectionError("the peer closed the connection")
+        data += chunk
+    return data
+
+
+def _closed(sock: socket.socket) -> bool:
+    """Has the other end of an idle, blocking ``sock`` gone (EOF or error, never waits)?"""
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except BlockingIOError:
+        return False
+    except OSError:
+        return True
+
+
 class Server:
-    """The session's listener: one daemon thread that hands the arena fd to each peer."""
+    """The session's listener: one daemon thread that answers each peer's request (the arena
+    fd, or a CUDA VMM block's fd) and keeps each peer's arena connection open until either
+    side goes (so the peer sees this session end)."""
 
     def __init__(self, arena: Arena) -> None:
         self._arena = arena
         self._hello = arena.hello()
         self.connected: set[int] = set()  # pids that fetched the arena
         self._cond = threading.Condition()
+        self._peers: list[socket.socket] = []  # kept arena connections (under _cond)
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
         self._sock.bind(socket_name(os.getuid(), arena.pid, arena.session))
         self._sock.listen(128)
@@ -78,19 +124,71 @@ class Server:
                 conn, _ = self._sock.accept()
             except OSError:
                 return  # closed
+            self._sweep()
+            keep = False
             try:
-                with conn:
-                    pid, uid = _peer_cred(conn)
-                    if uid != os.getuid():
-                        _log.warning("refused arena hand-off to pid %d of uid %d", pid, uid)
-                        continue
-                    conn.settimeout(CONNECT_TIMEOUT_S)
-                    socket.send_fds(conn, [self._hello], [self._arena.fd])
-                with self._cond:
-                    self.connected.add(pid)
-                    self._cond.notify_all()
+                keep = self._answer(conn)
             except OSError as exc:  # a peer that went away mid-hand-off
-                _log.debug("arena hand-off failed: %s", exc)
+                _log.debug("hand-off failed: %s", exc)
+            if keep:
+                with self._cond:
+                    if not self._closed:
+                        self._peers.append(conn)
+                        continue
+            conn.close()
+
+    def _answer(self, conn: socket.socket) -> bool:
+        """Answer one request; True when ``conn`` is a peer's arena connection to keep."""
+        pid, uid = _peer_cred(conn)
+        if uid != os.getuid():
+            _log.warning("refused arena hand-off to pid %d of uid %d", pid, uid)
+            return False
+        conn.settimeout(CONNECT_TIMEOUT_S)
+        what, offset, serial = REQUEST.unpack(_recv_exact(conn, REQUEST.size))
+        if what == ASK_ARENA:
+            socket.send_fds(conn, [self._hello], [self._arena.fd])
+            conn.settimeout(None)  # kept idle and blocking: _closed() probes it without waiting
+            with self._cond:
+                self.connected.add(pid)
+                self._cond.notify_all()
+            return True
+        if what == ASK_CUDA_VMM:
+            self._send_cuda_block(conn, offset, serial)
+        else:
+            _log.debug("unknown hand-off request %r from pid %d", what, pid)
+        return False
+
+    def _send_cuda_block(self, conn: socket.socket, offset: int, serial: int) -> None:
+        block = self._arena.cuda_exports.get(offset)
+        fd = -1
+        if block is not None and block.serial == serial:
+            try:
+                fd = block.export_fd()
+            except Exception as exc:  # noqa: BLE001 - a closed or unexportable block: refuse
+                _log.debug("CUDA VMM block %#x not exported: %s", offset, exc)
+        if fd < 0:
+            conn.sendall(VMM_REPLY.pack(ASK_CUDA_VMM, offset, serial, 0))
+            return
+        try:
+            socket.send_fds(conn, [VMM_REPLY.pack(ASK_CUDA_VMM, offset, serial,
+                                                  block.vmm_bytes)], [fd])
+        finally:
+            os.close(fd)  # the peer holds its own copy now
+
+    def _sweep(self) -> None:
+        """Close kept connections whose peer went away (one fd per live peer process)."""
+        with self._cond:
+            gone = [conn for conn in self._peers if _closed(conn)]
+            for conn in gone:
+                self._peers.remove(conn)
+        for conn in gone:
+            conn.close()
+
+    @property
+    def peers(self) -> int:
+        """Kept peer connections (peers that fetched the arena and may still be alive)."""
+        with self._cond:
+            return len(self._peers)
 
     def linger(self, pids: set[int], timeout: float) -> None:
         """Wait (at most ``timeout``) until each pid in ``pids`` that is still alive fetched the
@@ -105,28 +203,31 @@ class Server:
                 self._cond.wait(min(left, 0.05))
 
     def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
+        """Stop serving; every peer's kept connection closes (they learn the session ended)."""
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = True
+            peers, self._peers = self._peers, []
         try:
             self._sock.shutdown(socket.SHUT_RDWR)  # wakes the accept()
         except OSError:
             pass
         self._sock.close()
+        for conn in peers:
+            conn.close()
 
 
-def fetch_arena(owner_pid: int, session: int) -> tuple[int, Geometry]:
-    """Connect to session ``(owner_pid, session)`` of this user and receive its arena fd, checked
-    (seals, size, credentials); returns ``(fd, geometry)``. The fd shares the publisher's open
-    file description: re-open it before taking locks (:func:`warp_buffer.memory.reopen`)."""
-    where = f"session {session:016x} of process {owner_pid}"
+def _connect(owner_pid: int, session: int, where: str) -> socket.socket:
+    """A connection to session ``(owner_pid, session)``'s socket, its server's credentials
+    checked. A refused connection means the session is gone: :data:`session_gone_hooks` run."""
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
-    fds: list[int] = []
     try:
         sock.settimeout(CONNECT_TIMEOUT_S)
         try:
             sock.connect(socket_name(os.getuid(), owner_pid, session))
         except (ConnectionRefusedError, FileNotFoundError):
+            _session_gone((owner_pid, session))
             raise StaleBufferError(f"{where} is gone (the publisher exited before this process "
                                    "attached to its memory)") from None
         except OSError as exc:
@@ -135,7 +236,32 @@ def fetch_arena(owner_pid: int, session: int) -> tuple[int, Geometry]:
         if uid != os.getuid() or pid != owner_pid:
             raise ForeignExportError(f"{where} is served by pid {pid} of uid {uid}, not by its "
                                      f"owner under this user ({os.getuid()})")
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
+def _ask(sock: socket.socket, request: bytes) -> None:
+    """Send ``request``; a server that already answered and closed (EPIPE) is judged by what
+    it sent, which stays readable."""
+    try:
+        sock.sendall(request)
+    except (BrokenPipeError, ConnectionResetError):
+        pass
+
+
+def fetch_arena(owner_pid: int, session: int) -> tuple[int, Geometry]:
+    """Connect to session ``(owner_pid, session)`` of this user and receive its arena fd, checked
+    (seals, size, credentials); returns ``(fd, geometry)``. The fd shares the publisher's open
+    file description: re-open it before taking locks (:func:`warp_buffer.memory.reopen`). The
+    connection is kept, watched: when it closes, :data:`session_gone_hooks` run."""
+    where = f"session {session:016x} of process {owner_pid}"
+    sock = _connect(owner_pid, session, where)
+    fds: list[int] = []
+    try:
         try:
+            _ask(sock, REQUEST.pack(ASK_ARENA, 0, 0))
             data, fds, _flags, _addr = socket.recv_fds(sock, HELLO.size, 1)
         except OSError as exc:
             raise StaleBufferError(f"{where}: the hand-off failed ({exc})") from None
@@ -147,11 +273,117 @@ def fetch_arena(owner_pid: int, session: int) -> tuple[int, Geometry]:
         except BaseException:
             os.close(fd)
             raise
+        _watcher.watch(sock, (owner_pid, session))
+        sock = None
         return fd, geometry
     finally:
         for extra in fds:
             os.close(extra)
+        if sock is not None:
+            sock.close()
+
+
+def fetch_cuda_block(owner_pid: int, session: int, offset: int, serial: int) -> tuple[int, int]:
+    """Receive a POSIX fd of the CUDA VMM block at arena ``offset`` (allocation ``serial``) of
+    session ``(owner_pid, session)``; returns ``(fd, allocation bytes)``, the fd the caller's to
+    close once imported. Ask only while holding the block (the publisher cannot recycle it
+    then). Raises :class:`StaleBufferError` when the session or the block is gone."""
+    where = f"CUDA block {offset:#x} of session {session:016x} of process {owner_pid}"
+    sock = _connect(owner_pid, session, where)
+    fds: list[int] = []
+    try:
+        try:
+            _ask(sock, REQUEST.pack(ASK_CUDA_VMM, offset, serial))
+            data, fds, _flags, _addr = socket.recv_fds(sock, VMM_REPLY.size, 1)
+        except OSError as exc:
+            raise StaleBufferError(f"{where}: the hand-off failed ({exc})") from None
+        if len(data) != VMM_REPLY.size:
+            raise StaleBufferError(f"{where}: the hand-off carried no answer")
+        magic, got_offset, got_serial, nbytes = VMM_REPLY.unpack(data)
+        if magic != ASK_CUDA_VMM or (got_offset, got_serial) != (offset, serial):
+            raise DescriptorError(f"{where}: answered for another block")
+        if nbytes == 0 or len(fds) != 1:
+            raise StaleBufferError(f"{where}: the publisher no longer exports it")
+        return fds.pop(), nbytes
+    finally:
+        for extra in fds:
+            os.close(extra)
         sock.close()
+
+
+def _session_gone(key: tuple[int, int]) -> None:
+    for hook in list(session_gone_hooks):
+        try:
+            hook(key)
+        except Exception:  # noqa: BLE001 - one failing hook must not stop the others
+            _log.exception("warp_buffer: a session-gone hook failed")
+
+
+class _Watcher:
+    """One daemon thread that waits for the kept arena connections of this process to close
+    (their publisher session ended) and then runs :data:`session_gone_hooks` for it. It runs
+    only while some connection is watched. ``select.poll`` needs no fd of its own, and new
+    connections are picked up at the next wake-up (every :data:`WATCH_POLL_S`): the watch
+    costs one socket per fetched session, nothing more."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._incoming: list[tuple[socket.socket, tuple[int, int]]] = []
+        self._thread: threading.Thread | None = None
+        self._count = 0  # connections registered with the running thread
+
+    def watch(self, sock: socket.socket, key: tuple[int, int]) -> None:
+        sock.settimeout(None)
+        with self._lock:
+            self._incoming.append((sock, key))
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, daemon=True,
+                                                name="warp_buffer-session-watch")
+                self._thread.start()
+
+    @property
+    def watched(self) -> int:
+        """Connections watched now (one per fetched session whose publisher is alive)."""
+        with self._lock:
+            return self._count + len(self._incoming)
+
+    def _run(self) -> None:
+        poller = select.poll()
+        watched: dict[int, tuple[socket.socket, tuple[int, int]]] = {}
+        while True:
+            with self._lock:
+                for sock, key in self._incoming:
+                    watched[sock.fileno()] = (sock, key)
+                    poller.register(sock, select.POLLIN)
+                self._incoming = []
+                self._count = len(watched)
+                if not watched:
+                    self._thread = None
+                    return
+            for fileno, _mask in poller.poll(WATCH_POLL_S * 1000):
+                sock, key = watched[fileno]
+                if _closed(sock):
+                    poller.unregister(fileno)
+                    del watched[fileno]
+                    sock.close()
+                    _session_gone(key)
+                else:  # a server never writes here; discard what a forged one sent
+                    try:
+                        sock.recv(4096, socket.MSG_DONTWAIT)
+                    except OSError:
+                        pass
+
+
+_watcher = _Watcher()
+
+
+def _after_fork_in_child() -> None:
+    # The parent's watched connections are the parent's: a child attaches afresh.
+    global _watcher
+    _watcher = _Watcher()
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def _check(fd: int, hello: bytes, owner_pid: int, session: int, where: str) -> Geometry:

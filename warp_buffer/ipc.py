@@ -11,6 +11,11 @@ Zero payload copies between processes of one user on one host:
   a failed open raises :class:`StaleBufferError`), and ordered by an interprocess CUDA event. The
   importer drops its hold only once its readers' streams finished with the bytes
   (:func:`warp_buffer.cuda.release_after`), so the publisher never recycles memory still read.
+- ``KIND_CUDA_VMM``: as ``KIND_CUDA_IPC``, for a block of VMM memory (the device exports it as a
+  POSIX fd): the importer fetches the block's fd over the session's hand-off socket (once per
+  block, :func:`warp_buffer.handoff.fetch_cuda_block`) and maps it read-only; the mapping keeps
+  the memory alive after the publisher exits. The write's event still travels as a CUDA IPC
+  event handle.
 - ``KIND_CUDA_STAGING``: a CUDA buffer for a peer without that GPU (or without CUDA IPC, or in
   memory CUDA IPC cannot export: a user-set allocator, a mempool) is copied once into a host
   block (pinned with ``cuMemHostRegister``, so the copy is asynchronous), which the peer reads as
@@ -54,6 +59,7 @@ from .pool import ipc_disabled, pool_stats, shutdown, trim_pools
 __all__ = [
     "export_buffer",
     "import_buffer",
+    "forget_session",
     "peer_slot",
     "forget_peer",
     "local_host_id",
@@ -148,18 +154,19 @@ def _export_local(impl: WarpBufferImpl, kind: int | None, peer_uuids: frozenset[
     block = impl._block
     device_word = _desc.uuid_word(device.uuid)
     if kind is None:
-        kind = (_desc.KIND_CUDA_IPC if block.ipc_supported and device.uuid in peer_uuids
-                else _desc.KIND_CUDA_STAGING)
-        if kind == _desc.KIND_CUDA_IPC:
+        if block.ipc_supported and device.uuid in peer_uuids:
             try:
-                return _describe_cuda_ipc(impl, block, peer, device_word)
+                return _describe_cuda(impl, block, peer, device_word)
             except ExportUnavailableError as exc:
                 # Memory CUDA IPC cannot export (a user-set allocator, a mempool): stage it.
                 # publish() must not fail for it.
                 _log.debug("CUDA IPC export unavailable (%s): staging instead", exc)
-                kind = _desc.KIND_CUDA_STAGING
-    elif kind == _desc.KIND_CUDA_IPC:
-        return _describe_cuda_ipc(impl, block, peer, device_word)
+        kind = _desc.KIND_CUDA_STAGING
+    elif kind in _desc.CUDA_ZERO_COPY:
+        if kind != block.cuda_kind:
+            raise ExportUnavailableError(f"this {device.alias} block is exported as kind "
+                                         f"{block.cuda_kind}, not {kind}")
+        return _describe_cuda(impl, block, peer, device_word)
     if kind != _desc.KIND_CUDA_STAGING:
         raise ExportUnavailableError(f"a CUDA buffer cannot be exported as kind {kind!r}")
     staging = impl._staging
@@ -169,15 +176,16 @@ def _export_local(impl: WarpBufferImpl, kind: int | None, peer_uuids: frozenset[
     return _describe(kind, staging, staging._block, peer, device_word)
 
 
-def _describe_cuda_ipc(impl: WarpBufferImpl, block: Any, peer: PeerSlot | None,
-                       device_word: int) -> Any:
+def _describe_cuda(impl: WarpBufferImpl, block: Any, peer: PeerSlot | None,
+                   device_word: int) -> Any:
+    """A same-GPU zero-copy descriptor (the block's kind: legacy CUDA IPC or VMM)."""
     if not block.ipc_supported:
         raise ExportUnavailableError(f"{impl._device.alias} does not support CUDA IPC")
-    mem_handle = block.ipc_mem_handle()  # ExportUnavailableError: memory it cannot export
+    mem_words = block.mem_words()  # ExportUnavailableError: memory it cannot export
     if impl._event is None:
         impl._complete_write(None)  # orders after whatever is pending on the current streams
-    handles = _desc.handle_words(mem_handle) + _desc.handle_words(block.ipc_event_handle())
-    return _describe(_desc.KIND_CUDA_IPC, impl, block, peer, device_word, handles)
+    handles = mem_words + _desc.handle_words(block.ipc_event_handle())
+    return _describe(block.cuda_kind, impl, block, peer, device_word, handles)
 
 
 def _stage(impl: WarpBufferImpl) -> WarpBufferImpl:
@@ -259,7 +267,7 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
     if slot != NO_PEER and not 0 <= slot < MAX_PEERS:
         raise DescriptorError(f"peer slot {slot}")
     arena = _attach.attach(owner_pid, session)
-    cuda = kind == _desc.KIND_CUDA_IPC
+    cuda = kind in _desc.CUDA_ZERO_COPY
     block_bytes = 4096 if cuda else capacity
     problem = arena.geometry.check_block(offset, block_bytes)
     if problem is not None:
@@ -273,7 +281,7 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
             raise StaleBufferError(f"block {offset:#x} of process {owner_pid} was recycled "
                                    "(a later publish reuses it)")
         if cuda:
-            return _import_cuda(descriptor, capacity, size, device_word, handles, hold)
+            return _import_cuda(descriptor, kind, capacity, size, device_word, handles, hold)
         return WarpBufferImpl.imported(arena.address(offset), size, _cpu_device(), hold,
                                        descriptor, arena.host_array(offset, size))
     except BaseException:
@@ -310,19 +318,65 @@ def _cuda_device(device_word: int) -> Any:
     return device
 
 
-#: Opened CUDA IPC memory and events, once per (publisher session, block) for the process.
+#: Opened CUDA IPC / VMM memory and events, once per (publisher session, block) here.
 _cuda_imports = _cuda.ImportCache()
-_attach.session_closed_hooks.append(_cuda_imports.drop)  # S5: a gone session is forgotten
 
 
-def _import_cuda(descriptor: Any, capacity: int, size: int, device_word: int,
+def forget_session(owner_pid: int, session: int) -> int:
+    """Publisher session ``(owner_pid, session)`` is gone: drop its cached CUDA imports now
+    (returns how many). The cache's references go only once the work queued so far on each
+    device's current streams completed (:func:`warp_buffer.cuda.release_after`); a mapping an
+    imported buffer still uses stays until that buffer's own stream-ordered release."""
+    taken = _cuda_imports.take((owner_pid, session))
+    by_device: dict[Any, list[Any]] = {}
+    for value in taken:
+        by_device.setdefault(getattr(value, "device", None), []).append(value)
+    for device, values in by_device.items():
+        stream = _cuda.write_stream(device) if device is not None else None
+        _cuda.release_after(stream, values.clear)  # None: nothing queued, let go now
+    return len(taken)
+
+
+def _forget_session_key(key: tuple[int, int]) -> None:
+    forget_session(*key)
+
+
+# S5: a gone session is forgotten when its mapping is let go (attach.forget_idle) and as soon
+# as its hand-off socket reports the publisher gone; the backend adds on_endpoint_gone.
+_attach.session_closed_hooks.append(_forget_session_key)
+handoff.session_gone_hooks.append(_forget_session_key)
+
+
+def _open_vmm(owner_pid: int, session: int, offset: int, mem_words: list[int], capacity: int,
+              device: Any) -> Any:
+    """Import VMM block ``offset`` of the session read-only (called holding the block, so
+    the publisher cannot recycle it meanwhile); a ``wp.array`` of ``capacity`` bytes that keeps
+    the import mapped. The received fd is closed at once (the import holds the memory)."""
+    serial, nbytes = mem_words[0], mem_words[1]
+    fd, got = handoff.fetch_cuda_block(owner_pid, session, offset, serial)
+    try:
+        if got != nbytes or got < capacity:
+            raise ExportBoundsError(f"VMM block {offset:#x} of process {owner_pid} is {got} "
+                                    f"bytes; the descriptor says {nbytes} (capacity {capacity})")
+        memory = _cuda.VmmMemory.import_fd(fd, got, device, read_only=True)
+    finally:
+        os.close(fd)
+    return memory.array(0, capacity)
+
+
+def _import_cuda(descriptor: Any, kind: int, capacity: int, size: int, device_word: int,
                  handles: list[int], hold: _attach.Hold) -> WarpBufferImpl:
     device = _cuda_device(device_word)
-    session = (descriptor.owner_pid, descriptor.session)
-    block = descriptor.offset
+    owner_pid, session_tag, block = descriptor.owner_pid, descriptor.session, descriptor.offset
+    session = (owner_pid, session_tag)
+    mem = _desc.handle_bytes(handles[:8])
     # Checked opens (StaleBufferError when the exporter is gone or the handle forged), one per
-    # (session, block) while the block's handle is unchanged.
-    base = _cuda_imports.memory(session, block, _desc.handle_bytes(handles[:8]), capacity, device)
+    # (session, block) while the block's handle (VMM: its allocation serial) is unchanged.
+    opener = None
+    if kind == _desc.KIND_CUDA_VMM:
+        def opener() -> Any:
+            return _open_vmm(owner_pid, session_tag, block, handles[:8], capacity, device)
+    base = _cuda_imports.memory(session, block, mem, capacity, device, opener)
     event = _cuda_imports.event(session, block, _desc.handle_bytes(handles[8:]), device)
     impl = WarpBufferImpl.__new__(WarpBufferImpl)
     keep = _CudaHold(impl, hold, base, event)

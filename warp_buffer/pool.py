@@ -8,11 +8,16 @@ next allocation of that class reuses it, so steady-state publishing creates no m
   per process, mapped once here and once per peer process), so a same-host peer reads the very
   bytes: exporting costs nothing and no block has an fd or a mapping of its own. Where the arena
   cannot serve (IPC disabled, the arena full) a block is private memory and not exportable.
-- CUDA blocks are device allocations made with the default (non-mempool) allocator, the one CUDA
-  IPC handles work with (:func:`warp_buffer.cuda.alloc_ipc_memory`, per allocation); on first
-  export each also gets a 4 KiB range of the arena (never touched, so it costs no memory) whose
-  first byte carries the readers' locks and generation. A CUDA block is also not reused or
-  freed before every local reader's last-use event completed (its ``cuda_uses``).
+- CUDA blocks, where the device can export VMM memory as a POSIX fd, are ``cuMemCreate``
+  allocations (:class:`VmmBlock`, :class:`warp_buffer.cuda.VmmMemory`): a peer fetches a
+  block's fd over the session's hand-off socket and maps it read-only, and the memory outlives
+  this process while the peer maps it. Elsewhere (logged once per device) they are allocations
+  of the default (non-mempool) allocator, the one legacy CUDA IPC handles work with
+  (:class:`CudaBlock`, :func:`warp_buffer.cuda.alloc_ipc_memory`), whose memory dies with this
+  process. On first export each CUDA block also gets a 4 KiB range of the arena (never
+  touched, so it costs no memory) whose first byte carries the readers' locks and generation.
+  A CUDA block is also not reused or freed before every local reader's last-use event
+  completed (its ``cuda_uses``).
 
 An exported block is reused or freed only when (a) every peer it was sent to imported it, or a
 later descriptor (it dropped this one: keep-last), or is gone (:meth:`warp_buffer.arena.Arena.
@@ -31,6 +36,7 @@ from __future__ import annotations
 
 import atexit
 import collections
+import itertools
 import logging
 import os
 import sys
@@ -43,13 +49,16 @@ import warp as wp
 
 from . import arena as _arena
 from . import cuda, handoff
-from .errors import EmptyBufferError, InvalidSizeError
+from . import descriptor as _desc
+from .errors import EmptyBufferError, ExportError, ExportUnavailableError, InvalidSizeError
 
 __all__ = [
     "MIN_BLOCK",
     "Block",
     "HostBlock",
     "CudaBlock",
+    "VmmBlock",
+    "cuda_block",
     "BlockPool",
     "Lease",
     "get_pool",
@@ -234,12 +243,19 @@ class CudaBlock(Block):
                            else wp.Event(self.device))
         return self._event
 
+    #: How a same-GPU peer is sent this block (the descriptor kind).
+    cuda_kind = _desc.KIND_CUDA_IPC
+
     def ipc_mem_handle(self) -> bytes:
         """The allocation's CUDA IPC handle (:class:`ExportUnavailableError` if it has none:
         the caller stages instead)."""
         if self._ipc_mem_handle is None:
             self._ipc_mem_handle = cuda.ipc_mem_handle(self.storage)
         return self._ipc_mem_handle
+
+    def mem_words(self) -> tuple[int, ...]:
+        """The descriptor's ``mem_handle`` words for this block."""
+        return _desc.handle_words(self.ipc_mem_handle())
 
     def ipc_event_handle(self) -> bytes:
         return cuda.ipc_event_handle(self.event)
@@ -250,6 +266,110 @@ class CudaBlock(Block):
             self.arena = None
         self.storage = None
         self._event = None
+
+
+_vmm_serials = itertools.count(1)
+
+
+class VmmBlock(CudaBlock):
+    """A CUDA block of VMM memory (``cuMemCreate``, rounded up to the device's granularity):
+    a peer holding it asks the session's hand-off server for its POSIX fd
+    (:func:`warp_buffer.handoff.fetch_cuda_block`, once per block), imports it read-only and
+    keeps the physical memory alive after this process exits. ``serial`` (unique in the
+    session) tells an importer that a block at a reused arena offset is new memory."""
+
+    cuda_kind = _desc.KIND_CUDA_VMM
+
+    def __init__(self, device: Any, capacity: int) -> None:
+        Block.__init__(self)
+        self.device = device
+        self.capacity = capacity
+        self.shared = True
+        self._event = None
+        self.vmm = cuda.VmmMemory.create(device, capacity)  # DeviceMemoryError, CudaDriverError
+        self.vmm_bytes = self.vmm.nbytes
+        self.serial = next(_vmm_serials)
+        self.storage = self.vmm.array(0, capacity)
+        self.data_ptr = self.vmm.ptr
+
+    def ensure_arena_range(self) -> None:
+        if self.arena is None:
+            super().ensure_arena_range()
+            self.arena.cuda_exports[self.offset] = self  # type: ignore[union-attr]
+
+    def ipc_mem_handle(self) -> bytes:
+        raise ExportUnavailableError("a VMM block has no legacy CUDA IPC handle")
+
+    def mem_words(self) -> tuple[int, ...]:
+        return _desc.vmm_words(self.serial, self.vmm_bytes)
+
+    def export_fd(self) -> int:
+        """A new POSIX fd of the allocation (the hand-off server sends and closes it)."""
+        return self.vmm.export_fd()
+
+    def destroy(self) -> None:
+        if self.arena is not None:
+            self.arena.cuda_exports.pop(self.offset, None)  # no more fds handed out
+        super().destroy()
+        vmm, self.vmm = self.vmm, None
+        if vmm is not None:
+            vmm.close()  # peers that imported it keep their own handle: their memory stays
+
+
+_vmm_refused: dict[str, str] = {}  # device alias -> why its CUDA blocks use legacy IPC
+
+
+def _vmm_refusal(device: Any) -> str | None:
+    """Why ``device``'s CUDA blocks cannot be VMM blocks (None: they can)."""
+    if os.environ.get("WARP_BUFFER_CUDA_VMM", "1").strip().lower() in ("0", "false", "no", "off"):
+        return "WARP_BUFFER_CUDA_VMM=0"
+    if not device.is_ipc_supported:
+        return "no CUDA IPC events on the device"  # a VMM block's write event travels by IPC
+    if not cuda.vmm_supported(device):
+        return ("no VMM with POSIX fd export (CU_DEVICE_ATTRIBUTE_HANDLE_TYPE_POSIX_FILE_"
+                "DESCRIPTOR_SUPPORTED)")
+    return None
+
+
+def _refuse_vmm(device: Any, reason: str) -> None:
+    if device.alias not in _vmm_refused:
+        _vmm_refused[device.alias] = reason
+        _log.info("%s: CUDA buffers are exported by legacy CUDA IPC, not VMM (%s): a peer's "
+                  "import dies with this process and is mapped writable", device.alias, reason)
+
+
+def uses_vmm(device: Any) -> bool:
+    """Are ``device``'s new CUDA blocks VMM blocks (judged once, the fallback logged once)?"""
+    if device.alias in _vmm_refused:
+        return False
+    reason = _vmm_refusal(device)
+    if reason is not None:
+        _refuse_vmm(device, reason)
+        return False
+    return True
+
+
+def _block_floor(device: Any) -> int:
+    """The smallest block capacity on CUDA ``device``: VMM's granularity, else none."""
+    if not uses_vmm(device):
+        return 0
+    try:
+        return size_class(cuda.vmm_granularity(device))
+    except ExportError:
+        return 0
+
+
+def cuda_block(device: Any, capacity: int) -> CudaBlock:
+    """A new CUDA block: VMM where the device exports VMM memory, else legacy CUDA IPC memory.
+    Raises :class:`DeviceMemoryError` when the device is full (either way)."""
+    if uses_vmm(device):
+        try:
+            return VmmBlock(device, capacity)
+        except cuda.DeviceMemoryError:
+            raise
+        except ExportError as exc:  # the driver refused VMM after all: never try again here
+            _refuse_vmm(device, f"cuMemCreate failed: {exc}")
+    return CudaBlock(device, capacity)
 
 
 class Lease:
@@ -292,10 +412,18 @@ class BlockPool:
         self.destroyed = 0
         self.free_bytes = 0
         self._leased = 0  # blocks handed out (returned ones are subtracted when drained)
+        # The smallest block (VMM: the allocation granularity, ~2 MiB, so small buffers share
+        # one size class); None until the first CUDA allocation judged it.
+        self._floor: int | None = 0 if device.is_cpu else None
 
     # -- allocation ----------------------------------------------------------------------------
     def acquire(self, nbytes: int) -> Lease:
         capacity = size_class(nbytes)
+        floor = self._floor
+        if floor is None:
+            floor = self._floor = _block_floor(self.device)
+        if capacity < floor:
+            capacity = floor
         with self._lock:
             drained = self._drain()
             block = self._take_free(capacity)
@@ -340,7 +468,7 @@ class BlockPool:
     def _create(self, capacity: int) -> Block:
         if self.device.is_cpu:
             return HostBlock(capacity, shared=not ipc_disabled())
-        return CudaBlock(self.device, capacity)
+        return cuda_block(self.device, capacity)
 
     def _give_back(self, block: Block) -> None:
         # Runs from a deleter: no locks, no threads, nothing that can block (see the class doc).

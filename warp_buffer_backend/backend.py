@@ -28,6 +28,7 @@ from warp_buffer.errors import ExportUnavailableError, ForeignExportError
 from warp_buffer.ipc import (
     export_buffer,
     forget_peer,
+    forget_session,
     import_buffer,
     ipc_disabled,
     local_host_id,
@@ -129,6 +130,9 @@ class WarpBufferBackend(BufferBackend):
         # Publishers judged on the import side: gid -> None (served) or (error class, message):
         # a fresh error per refusal (a raised one would keep its traceback's frames alive).
         self._publishers: dict[bytes, tuple[type[Exception], str] | None] = {}
+        # The session (owner pid, tag) of each served publisher, from its first descriptor: when
+        # a session's last publisher is gone, its cached CUDA imports are dropped.
+        self._publisher_sessions: dict[bytes, tuple[int, int]] = {}
         self._devices: tuple[str, ...] | None = None
         self._cuda_ipc = False
 
@@ -180,12 +184,18 @@ class WarpBufferBackend(BufferBackend):
 
     def on_endpoint_gone(self, endpoint_info: EndpointInfo) -> None:
         """Forget a departed peer: its cached decision, and its delivery slot (what was sent to
-        it no longer pins any block)."""
+        it no longer pins any block). A departed publisher that was its session's last known
+        one takes the session's cached CUDA imports with it (:func:`warp_buffer.ipc.
+        forget_session`)."""
         with self._lock:
             peer = self._peers.pop(endpoint_info.gid, None)
             self._publishers.pop(endpoint_info.gid, None)
+            session = self._publisher_sessions.pop(endpoint_info.gid, None)
+            last = session is not None and session not in self._publisher_sessions.values()
         if peer is not None and peer.slot is not None:
             forget_peer(endpoint_info.gid)
+        if last:
+            forget_session(*session)  # type: ignore[misc]
 
     def peer_decision(self, endpoint_info: EndpointInfo) -> PeerDecision:
         """The cached decision for a peer (judged now from its info if not seen before)."""
@@ -295,12 +305,13 @@ class WarpBufferBackend(BufferBackend):
         try:
             refusal = self._publishers[gid]
         except KeyError:
-            refusal = self._judge_publisher(endpoint_info)
+            refusal = self._judge_publisher(endpoint_info, descriptor)
         if refusal is not None:
             raise refusal[0](refusal[1])
         return import_buffer(descriptor)
 
-    def _judge_publisher(self, info: EndpointInfo) -> tuple[type[Exception], str] | None:
+    def _judge_publisher(self, info: EndpointInfo,
+                         descriptor: Any = None) -> tuple[type[Exception], str] | None:
         refusal: tuple[type[Exception], str] | None = None
         if ipc_disabled():
             refusal = (ExportUnavailableError, "IPC is disabled here (WARP_BUFFER_DISABLE_IPC)")
@@ -309,10 +320,15 @@ class WarpBufferBackend(BufferBackend):
                        f"descriptor from a publisher on host {info.host_id!r} as user "
                        f"{info.user_id}; this is host {local_host_id()!r}, user "
                        f"{local_user_id()}")
+        session = (getattr(descriptor, "owner_pid", None), getattr(descriptor, "session", None))
         with self._lock:
             self._publishers[info.gid] = refusal
             while len(self._publishers) > _PEER_CACHE_SIZE:
                 self._publishers.pop(next(iter(self._publishers)))
+            if refusal is None and all(type(n) is int for n in session):
+                self._publisher_sessions[info.gid] = session  # type: ignore[assignment]
+                while len(self._publisher_sessions) > _PEER_CACHE_SIZE:
+                    self._publisher_sessions.pop(next(iter(self._publisher_sessions)))
         return refusal
 
     def __repr__(self) -> str:
