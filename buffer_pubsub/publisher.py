@@ -28,11 +28,10 @@ import zenoh
 
 from rosidl_buffer import Buffer, EndpointInfo
 from rosidl_buffer.messages import Message, deserialize_message, iter_buffers, serialize_message
-from rosidl_buffer.messages._schema import FieldKind
 
 from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info
-from .loan import Loan, LoanPool
+from .loan import Loan, LoanPool, flat_buffer_fields
 from ._validation import validate_message
 from ._zenoh import undeclare_quietly
 from .errors import InvalidEndpointError, NodeClosedError, PayloadTooLargeError, TransportError
@@ -45,14 +44,6 @@ __all__ = ["Publisher", "seal_and_list_backends"]
 _log = logging.getLogger(__name__)
 
 _BUFFER_AWARE_ENCODING = zenoh.Encoding.APPLICATION_CDR.with_schema(wire.BUFFER_AWARE_SCHEMA)
-
-
-def _flat_buffer_fields(msg_type: type[Message]) -> tuple[str, ...] | None:
-    """The buffer fields of a message type without nested messages (the common case: one
-    getattr each per publish), or None when nested messages need the full walk."""
-    if any(spec.kind is FieldKind.MESSAGE for spec in msg_type._schema.fields):
-        return None
-    return tuple(sorted(msg_type._buffer_fields))
 
 
 def seal_and_list_backends(msg: Message,
@@ -138,7 +129,7 @@ class Publisher:
         # 16 MiB). The lock keeps concurrent publish() calls from sharing it.
         self._out: bytearray | None = None
         self._out_lock = threading.Lock()
-        self._flat_buffers = _flat_buffer_fields(msg_type)
+        self._flat_buffers = flat_buffer_fields(msg_type)
         self._loans = LoanPool()
         self._remote: tuple[_Peer, ...] = ()  # peers in other processes, rebuilt on change
         self._backends = tuple(node.backends.values())
