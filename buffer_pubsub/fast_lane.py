@@ -222,7 +222,8 @@ class LaneWriter:
                 if nbytes:
                     ctypes.memmove(sample.payload_ptr, data, nbytes)
                 reached = sample.assume_init().send()
-                self._notifier.notify()
+                if reached:  # the wake-up (a syscall waking the reader) only when one got it
+                    self._notifier.notify()
             except Exception as error:  # LoanError / SendError / NotifierNotifyError
                 raise LaneError(f"{self!r}: {type(error).__name__}: {error}") from None
         return bool(reached)
