@@ -27,27 +27,43 @@ from typing import TYPE_CHECKING, Any
 
 from rosidl_buffer import Buffer
 from rosidl_buffer.messages import Message, iter_buffers
+from rosidl_buffer.messages._schema import FieldKind
 
 from .errors import LoanError
 
 if TYPE_CHECKING:
     from .publisher import Publisher
 
-__all__ = ["Loan", "LoanPool", "DEFAULT_MAX_LOANS"]
+__all__ = ["Loan", "LoanPool", "DEFAULT_MAX_LOANS", "flat_buffer_fields"]
 
 DEFAULT_MAX_LOANS = 16
+
+
+def flat_buffer_fields(msg_type: type[Message]) -> tuple[str, ...] | None:
+    """The buffer fields of a message type without nested messages (the common case: one
+    getattr each), or None when nested messages need the full walk (``iter_buffers``)."""
+    if any(spec.kind is FieldKind.MESSAGE for spec in msg_type._schema.fields):
+        return None
+    return tuple(sorted(msg_type._buffer_fields))
 
 
 class _Slot:
     """One pooled message, its buffers and their reference counts when only we held them."""
 
-    __slots__ = ("msg", "buffers", "baseline", "loaned")
+    __slots__ = ("msg", "fields", "buffers", "baseline", "loaned")
 
     def __init__(self, msg: Message) -> None:
         self.msg: Message = msg
-        self.buffers: tuple[Buffer, ...] = tuple(iter_buffers(msg))
+        self.fields = flat_buffer_fields(type(msg))
+        self.buffers: tuple[Buffer, ...] = self._buffers_now()
         self.baseline = _buffer_refs(self.buffers)
         self.loaned = True
+
+    def _buffers_now(self) -> tuple[Buffer, ...]:
+        msg, fields = self.msg, self.fields
+        if fields is None:
+            return tuple(iter_buffers(msg))
+        return tuple([getattr(msg, name) for name in fields])
 
     def reusable(self) -> bool:
         """Nobody but the pool references the message or its buffers, and every backend
@@ -61,7 +77,7 @@ class _Slot:
 
     def intact(self) -> bool:
         """The message still holds the pooled buffers (a field may have been replaced)."""
-        now = tuple(iter_buffers(self.msg))
+        now = self._buffers_now()
         return len(now) == len(self.buffers) and all(a is b for a, b in zip(now, self.buffers))
 
 
@@ -93,10 +109,13 @@ class LoanPool:
         key = getattr(factory, "loan_key", factory)
         with self._lock:
             slots = self._slots.setdefault(key, [])
-            for slot in slots:
+            for index, slot in enumerate(slots):
                 if slot.reusable():
                     slot.loaned = True
                     self.reused += 1
+                    # Least recently loaned first next time: the one just published is the
+                    # likeliest to be still held (probing it costs a reclaim that fails).
+                    slots.append(slots.pop(index))
                     return slot.msg, slot
             full = len(slots) >= self.max_loans
         msg = factory()

@@ -28,11 +28,10 @@ import zenoh
 
 from rosidl_buffer import Buffer, EndpointInfo
 from rosidl_buffer.messages import Message, deserialize_message, iter_buffers, serialize_message
-from rosidl_buffer.messages._schema import FieldKind
 
 from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info
-from .loan import Loan, LoanPool
+from .loan import Loan, LoanPool, flat_buffer_fields
 from ._validation import validate_message
 from ._zenoh import undeclare_quietly
 from .errors import InvalidEndpointError, NodeClosedError, PayloadTooLargeError, TransportError
@@ -47,14 +46,6 @@ _log = logging.getLogger(__name__)
 _BUFFER_AWARE_ENCODING = zenoh.Encoding.APPLICATION_CDR.with_schema(wire.BUFFER_AWARE_SCHEMA)
 
 
-def _flat_buffer_fields(msg_type: type[Message]) -> tuple[str, ...] | None:
-    """The buffer fields of a message type without nested messages (the common case: one
-    getattr each per publish), or None when nested messages need the full walk."""
-    if any(spec.kind is FieldKind.MESSAGE for spec in msg_type._schema.fields):
-        return None
-    return tuple(sorted(msg_type._buffer_fields))
-
-
 def seal_and_list_backends(msg: Message,
                            flat: tuple[str, ...] | None) -> tuple[frozenset[str], int]:
     """Seal every buffer of ``msg`` (once per publish, every route); return the backend names
@@ -65,6 +56,14 @@ def seal_and_list_backends(msg: Message,
         buffers = list(iter_buffers(msg))
     if not buffers:
         return _NO_BACKENDS, 0
+    if len(buffers) == 1:  # the common case: one buffer, its backend's set made once
+        buffer = buffers[0]
+        buffer.seal()
+        name = buffer.get_backend_type()
+        backends = _ONE_BACKEND.get(name)
+        if backends is None:
+            backends = _ONE_BACKEND.setdefault(name, frozenset((name,)))
+        return backends, len(buffer)
     nbytes = 0
     for buffer in buffers:
         buffer.seal()
@@ -73,6 +72,7 @@ def seal_and_list_backends(msg: Message,
 
 
 _NO_BACKENDS: frozenset[str] = frozenset()
+_ONE_BACKEND: dict[str, frozenset[str]] = {}
 
 
 def cpu_copy(message: Message) -> Message:
@@ -92,6 +92,12 @@ class _Peer:
     # Serializes put and undeclare of the channel: a peer may vanish (discovery thread) while
     # publish() is putting to it, and a zenoh.Publisher must not be used from both at once.
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    # Served on its own channel: it advertises a backend besides CPU (see wire). Judged once
+    # from its token (which never changes), not per publish.
+    individual: bool = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.individual = wire.accepts_backends(self.token.backends)
 
     def close(self) -> None:
         with self.lock:
@@ -102,11 +108,6 @@ class _Peer:
             undeclare_quietly(channel)
         if lane is not None:
             lane.close()
-
-    @property
-    def individual(self) -> bool:
-        """Served on its own channel: it advertises a backend besides CPU (see wire)."""
-        return wire.accepts_backends(self.token.backends)
 
 
 class Publisher:
@@ -138,7 +139,7 @@ class Publisher:
         # 16 MiB). The lock keeps concurrent publish() calls from sharing it.
         self._out: bytearray | None = None
         self._out_lock = threading.Lock()
-        self._flat_buffers = _flat_buffer_fields(msg_type)
+        self._flat_buffers = flat_buffer_fields(msg_type)
         self._loans = LoanPool()
         self._remote: tuple[_Peer, ...] = ()  # peers in other processes, rebuilt on change
         self._backends = tuple(node.backends.values())
@@ -301,7 +302,7 @@ class Publisher:
         # large for the transport reaches nobody rather than some.
         cpu_payload: bytearray | None = None
         individual: list[tuple[_Peer, bytearray | None]] = []
-        need_cpu_channel = need_base = False
+        need_cpu_channel = need_base = need_cpu = False
         for peer in peers:
             if not peer.token.buffer_aware:
                 need_base = True
@@ -311,7 +312,8 @@ class Publisher:
                 individual.append((peer, self._checked(self._serialize_for(peer, msg))))
             else:
                 individual.append((peer, None))  # the shared CPU serialization
-        if need_cpu_channel or need_base or any(p is None for _, p in individual):
+                need_cpu = True
+        if need_cpu_channel or need_base or need_cpu:
             if nbytes > self.node.max_message_size:
                 self._checked(None, nbytes)  # hopeless: raise before copying a huge payload
             cpu_payload = self._out = self._checked(serialize_message(msg, out=self._out))

@@ -29,7 +29,7 @@ from .metadata import (
     tensor_msg_type,
     write_metadata,
 )
-from .loan import loan_state
+from .loan import loan_state, loaned_native
 from .storage import allocate_data, backend_of, live_write_handle, storage_device
 
 T = TypeVar("T")
@@ -137,6 +137,9 @@ def input_native(adapter: Adapter[T], msg: Any, layout: TensorLayout, clone: boo
 
 
 def from_output_tensor_msg(adapter: Adapter[T], msg: Any) -> T:
+    native = loaned_native(adapter, msg)  # a loan left as it was made: its cached view
+    if native is not None:
+        return native
     return output_native(adapter, msg, layout_of(msg))
 
 

@@ -26,6 +26,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
+
 from .dlpack import TensorView, _host_bytes, warp_dtype
 from .errors import UnsupportedBackendError
 from .metadata import TensorLayout, contiguous_strides, normalize_shape
@@ -37,11 +39,16 @@ class LoanState:
     """What a loaned message keeps in ``_native``: its layout, the storage impl and the cached
     writable view per framework. Dropped by deepcopy and pickling (a copy is not loaned)."""
 
-    __slots__ = ("layout", "impl", "view", "natives")
+    __slots__ = ("layout", "impl", "view", "natives", "fields")
 
     def __init__(self, layout: TensorLayout, impl: Any) -> None:
         self.layout = layout
         self.impl = impl
+        # The metadata values the spec writes (``_api.new_msg``): while the message still holds
+        # them, its layout is this one and no per-loan validation is needed (untouched).
+        dt = layout.dtype
+        self.fields = (dt.code, dt.bits, dt.lanes, layout.byte_offset, list(layout.shape),
+                       [] if layout.is_contiguous else list(layout.strides))
         if impl._host is not None:  # host memory: a NumPy carrier that keeps the impl alive
             storage = _host_bytes(impl._ptr, impl._size, owner=impl)
         else:
@@ -51,6 +58,17 @@ class LoanState:
 
     def matches(self, msg: Any, layout: TensorLayout) -> bool:
         return layout == self.layout and msg.data.get_impl() is self.impl
+
+    def untouched(self, msg: Any) -> bool:
+        """``msg`` still holds the spec's metadata and storage (so :meth:`matches` holds for its
+        layout), judged without building the layout: a few compares per loan."""
+        code, bits, lanes, offset, shape, strides = self.fields
+        dims, steps = msg.shape, msg.strides
+        return (type(dims) is np.ndarray and type(steps) is np.ndarray
+                and msg.dtype_code == code and msg.dtype_bits == bits
+                and msg.dtype_lanes == lanes and msg.byte_offset == offset
+                and dims.tolist() == shape and steps.tolist() == strides
+                and msg.data.get_impl() is self.impl)
 
     def native(self, adapter: Any) -> Any:
         view = self.view
@@ -68,6 +86,15 @@ class LoanState:
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (type(None), ())
+
+
+def loaned_native(adapter: Any, msg: Any) -> Any:
+    """The cached writable view of a loaned tensor message whose metadata was left as the loan
+    made it (the common case: no layout to rebuild and look up), else None."""
+    state = getattr(msg, "_native", None)
+    if type(state) is LoanState and state.untouched(msg):
+        return state.native(adapter)
+    return None
 
 
 def loan_state(msg: Any, layout: TensorLayout) -> LoanState | None:

@@ -8,6 +8,8 @@ and a subscriber in another process.
 
 from __future__ import annotations
 
+import gc
+import mmap
 import signal
 import subprocess
 import sys
@@ -28,6 +30,7 @@ from tensor_conversions import torch as tc  # noqa: E402
 from tensor_conversions import warp as tw  # noqa: E402
 from tensor_conversions.errors import UnsupportedBackendError  # noqa: E402
 from warp_buffer import pool_stats  # noqa: E402
+from warp_buffer import loan as warp_loan  # noqa: E402
 from warp_buffer.loan import LoanedBufferImpl, loan_buffer  # noqa: E402
 
 N = 1024
@@ -91,6 +94,49 @@ def test_warp_reclaim_rearms_a_published_buffer_and_unprotects_it():
     assert not impl.is_published and not impl.is_protected
     impl._host[:] = 9  # writable again (a fault would kill the test process)
     assert int(impl._host[-1]) == 9
+
+
+def test_a_loan_protects_its_own_window_onto_the_pages_it_uses():
+    buffer = loan_buffer(9000, "cpu")  # a 16 KiB block whose bytes cover 3 pages
+    impl = buffer.get_impl()
+    block = impl._block
+    assert block.shared and impl._ptr != block.data_ptr  # a mapping of its own
+    assert impl._pages.nbytes == 3 * mmap.PAGESIZE < block.capacity
+    impl._host[:] = 4
+    buffer.seal()
+    assert impl.is_protected
+    assert int(block.host[8999]) == 4  # the same bytes, seen through the arena's mapping
+    block.host[block.capacity - 1] = 1  # which is never protected (a fault kills the test)
+    del buffer, impl
+    gc.collect()
+    block.host[:] = 6  # back in the pool: writable everywhere, the window unmapped
+
+
+def test_without_a_window_the_block_is_protected_in_place(monkeypatch):
+    def no_mapping(*args, **kwargs):
+        raise OSError(12, "no mapping left")
+
+    monkeypatch.setattr(warp_loan.memory, "map_fd", no_mapping)
+    buffer = loan_buffer(5000, "cpu")
+    impl = buffer.get_impl()
+    block = impl._block
+    assert impl._ptr == block.data_ptr and impl._pages.nbytes == 2 * mmap.PAGESIZE
+    buffer.seal()
+    assert impl.is_protected
+    assert impl.reclaim() and not impl.is_protected
+    buffer.seal()
+    del buffer, impl
+    gc.collect()
+    block.host[:] = 3  # returned to the pool writable though the last loan left it protected
+
+
+def test_no_window_and_no_protection_when_turned_off(monkeypatch):
+    monkeypatch.setenv("WARP_BUFFER_LOAN_PROTECT", "0")
+    buffer = loan_buffer(5000, "cpu")
+    impl = buffer.get_impl()
+    assert impl._ptr == impl._block.data_ptr and impl._pages is None
+    buffer.seal()
+    assert impl.is_published and not impl.is_protected
 
 
 # --------------------------------------------------------------------------- generic pool (CPU)

@@ -58,29 +58,41 @@ LAYOUT = struct.Struct("<BBHIQQQQQQQ" + "Q" * 2 * HANDLE_WORDS)
 NO_HANDLES = (0,) * (2 * HANDLE_WORDS)
 
 _type: Any = None
-_setters: list[Any] = []  # the slots' own setters, in FIELDS order (the fastest way to fill one)
+_make: Any = None  # make's body, compiled for the class (see _compile_make)
 
 
 def descriptor_type() -> type:
     """The generated descriptor class (looked up once)."""
-    global _type
+    global _type, _make
     if _type is None:
         cls = get_message_type(DESCRIPTOR_TYPE)
         if tuple(cls.__slots__) != FIELDS:  # pragma: no cover - the .msg and this disagree
             raise DescriptorError(f"{DESCRIPTOR_TYPE} fields {cls.__slots__} != {FIELDS}")
-        _setters[:] = [cls.__dict__[name].__set__ for name in FIELDS]
+        _make = _compile_make(cls)
         _type = cls
     return _type
 
 
+def _compile_make(cls: type) -> Any:
+    """``make`` unrolled for ``cls``: one call of each slot's own setter (the fastest way to
+    fill a message without its validating ``__setattr__``), no loop: ~1.4 us instead of ~2.5
+    for the 27 fields, on every export (and in :func:`unpack`)."""
+    names = [f"v{i}" for i in range(len(FIELDS))]
+    body = "".join(f"    s{i}(m, {name})\n" for i, name in enumerate(names))
+    source = (f"def make(values):\n    m = new(cls)\n    {', '.join(names)}, = values\n"
+              f"{body}    return m\n")
+    scope: dict[str, Any] = {"new": cls.__new__, "cls": cls}
+    scope.update({f"s{i}": cls.__dict__[name].__set__ for i, name in enumerate(FIELDS)})
+    exec(source, scope)  # noqa: S102 - source built above from FIELDS only
+    return scope["make"]
+
+
 def make(values: tuple[int, ...]) -> Any:
-    """A descriptor from its field values in :data:`FIELDS` order (no per-field validation:
-    the values come from this process's own bookkeeping, or from :data:`LAYOUT`)."""
-    cls = _type or descriptor_type()
-    message = cls.__new__(cls)
-    for setter, value in zip(_setters, values):
-        setter(message, value)
-    return message
+    """A descriptor from its field values, all of :data:`FIELDS` in order (no per-field
+    validation: the values come from this process's own bookkeeping, or from :data:`LAYOUT`)."""
+    if _make is None:
+        descriptor_type()
+    return _make(values)
 
 
 _get_fields = operator.attrgetter(*FIELDS)
