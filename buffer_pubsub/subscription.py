@@ -222,7 +222,9 @@ class Subscription:
         self._arrived((sample.payload.to_bytes(), attachment, route, received_ns, False))
 
     def _on_lane(self, data: bytes) -> None:
-        """A lane message (on the executor thread or in spin(), inside the waker's wait)."""
+        """A lane message, on the waiting thread (the executor's, or the user's in spin()),
+        inside the waker's wait: when nothing waits before it, its callback runs right here
+        (no queue, no second pass through the executor)."""
         received_ns = time.time_ns()
         try:
             attachment, payload = _lane_routes.split_frame(data)
@@ -230,31 +232,41 @@ class Subscription:
             with self._lock:
                 self._refuse(REFUSED_ATTACHMENT)
             return
-        if _process.is_local_publisher(attachment.publisher_gid):
+        gid = attachment.publisher_gid
+        if _process.is_local_publisher(gid):
             return  # delivered intra-process already (never sent here; a forged frame)
-        self._arrived((payload, attachment, ROUTE_LANE, received_ns, False))
+        publisher = self.node._publisher_token(gid)
+        item = (payload, attachment, ROUTE_LANE, received_ns, False)
+        if publisher is None:
+            self._park(item)
+            return
+        self._accept(item, publisher, inline=True)
 
     def _arrived(self, item: tuple[Any, ...]) -> None:
         """A sample built for us waits (parked) for its publisher's token, which its
         descriptors need; anything else is accepted at once."""
-        if item[2] in _DESCRIPTOR_ROUTES and \
-                self.node._publisher_token(item[1].publisher_gid) is None:
-            self._park(item)
-            return
-        self._accept(item)
+        publisher = None
+        if item[2] in _DESCRIPTOR_ROUTES:
+            publisher = self.node._publisher_token(item[1].publisher_gid)
+            if publisher is None:
+                self._park(item)
+                return
+        self._accept(item, publisher)
 
-    def _accept(self, item: tuple[Any, ...]) -> None:
+    def _accept(self, item: tuple[Any, ...], publisher: wire.EndpointToken | None = None,
+                inline: bool = False) -> None:
         """Queue an arrived sample; one built for us is deserialized now (descriptors imported,
-        holds taken) and queued as the message, released if it is dropped before delivery."""
+        holds taken) and queued as the message, released if it is dropped before delivery.
+        ``inline``: on the executor's own waiting thread, deliver at once if nothing waits."""
         payload, attachment, route, received_ns, _ = item
         if route in _DESCRIPTOR_ROUTES:
             try:
-                msg = self._deserialize(payload, attachment, route)
+                msg = self._deserialize(payload, attachment, route, publisher)
             except Exception as exc:  # typed errors expected; a backend bug is counted too
                 self._count_error(exc, attachment, arrived=True)
                 return
             item = (msg, attachment, route, received_ns, True)
-        self._enqueue(item)
+        self._enqueue(item, inline)
 
     def _count_error(self, exc: BaseException, attachment: wire.Attachment,
                      arrived: bool = False) -> None:
@@ -292,10 +304,14 @@ class Subscription:
             self.counters.sequence_jumps += 1
         last_seen[gid] = sequence
 
-    def _enqueue(self, item: tuple[Any, ...]) -> None:
+    def _enqueue(self, item: tuple[Any, ...], inline: bool = False) -> None:
         """Queue ``(payload or message, attachment, route, received_ns, owned)``; ``owned``:
-        a message decoded for us alone, whose buffers are released if it is dropped."""
+        a message decoded for us alone, whose buffers are released if it is dropped.
+        ``inline`` (the executor's waiting thread only): when neither this subscription nor
+        any other waits for the executor, run the callback now instead (same order, same
+        thread, one callback at a time)."""
         evicted = None
+        run_now = False
         with self._lock:
             if self._closed:
                 closed = True
@@ -303,12 +319,19 @@ class Subscription:
                 closed = False
                 self._track_sequence(item[1])
                 queue = self._queue
-                if len(queue) == queue.maxlen:
-                    self.counters.dropped += 1
-                    evicted = queue[0]
-                queue.append(item)
-                schedule = not self._scheduled
-                self._scheduled = True
+                if inline and not queue and not self.node._executor.has_ready():
+                    run_now = True
+                else:
+                    if len(queue) == queue.maxlen:
+                        self.counters.dropped += 1
+                        evicted = queue[0]
+                    queue.append(item)
+                    schedule = not self._scheduled
+                    self._scheduled = True
+        if run_now:
+            self.node._executor.ran_inline()
+            self._invoke(*item)
+            return
         if closed:
             evicted = item
         elif schedule:
@@ -383,6 +406,11 @@ class Subscription:
             except Exception as exc:  # typed errors expected; a backend bug is counted too
                 self._count_error(exc, attachment)
                 return
+        self._invoke(msg, attachment, route, received_ns, owned)
+
+    def _invoke(self, msg: Any, attachment: wire.Attachment, route: str, received_ns: int,
+                owned: bool) -> None:
+        """Run the user callback on ``msg`` (counted; its exceptions are counted and logged)."""
         if self._closed:
             if owned:
                 release_buffers(msg)  # imported for us alone, and nobody will read it
@@ -402,12 +430,13 @@ class Subscription:
             self.last_error = exc
             _log.exception("%r: callback raised", self)
 
-    def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str) -> Message:
+    def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str,
+                     publisher: wire.EndpointToken | None = None) -> Message:
         # Only a payload built for us may hold descriptors, which need the publisher's info; it
         # was parked until the token arrived. CPU payloads need no publisher info.
         info = None
         if route in _DESCRIPTOR_ROUTES:
-            token = self.node._publisher_token(attachment.publisher_gid)
+            token = publisher or self.node._publisher_token(attachment.publisher_gid)
             info = None if token is None else endpoint_info(token)
         return deserialize_message(payload, self.msg_type, backends=self.node.backends,
                                    endpoint_info=info)
