@@ -94,7 +94,8 @@ def _bare_route(run: str) -> str:
     return fast_lane.service_name(f"lane_stages/{run}", bytes.fromhex(run[:32]))
 
 
-def subscriber(run: str, port: int, domain: int, route: str, ctrl: Connection) -> None:
+def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
+               ctrl: Connection) -> None:
     """Subscribe (stamping the stages), send every message's stamps back on ``ctrl``."""
     import tensor_conversions.numpy as tc
     from rosidl_buffer.messages import get_message_type
@@ -139,7 +140,10 @@ def subscriber(run: str, port: int, domain: int, route: str, ctrl: Connection) -
         ctrl.send((BARE, index, t0, {"viewed": now}))
 
     lane = route == "lane"
-    with _node("sub", run, port, domain, executor="manual" if lane else "thread") as node:
+    options: dict[str, Any] = {"executor": "manual" if lane else "thread"}
+    if busy_poll_s > 0:
+        options["waker"] = waker = fast_lane.LaneWaker(busy_poll_s=busy_poll_s)
+    with _node("sub", run, port, domain, **options) as node:
         node.create_subscription(get_message_type(TENSOR_TYPE), _topic(run), on_message,
                                  depth=16, acceptable_buffer_backends="warp" if lane else "cpu")
         bare = None
@@ -160,9 +164,12 @@ def subscriber(run: str, port: int, domain: int, route: str, ctrl: Connection) -
             if bare is not None:
                 node._lane.detach(bare, close=True)
                 node.spin_once(0.0)  # the waker applies the detach (and closes the reader)
+    if busy_poll_s > 0:
+        waker.close()  # a waker given to the node stays ours to close
 
 
-def publisher(count: int, nbytes: int, route: str) -> list[tuple[int, dict[str, int]]]:
+def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0
+              ) -> list[tuple[int, dict[str, int]]]:
     """Publish ``count`` messages one at a time; every message's stamps, by kind."""
     import numpy as np
     import tensor_conversions.numpy as tc
@@ -178,6 +185,7 @@ def publisher(count: int, nbytes: int, route: str) -> list[tuple[int, dict[str, 
     process = subprocess.Popen(
         [sys.executable, "-m", "benchmarks.lane_stages", "--role", "sub", "--run", run,
          "--port", str(port), "--domain", str(domain), "--route", route,
+         "--busy-poll", str(busy_poll_s),
          "--fd", str(child.fileno())],
         pass_fds=(child.fileno(),), cwd=os.path.dirname(os.path.dirname(__file__)))
     child.close()
@@ -293,6 +301,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--count", type=int, default=300)
     parser.add_argument("--nbytes", type=int, default=4096)
     parser.add_argument("--route", choices=("lane", "cpu"), default="lane")
+    parser.add_argument("--busy-poll", type=float, default=0.0, metavar="S",
+                        help="the subscriber's lane waker spins S seconds before it blocks "
+                             "(a core at 100%% meanwhile): the stages without the idle wake-up")
     parser.add_argument("--role", choices=("pub", "sub"), default="pub")
     parser.add_argument("--run")
     parser.add_argument("--port", type=int)
@@ -300,9 +311,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fd", type=int)
     args = parser.parse_args(argv)
     if args.role == "sub":
-        subscriber(args.run, args.port, args.domain, args.route, Connection(args.fd))
+        subscriber(args.run, args.port, args.domain, args.route, args.busy_poll,
+                   Connection(args.fd))
         return 0
-    records = publisher(args.count, args.nbytes, args.route)
+    records = publisher(args.count, args.nbytes, args.route, args.busy_poll)
     per = 2 if args.route == "lane" else 1
     warm = records[per * min(20, args.count // 10):]  # first imports map files, warm caches
     what = ("loaned warp tensor over the fast lane" if args.route == "lane"

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import threading
 import time
 from collections.abc import Callable
 from typing import Protocol
@@ -33,9 +34,15 @@ class Executor:
 
     #: Longest sleep between housekeeping rounds (expiry of parked samples).
     TICK_S = 0.2
+    #: How often a wait for the callback gate checks whether the executor was stopped.
+    GATE_POLL_S = 0.05
 
-    def __init__(self, waker: Waker | None, housekeeping: Callable[[], None]) -> None:
+    def __init__(self, waker: Waker | None, housekeeping: Callable[[], None],
+                 gate: threading.Lock | None = None) -> None:
         self.waker: Waker = waker if waker is not None else ThreadWaker()
+        # Held while a callback runs, when callbacks may also run on arrival threads (see
+        # Subscription._enqueue): one callback of the node at a time.
+        self._gate = gate
         self._ready: collections.deque[Runnable] = collections.deque()
         self._housekeeping = housekeeping
         self._next_housekeeping = time.monotonic() + self.TICK_S
@@ -76,10 +83,19 @@ class Executor:
                 item = ready.popleft()
             except IndexError:
                 break
+            gate = self._gate
+            if gate is not None:
+                while not gate.acquire(timeout=self.GATE_POLL_S):  # a callback runs elsewhere
+                    if self._stopped:
+                        ready.appendleft(item)
+                        return ran
             try:
                 item._run_one()
             except Exception:
                 _log.exception("executor task failed")
+            finally:
+                if gate is not None:
+                    gate.release()
             ran += 1
         now = time.monotonic()
         if now >= self._next_housekeeping:

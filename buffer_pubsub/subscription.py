@@ -40,6 +40,7 @@ from rosidl_buffer.messages import Message, deserialize_message, release_buffers
 
 from . import _lane_routes, _process, wire
 from ._info import endpoint_gone, endpoint_info
+from ._inline import InlinePolicy
 from ._zenoh import undeclare_quietly
 from .errors import PubSubError
 
@@ -123,6 +124,11 @@ class Subscription:
         self._parked: collections.deque[tuple[float, tuple[Any, ...]]] = collections.deque()
         self._last_sequence: dict[bytes, int] = {}
         self._closed = False
+        # Zenoh arrivals may run their callback on Zenoh's thread (see _inline) only when the
+        # node runs its own executor thread: with executor="manual" callbacks run in spin().
+        self._gate = node._gate
+        self._inline_arrivals = node._inline_callbacks
+        self._policy = InlinePolicy()
         self.base_key = wire.data_key(node.domain_id, token.topic, msg_type.__msgtype__)
         self._backends = tuple(node.backends.values())
         for backend in self._backends:
@@ -219,7 +225,8 @@ class Subscription:
                 return
         # ZBytes has no buffer protocol in zenoh 1.10: to_bytes() is the one copy out of Zenoh
         # (deserialization then aliases these bytes).
-        self._arrived((sample.payload.to_bytes(), attachment, route, received_ns, False))
+        self._arrived((sample.payload.to_bytes(), attachment, route, received_ns, False),
+                      self._inline_arrivals)
 
     def _on_lane(self, data: bytes) -> None:
         """A lane message, on the waiting thread (the executor's, or the user's in spin()),
@@ -242,22 +249,22 @@ class Subscription:
             return
         self._accept(item, publisher, inline=True)
 
-    def _arrived(self, item: tuple[Any, ...]) -> None:
+    def _arrived(self, item: tuple[Any, ...], inline: bool = False) -> None:
         """A sample built for us waits (parked) for its publisher's token, which its
-        descriptors need; anything else is accepted at once."""
+        descriptors need; anything else is accepted at once (``inline``: see _enqueue)."""
         publisher = None
         if item[2] in _DESCRIPTOR_ROUTES:
             publisher = self.node._publisher_token(item[1].publisher_gid)
             if publisher is None:
                 self._park(item)
                 return
-        self._accept(item, publisher)
+        self._accept(item, publisher, inline)
 
     def _accept(self, item: tuple[Any, ...], publisher: wire.EndpointToken | None = None,
                 inline: bool = False) -> None:
         """Queue an arrived sample; one built for us is deserialized now (descriptors imported,
         holds taken) and queued as the message, released if it is dropped before delivery.
-        ``inline``: on the executor's own waiting thread, deliver at once if nothing waits."""
+        ``inline``: deliver at once if nothing waits (see :meth:`_enqueue`)."""
         payload, attachment, route, received_ns, _ = item
         if route in _DESCRIPTOR_ROUTES:
             try:
@@ -307,11 +314,15 @@ class Subscription:
     def _enqueue(self, item: tuple[Any, ...], inline: bool = False) -> None:
         """Queue ``(payload or message, attachment, route, received_ns, owned)``; ``owned``:
         a message decoded for us alone, whose buffers are released if it is dropped.
-        ``inline`` (the executor's waiting thread only): when neither this subscription nor
-        any other waits for the executor, run the callback now instead (same order, same
-        thread, one callback at a time)."""
+
+        ``inline``: the arrival thread may run the callback itself when nothing waits before
+        it (this queue and the executor's ready set empty) and no other callback of the node
+        runs (the gate): the same order and one callback at a time, one thread hop less. A
+        lane message arrives on the executor's own waiting thread; a Zenoh sample on Zenoh's
+        thread, which only callbacks proved short may hold (:mod:`._inline`)."""
         evicted = None
         run_now = False
+        gate = self._gate
         with self._lock:
             if self._closed:
                 closed = True
@@ -319,9 +330,14 @@ class Subscription:
                 closed = False
                 self._track_sequence(item[1])
                 queue = self._queue
-                if inline and not queue and not self.node._executor.has_ready():
-                    run_now = True
-                else:
+                lane = item[2] == ROUTE_LANE
+                if (inline and not queue and not self.node._executor.has_ready()
+                        and (lane or self._policy.trusted)
+                        and (gate is None or gate.acquire(blocking=False))):
+                    run_now = lane or self._policy.arrived_inline()
+                    if not run_now:
+                        gate.release()  # type: ignore[union-attr]  # Zenoh arrivals have one
+                if not run_now:
                     if len(queue) == queue.maxlen:
                         self.counters.dropped += 1
                         evicted = queue[0]
@@ -329,8 +345,13 @@ class Subscription:
                     schedule = not self._scheduled
                     self._scheduled = True
         if run_now:
-            self.node._executor.ran_inline()
-            self._invoke(*item)
+            if lane:
+                self.node._executor.ran_inline()
+            try:
+                self._run_item(item, inline=True)
+            finally:
+                if gate is not None:
+                    gate.release()
             return
         if closed:
             evicted = item
@@ -398,6 +419,11 @@ class Subscription:
             self._scheduled = again
         if again:  # others wait: take turns with the node's other subscriptions
             self.node._executor.schedule(self)
+        self._run_item((payload, attachment, route, received_ns, owned))
+
+    def _run_item(self, item: tuple[Any, ...], inline: bool = False) -> None:
+        """Deserialize a queued payload if it still is one, then run the callback."""
+        payload, attachment, route, received_ns, owned = item
         if owned or route == ROUTE_INTRA:
             msg = payload
         else:
@@ -406,17 +432,13 @@ class Subscription:
             except Exception as exc:  # typed errors expected; a backend bug is counted too
                 self._count_error(exc, attachment)
                 return
-        self._invoke(msg, attachment, route, received_ns, owned)
-
-    def _invoke(self, msg: Any, attachment: wire.Attachment, route: str, received_ns: int,
-                owned: bool) -> None:
-        """Run the user callback on ``msg`` (counted; its exceptions are counted and logged)."""
         if self._closed:
             if owned:
                 release_buffers(msg)  # imported for us alone, and nobody will read it
             return
         with self._lock:
             self.counters.received += 1
+        start = time.perf_counter()
         try:
             if self._with_info:
                 self._callback(msg, MessageInfo(
@@ -429,6 +451,7 @@ class Subscription:
                 self.counters.callback_errors += 1
             self.last_error = exc
             _log.exception("%r: callback raised", self)
+        self._policy.ran(time.perf_counter() - start, inline)
 
     def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str,
                      publisher: wire.EndpointToken | None = None) -> Message:
