@@ -1,5 +1,7 @@
 """``Subscription``: receives on its channels, checks attachments, runs the callback on the
-node's executor.
+node's executor (or, when nothing waits before it, on the thread the message arrived on: the
+executor's own waiting thread for a lane message, Zenoh's for a sample whose subscription's
+callbacks proved short, see :mod:`._inline`; one callback of the node at a time either way).
 
 A subscription listens on ``<key>/_buf/<its gid>`` (payloads built for it) when it accepts some
 backend besides CPU, else on ``<key>/_buf_cpu`` (the shared CPU stream), and on the base key (see

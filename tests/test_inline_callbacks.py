@@ -17,33 +17,29 @@ COUNT = 60
 
 
 # --------------------------------------------------------------------------- the policy alone
-def test_policy_trusts_only_after_a_streak_of_short_callbacks():
-    policy = InlinePolicy()
-    for _ in range(_inline.FIRST_NEEDED - 1):
+def _short_callbacks(policy: InlinePolicy, count: int = _inline.FIRST_NEEDED) -> InlinePolicy:
+    for _ in range(count):
         policy.ran(0.0, inline=False)
+    return policy
+
+
+def test_policy_trusts_only_after_a_streak_of_short_callbacks():
+    policy = _short_callbacks(InlinePolicy(), _inline.FIRST_NEEDED - 1)
     assert not policy.trusted
     policy.ran(0.0, inline=False)
     assert policy.trusted
 
 
 def test_policy_demotes_on_a_slow_callback_and_asks_twice_as_long_next_time():
-    policy = InlinePolicy()
-    for _ in range(_inline.FIRST_NEEDED):
-        policy.ran(0.0, inline=False)
+    policy = _short_callbacks(InlinePolicy())
     policy.ran(_inline.BUDGET_S * 4, inline=True)
     assert not policy.trusted
-    for _ in range(_inline.FIRST_NEEDED):
-        policy.ran(0.0, inline=False)
-    assert not policy.trusted  # the streak needed doubled
-    for _ in range(_inline.FIRST_NEEDED):
-        policy.ran(0.0, inline=False)
-    assert policy.trusted
+    assert not _short_callbacks(policy).trusted  # the streak needed doubled
+    assert _short_callbacks(policy).trusted
 
 
 def test_policy_demotes_when_arrivals_queue_behind_inline_callbacks():
-    policy = InlinePolicy()
-    for _ in range(_inline.FIRST_NEEDED):
-        policy.ran(0.0, inline=False)
+    policy = _short_callbacks(InlinePolicy())
     results = []
     for _ in range(_inline.MAX_BACK_TO_BACK):
         policy.ran(0.0, inline=True)  # ends now: the next arrival is back to back
@@ -53,9 +49,7 @@ def test_policy_demotes_when_arrivals_queue_behind_inline_callbacks():
 
 
 def test_policy_keeps_trust_when_arrivals_are_spaced():
-    policy = InlinePolicy()
-    for _ in range(_inline.FIRST_NEEDED):
-        policy.ran(0.0, inline=False)
+    policy = _short_callbacks(InlinePolicy())
     for _ in range(_inline.MAX_BACK_TO_BACK * 2):
         policy.ran(0.0, inline=True)
         time.sleep(2 * _inline.BACK_TO_BACK_NS / 1e9)
