@@ -27,7 +27,7 @@ __all__ = ["BUDGET_S", "FIRST_NEEDED", "InlinePolicy", "MAX_NEEDED"]
 #: A callback shorter than this may run on Zenoh's thread.
 BUDGET_S = 0.0005
 #: Consecutive short callbacks before the first inline one; doubled at each demotion.
-FIRST_NEEDED = 16
+FIRST_NEEDED = 8
 MAX_NEEDED = 4096
 #: An inline arrival this soon after the previous inline callback ended waited behind it.
 BACK_TO_BACK_NS = 20_000
