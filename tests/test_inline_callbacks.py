@@ -9,9 +9,13 @@ import time
 
 import pytest
 
-from buffer_pubsub import Node, _inline
-from buffer_pubsub._inline import InlinePolicy
-from tests._pubsub_helpers import TENSOR, Child
+from tests._pubsub_helpers import TENSOR, Child, pick_backend, use_fake_backend
+from tests.test_fast_lane import requires_iceoryx2
+
+use_fake_backend()
+
+from buffer_pubsub import Node, _inline, fast_lane  # noqa: E402
+from buffer_pubsub._inline import InlinePolicy  # noqa: E402
 
 COUNT = 60
 
@@ -135,6 +139,34 @@ def test_one_callback_of_the_node_at_a_time(domain, topic):
         sequences = [s for s, _ in records]
         assert sequences == sorted(set(sequences)) and len(sequences) == COUNT
         assert counter["received"] == COUNT
+
+
+@requires_iceoryx2
+def test_lane_callbacks_run_inside_the_wait_and_spin_once_counts_them(domain, topic,
+                                                                      monkeypatch):
+    monkeypatch.setenv(fast_lane.ENV_SWITCH, "1")
+    count = 5
+    seen: list[tuple[str, int]] = []
+    backend = pick_backend()
+    with Node("lane_spinner", domain_id=domain, executor="manual") as node:
+        if node._lane is None:
+            pytest.skip(f"the lane does not run here: {fast_lane.status().reason}")
+        node.create_subscription(TENSOR, topic, lambda m, info: seen.append(
+            (info.route, threading.get_ident())), depth=count, with_info=True,
+            acceptable_buffer_backends=backend)
+        pub = Child("pub", domain=domain, topic=topic, count=count, size=256, backend=backend,
+                    interval=0.02)
+        try:
+            pub.wait_ready()
+            ran = 0
+            deadline = time.monotonic() + 20
+            while ran < count and time.monotonic() < deadline:
+                ran += node.spin_once(0.1)
+            pub.stop()
+        finally:
+            pub.close()
+    assert ran == count  # callbacks run inside the waker's wait are counted
+    assert seen == [("lane", threading.get_ident())] * count
 
 
 def test_manual_executor_never_runs_callbacks_on_arrival_threads(domain, topic):
