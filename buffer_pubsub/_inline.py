@@ -14,8 +14,9 @@ discovery included. So a subscription runs callbacks inline only while they have
 - one callback over budget, or samples arriving back to back behind inline callbacks (a backlog
   building in Zenoh), hands off again, and the streak needed doubles (up to :data:`MAX_NEEDED`).
 
-The worst a trusted callback that suddenly blocks can do is hold that one subscriber's Zenoh
-deliveries for its own duration, once. ``Node(..., inline_callbacks=False)`` never inlines.
+The worst a trusted callback that suddenly blocks can do is hold that subscriber's Zenoh
+deliveries (and, once Zenoh's channel for it is full, the session's) for its own duration, once.
+``Node(..., inline_callbacks=False)`` never inlines; ``executor="manual"`` never does either.
 """
 
 from __future__ import annotations
