@@ -53,8 +53,8 @@ class Node:
     """A participant of the pub/sub graph.
 
     ``Node(name, config=None, namespace="", domain_id=None, *, router=None, backends=None,
-    executor="thread", waker=None, fast_lane=None, inline_callbacks=True)``: ``config`` is a ``zenoh.Config`` or the
-    path of a Zenoh JSON5 file, ``router`` a Zenoh router endpoint (see
+    executor="thread", waker=None, fast_lane=None, inline_callbacks=True)``: ``config`` is a
+    ``zenoh.Config`` or the path of a Zenoh JSON5 file, ``router`` a Zenoh router endpoint (see
     :mod:`buffer_pubsub.config` for the defaults); ``domain_id`` defaults to env
     ``ROS_DOMAIN_ID`` or 0; ``backends`` overrides the buffer backends (by default every
     backend registered in :mod:`rosidl_buffer.registry`, loaded once per process).
