@@ -1,14 +1,24 @@
-"""Where a full zero-copy message's time goes when the fast lane carries it, stage by stage.
+"""Where a message's time goes on the transport's real path, stage by stage, between two processes.
 
-``python -m benchmarks.lane_stages [--count N] [--nbytes N]``: a publisher (this process) and a
-subscriber (a child) on one host. Per message, one in flight: allocate a warp tensor message,
-take its output view and stamp it, build the descriptor CDR for the subscriber (the warp
-backend's ``create_descriptor_with_endpoint`` through ``serialize_message``, today's export as a
-stand-in for the IPC core being reworked), write it to the lane; the subscriber wakes on the
-lane's event, deserializes (the descriptor import), and takes the input NumPy view. Each side
-reads ``perf_counter_ns`` (one clock for every process) at each stage boundary; the table shows
-per-stage medians and p99 and the one-way total. The raw lane figure (descriptor only) is the
-``lane`` path of ``warp-buffer bench``.
+``python -m benchmarks.lane_stages [--count N] [--nbytes N] [--route lane|cpu]``: a publisher
+(this process) and a subscriber (a child), both real ``buffer_pubsub`` nodes on one host (a
+loopback Zenoh port and a domain of their own), one message in flight.
+
+- ``--route lane`` (default): a loaned warp tensor (``loan_tensor_msg``), whose descriptor the
+  publisher writes to the subscriber's fast lane (iceoryx2); the subscriber's node runs
+  ``executor="manual"`` and spins in its main thread, woken by the lane's event, and the
+  callback takes ``from_input_tensor_msg(msg, clone=False)``.
+- ``--route cpu``: a prepared CPU tensor message (stamped in place, as the bench's
+  ``cpu_fallback`` path) over Zenoh to a CPU subscriber on the node's default executor thread.
+
+Stage boundaries are stamped with ``perf_counter_ns`` (one clock for every process of a host)
+by thin wrappers the benchmark puts, in its own processes only, around the functions the
+transport calls: ``LaneWriter.write`` (publisher), ``Subscription._on_lane`` /
+``Subscription._on_sample`` (where a frame or a Zenoh sample enters the subscription) and
+``buffer_pubsub.subscription.deserialize_message`` (the CDR read, descriptor import included);
+the user callback stamps its entry and the moment the view is usable. Each wrapper costs ~1 us.
+For the lane, a bare 602-byte frame on a lane reader of the child's own, attached to the same
+waker, is interleaved with the messages: what the lane alone costs in the same run.
 """
 
 from __future__ import annotations
@@ -23,148 +33,224 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 TENSOR_TYPE = "tensor_msgs/msg/ExperimentalTensor"
-HEADER = struct.Struct("<4qq")  # t0 start, t1 allocated, t2 stamped+released, t3 serialized, kind
-FULL, BARE, STOP = 0, 1, 2
+STAMP = struct.Struct("<qq")  # (message index, t0) in the first 16 bytes of the tensor
 BARE_BYTES = 602  # a bare frame: the size of a descriptor message, nothing imported
-STAGES_PUB = ("allocate_tensor_msg", "output view + stamp + release_output",
-              "descriptor + CDR (serialize_message with route)", "lane write + notify")
-STAGES_SUB = ("lane: write returned -> callback on the waiting thread",
-              "deserialize + descriptor import", "from_input_tensor_msg (NumPy view)")
+BARE, FULL = 0, 1
+# Stamps of one message, in order (publisher ones first, then the subscriber's).
+PUB_STAMPS = ("t0", "loaned", "write_in", "write_out", "published")
+SUB_STAMPS = ("entered", "deser_in", "deser_out", "callback", "viewed")
+STAGES = {
+    "lane": (
+        ("publisher: loan + output view + stamp", "t0", "loaned"),
+        ("publisher: publish up to the lane write (descriptor + CDR)", "loaned", "write_in"),
+        ("publisher: lane write + notify", "write_in", "write_out"),
+        ("subscriber: write returned -> frame enters the subscription (wake-up)", "write_out",
+         "entered"),
+        ("subscriber: frame checks (attachment, publisher)", "entered", "deser_in"),
+        ("subscriber: deserialize + descriptor import", "deser_in", "deser_out"),
+        ("subscriber: queue -> user callback", "deser_out", "callback"),
+        ("subscriber: from_input_tensor_msg (NumPy view)", "callback", "viewed"),
+        ("subscriber total (write returned -> view)", "write_out", "viewed"),
+        ("one-way total (loan -> readable view)", "t0", "viewed"),
+    ),
+    "cpu": (
+        ("publisher: publish() (validate, CDR, Zenoh put)", "loaned", "published"),
+        ("wire: publish returned -> sample enters the subscription", "published", "entered"),
+        ("subscriber: sample enters -> deserialize (checks, queue, hand-off)", "entered",
+         "deser_in"),
+        ("subscriber: deserialize", "deser_in", "deser_out"),
+        ("subscriber: deserialized -> user callback", "deser_out", "callback"),
+        ("subscriber: from_input_tensor_msg (NumPy view)", "callback", "viewed"),
+        ("subscriber total (sample enters -> view)", "entered", "viewed"),
+        ("one-way total (publish -> readable view)", "loaned", "viewed"),
+    ),
+}
 
 
-def _info(role: str, gid: bytes, pid: int, backends: dict[str, str]) -> Any:
-    from rosidl_buffer import EndpointInfo, EndpointType, local_host_id
+def _settings(run: str, port: int, domain: int) -> Any:
+    from benchmarks.paths import PathSettings
 
-    kind = EndpointType.PUBLISHER if role == "pub" else EndpointType.SUBSCRIPTION
-    return EndpointInfo(gid=gid, node_name=f"lane_stages_{role}", node_namespace="/",
-                        topic_name="/lane_stages", topic_type=TENSOR_TYPE, endpoint_type=kind,
-                        host_id=local_host_id(), process_id=pid, user_id=os.getuid(),
-                        supported_backends=backends)
+    return PathSettings(name="lane_stages", run_id=run, max_nbytes=0, port=port,
+                        domain_id=domain)
 
 
-def _route(run: str) -> str:
+def _node(role: str, run: str, port: int, domain: int, **options: Any) -> Any:
+    import buffer_pubsub
+    from benchmarks.paths.zenoh_common import make_config
+
+    settings = _settings(run, port, domain)
+    return buffer_pubsub.Node(f"lane_stages_{role}_{run[:8]}", domain_id=domain,
+                              config=make_config(settings, role == "sub", shared_memory=False),
+                              **options)
+
+
+def _topic(run: str) -> str:
+    return f"/lane_stages_{run[:12]}"
+
+
+def _bare_route(run: str) -> str:
     from buffer_pubsub import fast_lane
 
-    return fast_lane.service_name(f"lane_stages/{run}", bytes.fromhex(run))
+    return fast_lane.service_name(f"lane_stages/{run}", bytes.fromhex(run[:32]))
 
 
-def subscriber(run: str, publisher_pid: int, ctrl: Connection) -> None:
-    """Wake on the lane, import, view; send the stage stamps back on ``ctrl``."""
+def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
+               ctrl: Connection) -> None:
+    """Subscribe (stamping the stages), send every message's stamps back on ``ctrl``."""
     import tensor_conversions.numpy as tc
-    from rosidl_buffer import registry
-    from rosidl_buffer.messages import deserialize_message, get_message_type
+    from rosidl_buffer.messages import get_message_type
 
+    import buffer_pubsub.subscription as subscription
     from buffer_pubsub import fast_lane
 
-    backend = registry.create_backend_instance("warp")
-    msg_type = get_message_type(TENSOR_TYPE)
-    publisher = _info("pub", bytes(16), publisher_pid, {})
-    reader = fast_lane.LaneReader(_route(run), depth=16)
-    waker = fast_lane.LaneWaker()
-    stop = False
+    stamps: dict[str, int] = {}
+    clock = time.perf_counter_ns
+    deserialize = subscription.deserialize_message
 
-    def on_message(data: bytes) -> None:
-        nonlocal stop
-        t4 = time.perf_counter_ns()
-        header = HEADER.unpack_from(data)
-        if header[4] == STOP:
-            stop = True
-            return
-        if header[4] == BARE:
-            ctrl.send((*header[:4], t4, t4, t4, BARE))
-            return
-        msg = deserialize_message(memoryview(data)[HEADER.size:], msg_type,
-                                  backends={"warp": backend}, endpoint_info=publisher)
-        t5 = time.perf_counter_ns()
+    def stamped_deserialize(*args: Any, **kwargs: Any) -> Any:
+        stamps["deser_in"] = clock()
+        try:
+            return deserialize(*args, **kwargs)
+        finally:
+            stamps["deser_out"] = clock()
+
+    def entry(original: Any) -> Any:
+        def stamped(self: Any, *args: Any) -> Any:
+            stamps.setdefault("entered", clock())
+            return original(self, *args)
+        return stamped
+
+    subscription.deserialize_message = stamped_deserialize
+    subscription.Subscription._on_lane = entry(subscription.Subscription._on_lane)
+    subscription.Subscription._on_sample = entry(subscription.Subscription._on_sample)
+
+    def on_message(msg: Any) -> None:
+        stamps["callback"] = clock()
         view = tc.from_input_tensor_msg(msg, clone=False)
-        int(view[0])  # the payload is readable here
-        t6 = time.perf_counter_ns()
-        del view, msg
-        ctrl.send((*header[:4], t4, t5, t6, FULL))
+        index, t0 = STAMP.unpack_from(view)  # the payload is readable here
+        stamps["viewed"] = clock()
+        del view
+        record = dict(stamps)
+        stamps.clear()
+        ctrl.send((FULL, index, t0, record))
 
-    waker.attach(reader, on_message)
-    waker.wait(0.0)
-    ctrl.send(("ready", backend.get_backend_metadata()))
-    while not stop:
-        waker.wait(1.0)
-    waker.close()
-    reader.close()
+    def on_bare(data: bytes) -> None:
+        now = clock()
+        index, t0 = STAMP.unpack_from(data)
+        ctrl.send((BARE, index, t0, {"viewed": now}))
+
+    lane = route == "lane"
+    options: dict[str, Any] = {"executor": "manual" if lane else "thread"}
+    if busy_poll_s > 0:
+        options["waker"] = waker = fast_lane.LaneWaker(busy_poll_s=busy_poll_s)
+    with _node("sub", run, port, domain, **options) as node:
+        node.create_subscription(get_message_type(TENSOR_TYPE), _topic(run), on_message,
+                                 depth=16, acceptable_buffer_backends="warp" if lane else "cpu")
+        bare = None
+        if lane:
+            if node._lane is None:
+                ctrl.send(("unavailable", fast_lane.status().reason))
+                return
+            bare = fast_lane.LaneReader(_bare_route(run), depth=16)
+            node._lane.attach(bare, on_bare)  # the same waker as the subscription's lane
+        ctrl.send(("ready", os.getpid()))
+        try:
+            while not ctrl.poll():
+                if lane:
+                    node.spin_once(0.05)
+                else:
+                    time.sleep(0.05)
+        finally:
+            if bare is not None:
+                node._lane.detach(bare, close=True)
+                node.spin_once(0.0)  # the waker applies the detach (and closes the reader)
+    if busy_poll_s > 0:
+        waker.close()  # a waker given to the node stays ours to close
 
 
-def publisher(count: int, nbytes: int) -> list[tuple[int, ...]]:
-    """Publish ``count`` messages one at a time; every message's stamps."""
+def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0
+              ) -> list[tuple[int, dict[str, int]]]:
+    """Publish ``count`` messages one at a time; every message's stamps, by kind."""
     import numpy as np
-    import tensor_conversions
     import tensor_conversions.numpy as tc
-    from rosidl_buffer import registry
-    from rosidl_buffer.messages import serialize_message
+    from rosidl_buffer.messages import get_message_type
 
+    from benchmarks.processes import free_tcp_port
     from buffer_pubsub import fast_lane
 
     run = os.urandom(16).hex()
+    port = free_tcp_port()
+    domain = 100 + int(run[:4], 16) % 100
     parent, child = _pipe()
     process = subprocess.Popen(
         [sys.executable, "-m", "benchmarks.lane_stages", "--role", "sub", "--run", run,
-         "--publisher-pid", str(os.getpid()), "--fd", str(child.fileno())],
+         "--port", str(port), "--domain", str(domain), "--route", route,
+         "--busy-poll", str(busy_poll_s),
+         "--fd", str(child.fileno())],
         pass_fds=(child.fileno(),), cwd=os.path.dirname(os.path.dirname(__file__)))
     child.close()
-    records = []
+    clock = time.perf_counter_ns
+    stamps: dict[str, int] = {}
+    write = fast_lane.LaneWriter.write
+
+    def stamped_write(self: Any, *parts: Any) -> bool:
+        stamps["write_in"] = clock()
+        try:
+            return write(self, *parts)
+        finally:
+            stamps["write_out"] = clock()
+
+    records: list[tuple[int, dict[str, int]]] = []
     try:
-        ready, metadata = parent.recv()
-        backend = registry.create_backend_instance("warp")
-        peer = _info("sub", bytes.fromhex(run), process.pid, {"warp": metadata})
-        accepted, _ = backend.on_discovering_endpoint(peer, [], peer.supported_backends)
-        if not accepted:
-            raise RuntimeError(f"the warp backend refuses the subscriber: {metadata!r}")
-
-        def route(buffer: Any) -> tuple[str, Any] | None:
-            descriptor = backend.create_descriptor_with_endpoint(buffer.get_impl(), peer)
-            return None if descriptor is None else ("warp", descriptor)
-
-        writer = fast_lane.LaneWriter(_route(run))
-        frame = bytearray(fast_lane.MAX_PAYLOAD)
-        bare = bytearray(BARE_BYTES)
-        for _ in range(count):
-            t0 = time.perf_counter_ns()
-            msg = tc.allocate_tensor_msg((nbytes,), np.uint8, backend="warp")
-            t1 = time.perf_counter_ns()
-            array = tc.from_output_tensor_msg(msg)
-            array[:8] = 1
-            del array
-            tensor_conversions.release_output(msg)
-            t2 = time.perf_counter_ns()
-            cdr = serialize_message(msg, route=route)
-            t3 = time.perf_counter_ns()
-            end = HEADER.size + len(cdr)
-            HEADER.pack_into(frame, 0, t0, t1, t2, t3, FULL)
-            frame[HEADER.size:end] = cdr
-            writer.write(memoryview(frame)[:end])
-            records.append(parent.recv())
-            del msg
-            # The same transport with nothing around it, interleaved: what the lane alone costs.
-            now = time.perf_counter_ns()
-            HEADER.pack_into(bare, 0, now, now, now, now, BARE)
-            writer.write(bare)
-            records.append(parent.recv())
-        writer.write(HEADER.pack(0, 0, 0, 0, STOP))
-        writer.close()
+        ready, detail = parent.recv()
+        if ready != "ready":
+            raise RuntimeError(f"the subscriber cannot run the lane: {detail}")
+        with _node("pub", run, port, domain) as node:
+            publisher = node.create_publisher(get_message_type(TENSOR_TYPE), _topic(run), depth=16)
+            if not publisher.wait_for_subscriptions(1, timeout=20.0):
+                raise RuntimeError("the subscriber was not matched within 20 s")
+            fast_lane.LaneWriter.write = stamped_write  # type: ignore[method-assign]
+            bare = fast_lane.LaneWriter(_bare_route(run)) if route == "lane" else None
+            frame = bytearray(BARE_BYTES)
+            prepared = tc.allocate_tensor_msg((nbytes,), np.uint8) if route == "cpu" else None
+            head = tc.from_output_tensor_msg(prepared) if prepared is not None else None
+            for index in range(count):
+                stamps.clear()
+                t0 = clock()
+                if prepared is not None:
+                    STAMP.pack_into(head, 0, index, t0)
+                    stamps["loaned"] = clock()
+                    publisher.publish(prepared)
+                else:
+                    with tc.loan_tensor_msg(publisher, (nbytes,), np.uint8,
+                                            backend="warp") as msg:
+                        array = tc.from_output_tensor_msg(msg)
+                        STAMP.pack_into(array, 0, index, t0)
+                        del array
+                        stamps["loaned"] = clock()
+                stamps["published"] = clock()
+                stamps["t0"] = t0
+                mine = dict(stamps)
+                kind, got, _, theirs = parent.recv()
+                if kind != FULL or got != index:
+                    raise RuntimeError(f"expected message {index}, got {kind, got}")
+                records.append((FULL, {**mine, **theirs}))
+                if bare is not None:  # the lane alone, interleaved
+                    now = clock()
+                    STAMP.pack_into(frame, 0, index, now)
+                    write(bare, frame)
+                    _, _, sent, theirs = parent.recv()
+                    records.append((BARE, {"t0": sent, **theirs}))
+            if bare is not None:
+                bare.close()
+        parent.send("stop")
         process.wait(timeout=20)
     finally:
+        fast_lane.LaneWriter.write = write  # type: ignore[method-assign]
         if process.poll() is None:
             process.kill()
             process.wait()
-        _trim_warp_pool()
     return records
-
-
-def _trim_warp_pool() -> None:
-    """Give the pool's blocks back now rather than leave them to the exit path."""
-    import gc
-
-    import warp_buffer
-
-    gc.collect()
-    warp_buffer.trim_pools(0.0)
 
 
 def _pipe() -> tuple[Connection, Connection]:
@@ -178,22 +264,30 @@ def _percentile(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
 
 
-def table(records: list[tuple[int, ...]]) -> str:
-    """Per-stage p50 / p99 (us) from the stamps ``(t0, t1, t2, t3, t4, t5, t6, kind)``."""
-    full = [r for r in records if r[7] == FULL]
-    bare = [r for r in records if r[7] == BARE]
-    names = [*STAGES_PUB[:3], "lane: write + notify -> callback (one-way transport)",
-             *STAGES_SUB[1:]]
+def _span(record: dict[str, int], start: str, end: str) -> float | None:
+    if start not in record or end not in record:
+        return None
+    return (record[end] - record[start]) / 1000
+
+
+def stage_figures(records: list[tuple[int, dict[str, int]]], route: str
+                  ) -> list[tuple[str, float, float]]:
+    """``(stage, p50 us, p99 us)`` rows from the stamps."""
+    full = [r for kind, r in records if kind == FULL]
     rows = []
-    for index, name in enumerate(names):
-        values = [(r[index + 1] - r[index]) / 1000 for r in full]
-        rows.append((name, _percentile(values, 0.5), _percentile(values, 0.99)))
-    total = [(r[6] - r[0]) / 1000 for r in full]
-    rows.append(("one-way total (allocate -> readable view)", _percentile(total, 0.5),
-                 _percentile(total, 0.99)))
-    alone = [(r[4] - r[0]) / 1000 for r in bare]
-    rows.append((f"lane alone, {BARE_BYTES} B frame, interleaved (write -> callback)",
-                 _percentile(alone, 0.5), _percentile(alone, 0.99)))
+    for name, start, end in STAGES[route]:
+        values = [v for r in full if (v := _span(r, start, end)) is not None]
+        if values:
+            rows.append((name, _percentile(values, 0.5), _percentile(values, 0.99)))
+    bare = [(r["viewed"] - r["t0"]) / 1000 for kind, r in records if kind == BARE]
+    if bare:
+        rows.append((f"lane alone, {BARE_BYTES} B frame, interleaved (write -> callback)",
+                     _percentile(bare, 0.5), _percentile(bare, 0.99)))
+    return rows
+
+
+def table(rows: list[tuple[str, float, float]]) -> str:
+    """The rows as a text table."""
     width = max(len(r[0]) for r in rows)
     lines = [f"{'stage':<{width}}  {'p50 us':>8}  {'p99 us':>8}"]
     lines += [f"{name:<{width}}  {p50:8.1f}  {p99:8.1f}" for name, p50, p99 in rows]
@@ -204,21 +298,29 @@ def main(argv: list[str] | None = None) -> int:
     """Run the publisher (default) or the subscriber role."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.lane_stages",
                                      description=__doc__.split("\n\n")[0])
-    parser.add_argument("--count", type=int, default=200)
+    parser.add_argument("--count", type=int, default=300)
     parser.add_argument("--nbytes", type=int, default=4096)
+    parser.add_argument("--route", choices=("lane", "cpu"), default="lane")
+    parser.add_argument("--busy-poll", type=float, default=0.0, metavar="S",
+                        help="the subscriber's lane waker spins S seconds before it blocks "
+                             "(a core at 100%% meanwhile): the stages without the idle wake-up")
     parser.add_argument("--role", choices=("pub", "sub"), default="pub")
     parser.add_argument("--run")
-    parser.add_argument("--publisher-pid", type=int)
+    parser.add_argument("--port", type=int)
+    parser.add_argument("--domain", type=int)
     parser.add_argument("--fd", type=int)
     args = parser.parse_args(argv)
     if args.role == "sub":
-        subscriber(args.run, args.publisher_pid, Connection(args.fd))
+        subscriber(args.run, args.port, args.domain, args.route, args.busy_poll,
+                   Connection(args.fd))
         return 0
-    records = publisher(args.count, args.nbytes)
-    warm = records[2 * min(10, args.count // 10):]  # first imports map files and warm caches
-    print(f"fast lane, full message, {args.nbytes} B tensor, {len(warm) // 2} messages "
-          f"(one in flight) and as many bare frames interleaved:")
-    print(table(warm))
+    records = publisher(args.count, args.nbytes, args.route, args.busy_poll)
+    per = 2 if args.route == "lane" else 1
+    warm = records[per * min(20, args.count // 10):]  # first imports map files, warm caches
+    what = ("loaned warp tensor over the fast lane" if args.route == "lane"
+            else "prepared CPU tensor over Zenoh")
+    print(f"{what}, {args.nbytes} B, {len(warm) // per} messages (one in flight):")
+    print(table(stage_figures(warm, args.route)))
     return 0
 
 

@@ -54,6 +54,7 @@ MAX_PAYLOAD = 8192
 #: Services and ports a lane service admits: publishers of one topic on this host per subscription.
 MAX_WRITERS = 32
 _OFF = {"0", "false", "off", "no"}
+_string_at = ctypes.string_at
 _SERVICE_ROOT = "warp_buffer"
 
 
@@ -261,13 +262,12 @@ class LaneReader:
         """The oldest waiting message (copied out, so iceoryx2's sample is released at once),
         or None."""
         with self._lock:
-            if self._subscriber is None:
-                return None
-            sample = self._subscriber.receive()
+            subscriber = self._subscriber
+            sample = None if subscriber is None else subscriber.receive()
             if sample is None:
                 return None
             try:
-                return ctypes.string_at(sample.payload_ptr, sample.header.number_of_elements)
+                return _string_at(sample.payload_ptr, sample.header.number_of_elements)
             finally:
                 sample.delete()
 
@@ -277,9 +277,8 @@ class LaneReader:
             return self._subscriber is not None and self._subscriber.has_samples()
 
     def consume_events(self) -> bool:
-        """Clear the pending wake-ups; True when there were any. Call it before draining (a
-        message written after the drain raises a new one) and again after, until it says
-        False: see :meth:`LaneWaker._deliver`."""
+        """Clear the pending wake-ups; True when there were any. Call it after draining, and
+        drain again until it says False: see :meth:`LaneWaker._deliver`."""
         with self._lock:
             return self.listener is not None and bool(self.listener.try_wait())
 
@@ -406,12 +405,11 @@ class LaneWaker:
             ready, _ = self._waitset.wait_and_process_with_timeout(
                 self._iox2.Duration.from_secs_f64(max(timeout, 0.0)))
         for attachment_id in ready:
-            if attachment_id == self._wake_id:
+            attachment = self._by_id.get(attachment_id)
+            if attachment is not None:
+                self._deliver(attachment)
+            elif attachment_id == self._wake_id:
                 self._consume_notification()
-            else:
-                attachment = self._by_id.get(attachment_id)
-                if attachment is not None:
-                    self._deliver(attachment)
         if not ready:
             # Timed out (the executor's tick): a safety net for a wake-up iceoryx2 lost (see
             # _deliver), so a message waits at most one tick instead of until the next one.
@@ -449,17 +447,21 @@ class LaneWaker:
 
     def _deliver(self, attachment: _Attachment) -> None:
         reader = attachment.reader
-        reader.consume_events()  # first: see consume_events
+        on_message = attachment.on_message
+        take = reader.take
         while True:
-            while (data := reader.take()) is not None:
+            # Messages first, their wake-ups after: the first callback runs without waiting
+            # for a syscall. A message written meanwhile either raised the wake-up consumed
+            # below (so we drain again) or raises a later one (the WaitSet wakes us for it).
+            while (data := take()) is not None:
                 try:
-                    attachment.on_message(data)
+                    on_message(data)
                 except Exception:  # one bad callback must not strand the messages behind it
                     _log.exception("lane callback of %r failed", reader)
             # iceoryx2 0.10 skips the wake-up datagram while its listener state says "notified";
-            # a notify racing our first try_wait can leave that state set with the datagram
-            # already consumed, and the next notify would then wake nobody. Another try_wait
-            # resets the state; it reports the racing notification, so we drain again.
+            # a notify racing a try_wait can leave that state set with the datagram already
+            # consumed, and the next notify would then wake nobody. Ending on a try_wait that
+            # found nothing resets the state; one that found something means drain again.
             if not reader.consume_events():
                 return
 

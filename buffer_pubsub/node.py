@@ -53,8 +53,8 @@ class Node:
     """A participant of the pub/sub graph.
 
     ``Node(name, config=None, namespace="", domain_id=None, *, router=None, backends=None,
-    executor="thread", waker=None, fast_lane=None)``: ``config`` is a ``zenoh.Config`` or the
-    path of a Zenoh JSON5 file, ``router`` a Zenoh router endpoint (see
+    executor="thread", waker=None, fast_lane=None, inline_callbacks=True)``: ``config`` is a
+    ``zenoh.Config`` or the path of a Zenoh JSON5 file, ``router`` a Zenoh router endpoint (see
     :mod:`buffer_pubsub.config` for the defaults); ``domain_id`` defaults to env
     ``ROS_DOMAIN_ID`` or 0; ``backends`` overrides the buffer backends (by default every
     backend registered in :mod:`rosidl_buffer.registry`, loaded once per process).
@@ -65,6 +65,10 @@ class Node:
     (:mod:`buffer_pubsub.fast_lane`); None follows env ``WARP_BUFFER_FAST_LANE`` (on by
     default). The lane's waker is then the executor's (lane callbacks run on the executor
     thread or in :meth:`spin`); a custom ``waker`` that is not a ``LaneWaker`` turns it off.
+    ``inline_callbacks`` (``executor="thread"`` only): a subscription whose callbacks proved
+    short runs them on the thread its Zenoh sample arrived on when nothing waits before it,
+    skipping the hand-off to the node's thread (:mod:`buffer_pubsub._inline`); False always
+    hands off. Either way one callback of the node runs at a time, in arrival order.
     Use as a context manager or call :meth:`close`, which undeclares everything.
     """
 
@@ -80,6 +84,7 @@ class Node:
         executor: str = "thread",
         waker: Waker | None = None,
         fast_lane: bool | None = None,
+        inline_callbacks: bool = True,
     ) -> None:
         self.name = validate_node_name(name)
         self.namespace = validate_namespace(namespace)
@@ -100,7 +105,11 @@ class Node:
         self._subscriptions: list[Subscription] = []
         self._own_lane = waker is None  # a LaneWaker the user gave stays the user's to close
         waker, self._lane = _lane_waker(waker, fast_lane)
-        self._executor = Executor(waker, self._housekeeping)
+        # executor="thread": a Zenoh sample may run its callback on its arrival thread (see
+        # buffer_pubsub._inline); the gate keeps one callback of the node at a time.
+        self._gate = threading.Lock() if executor == "thread" else None
+        self._inline_callbacks = executor == "thread" and bool(inline_callbacks)
+        self._executor = Executor(waker, self._housekeeping, self._gate)
         self._sweeper = _lane_routes.DeadPeerSweeper(self.locality)
         self._thread: threading.Thread | None = None
 

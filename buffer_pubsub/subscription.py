@@ -1,5 +1,7 @@
 """``Subscription``: receives on its channels, checks attachments, runs the callback on the
-node's executor.
+node's executor (or, when nothing waits before it, on the thread the message arrived on: the
+executor's own waiting thread for a lane message, Zenoh's for a sample whose subscription's
+callbacks proved short, see :mod:`._inline`; one callback of the node at a time either way).
 
 A subscription listens on ``<key>/_buf/<its gid>`` (payloads built for it) when it accepts some
 backend besides CPU, else on ``<key>/_buf_cpu`` (the shared CPU stream), and on the base key (see
@@ -40,6 +42,7 @@ from rosidl_buffer.messages import Message, deserialize_message, release_buffers
 
 from . import _lane_routes, _process, wire
 from ._info import endpoint_gone, endpoint_info
+from ._inline import InlinePolicy
 from ._zenoh import undeclare_quietly
 from .errors import PubSubError
 
@@ -123,6 +126,11 @@ class Subscription:
         self._parked: collections.deque[tuple[float, tuple[Any, ...]]] = collections.deque()
         self._last_sequence: dict[bytes, int] = {}
         self._closed = False
+        # Zenoh arrivals may run their callback on Zenoh's thread (see _inline) only when the
+        # node runs its own executor thread: with executor="manual" callbacks run in spin().
+        self._gate = node._gate
+        self._inline_arrivals = node._inline_callbacks
+        self._policy = InlinePolicy()
         self.base_key = wire.data_key(node.domain_id, token.topic, msg_type.__msgtype__)
         self._backends = tuple(node.backends.values())
         for backend in self._backends:
@@ -219,10 +227,13 @@ class Subscription:
                 return
         # ZBytes has no buffer protocol in zenoh 1.10: to_bytes() is the one copy out of Zenoh
         # (deserialization then aliases these bytes).
-        self._arrived((sample.payload.to_bytes(), attachment, route, received_ns, False))
+        self._arrived((sample.payload.to_bytes(), attachment, route, received_ns, False),
+                      self._inline_arrivals)
 
     def _on_lane(self, data: bytes) -> None:
-        """A lane message (on the executor thread or in spin(), inside the waker's wait)."""
+        """A lane message, on the waiting thread (the executor's, or the user's in spin()),
+        inside the waker's wait: when nothing waits before it, its callback runs right here
+        (no queue, no second pass through the executor)."""
         received_ns = time.time_ns()
         try:
             attachment, payload = _lane_routes.split_frame(data)
@@ -230,31 +241,41 @@ class Subscription:
             with self._lock:
                 self._refuse(REFUSED_ATTACHMENT)
             return
-        if _process.is_local_publisher(attachment.publisher_gid):
+        gid = attachment.publisher_gid
+        if _process.is_local_publisher(gid):
             return  # delivered intra-process already (never sent here; a forged frame)
-        self._arrived((payload, attachment, ROUTE_LANE, received_ns, False))
-
-    def _arrived(self, item: tuple[Any, ...]) -> None:
-        """A sample built for us waits (parked) for its publisher's token, which its
-        descriptors need; anything else is accepted at once."""
-        if item[2] in _DESCRIPTOR_ROUTES and \
-                self.node._publisher_token(item[1].publisher_gid) is None:
+        publisher = self.node._publisher_token(gid)
+        item = (payload, attachment, ROUTE_LANE, received_ns, False)
+        if publisher is None:
             self._park(item)
             return
-        self._accept(item)
+        self._accept(item, publisher, inline=True)
 
-    def _accept(self, item: tuple[Any, ...]) -> None:
+    def _arrived(self, item: tuple[Any, ...], inline: bool = False) -> None:
+        """A sample built for us waits (parked) for its publisher's token, which its
+        descriptors need; anything else is accepted at once (``inline``: see _enqueue)."""
+        publisher = None
+        if item[2] in _DESCRIPTOR_ROUTES:
+            publisher = self.node._publisher_token(item[1].publisher_gid)
+            if publisher is None:
+                self._park(item)
+                return
+        self._accept(item, publisher, inline)
+
+    def _accept(self, item: tuple[Any, ...], publisher: wire.EndpointToken | None = None,
+                inline: bool = False) -> None:
         """Queue an arrived sample; one built for us is deserialized now (descriptors imported,
-        holds taken) and queued as the message, released if it is dropped before delivery."""
+        holds taken) and queued as the message, released if it is dropped before delivery.
+        ``inline``: deliver at once if nothing waits (see :meth:`_enqueue`)."""
         payload, attachment, route, received_ns, _ = item
         if route in _DESCRIPTOR_ROUTES:
             try:
-                msg = self._deserialize(payload, attachment, route)
+                msg = self._deserialize(payload, attachment, route, publisher)
             except Exception as exc:  # typed errors expected; a backend bug is counted too
                 self._count_error(exc, attachment, arrived=True)
                 return
             item = (msg, attachment, route, received_ns, True)
-        self._enqueue(item)
+        self._enqueue(item, inline)
 
     def _count_error(self, exc: BaseException, attachment: wire.Attachment,
                      arrived: bool = False) -> None:
@@ -292,10 +313,18 @@ class Subscription:
             self.counters.sequence_jumps += 1
         last_seen[gid] = sequence
 
-    def _enqueue(self, item: tuple[Any, ...]) -> None:
+    def _enqueue(self, item: tuple[Any, ...], inline: bool = False) -> None:
         """Queue ``(payload or message, attachment, route, received_ns, owned)``; ``owned``:
-        a message decoded for us alone, whose buffers are released if it is dropped."""
+        a message decoded for us alone, whose buffers are released if it is dropped.
+
+        ``inline``: the arrival thread may run the callback itself when nothing waits before
+        it (this queue and the executor's ready set empty) and no other callback of the node
+        runs (the gate): the same order and one callback at a time, one thread hop less. A
+        lane message arrives on the executor's own waiting thread; a Zenoh sample on Zenoh's
+        thread, which only callbacks proved short may hold (:mod:`._inline`)."""
         evicted = None
+        run_now = False
+        gate = self._gate
         with self._lock:
             if self._closed:
                 closed = True
@@ -303,12 +332,29 @@ class Subscription:
                 closed = False
                 self._track_sequence(item[1])
                 queue = self._queue
-                if len(queue) == queue.maxlen:
-                    self.counters.dropped += 1
-                    evicted = queue[0]
-                queue.append(item)
-                schedule = not self._scheduled
-                self._scheduled = True
+                lane = item[2] == ROUTE_LANE
+                if (inline and not queue and not self.node._executor.has_ready()
+                        and (lane or self._policy.trusted)
+                        and (gate is None or gate.acquire(blocking=False))):
+                    run_now = lane or self._policy.arrived_inline()
+                    if not run_now:
+                        gate.release()  # type: ignore[union-attr]  # Zenoh arrivals have one
+                if not run_now:
+                    if len(queue) == queue.maxlen:
+                        self.counters.dropped += 1
+                        evicted = queue[0]
+                    queue.append(item)
+                    schedule = not self._scheduled
+                    self._scheduled = True
+        if run_now:
+            if lane:
+                self.node._executor.ran_inline()
+            try:
+                self._run_item(item, inline=True)
+            finally:
+                if gate is not None:
+                    gate.release()
+            return
         if closed:
             evicted = item
         elif schedule:
@@ -375,6 +421,11 @@ class Subscription:
             self._scheduled = again
         if again:  # others wait: take turns with the node's other subscriptions
             self.node._executor.schedule(self)
+        self._run_item((payload, attachment, route, received_ns, owned))
+
+    def _run_item(self, item: tuple[Any, ...], inline: bool = False) -> None:
+        """Deserialize a queued payload if it still is one, then run the callback."""
+        payload, attachment, route, received_ns, owned = item
         if owned or route == ROUTE_INTRA:
             msg = payload
         else:
@@ -389,6 +440,7 @@ class Subscription:
             return
         with self._lock:
             self.counters.received += 1
+        start = time.perf_counter()
         try:
             if self._with_info:
                 self._callback(msg, MessageInfo(
@@ -401,13 +453,15 @@ class Subscription:
                 self.counters.callback_errors += 1
             self.last_error = exc
             _log.exception("%r: callback raised", self)
+        self._policy.ran(time.perf_counter() - start, inline)
 
-    def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str) -> Message:
+    def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str,
+                     publisher: wire.EndpointToken | None = None) -> Message:
         # Only a payload built for us may hold descriptors, which need the publisher's info; it
         # was parked until the token arrived. CPU payloads need no publisher info.
         info = None
         if route in _DESCRIPTOR_ROUTES:
-            token = self.node._publisher_token(attachment.publisher_gid)
+            token = publisher or self.node._publisher_token(attachment.publisher_gid)
             info = None if token is None else endpoint_info(token)
         return deserialize_message(payload, self.msg_type, backends=self.node.backends,
                                    endpoint_info=info)

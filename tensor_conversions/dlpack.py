@@ -81,10 +81,10 @@ class TensorView:
         self.layout = layout
         self.writable = writable
         self.handle = handle
-        self._storage = storage  # 1-D uint8: NumPy (CPU storage) or wp.array (warp storage)
+        self._storage = storage  # 1-D uint8: NumPy (host memory) or wp.array (device memory)
         self._carrier: Any = None  # built on first use: a Warp consumer may never need NumPy's
-        if type(storage) is np.ndarray or storage.device.is_cpu:
-            self.device = "cpu"  # host memory (Warp's cpu device included)
+        if type(storage) is np.ndarray:
+            self.device = "cpu"  # CPU storage, or warp storage on Warp's cpu device
         else:
             self.device = str(storage.device)
             self._carrier = _warp_carrier(storage.ptr, storage.size, self.device, layout,
@@ -97,13 +97,7 @@ class TensorView:
         carrier = self._carrier
         if carrier is None:
             storage = self._storage
-            if type(storage) is np.ndarray:
-                carrier = _host_carrier(storage, self.layout, storage)
-            else:  # warp storage on Warp's cpu device: NumPy exports versioned, writable DLPack
-                owner = (storage, self.handle)
-                host = _host_bytes(storage.ptr, storage.size, owner=owner)
-                carrier = _host_carrier(host, self.layout, owner)
-            self._carrier = carrier
+            carrier = self._carrier = _host_carrier(storage, self.layout, storage)
         return carrier
 
     def warp_array(self) -> Any:
@@ -112,12 +106,9 @@ class TensorView:
         carrier = self._carrier
         if carrier is not None and type(carrier) is not np.ndarray:
             return carrier
-        storage = self._storage
-        if type(storage) is np.ndarray:
-            base = storage.ctypes.data if storage.size else 0
-            return _warp_carrier(base, storage.size, "cpu", self.layout, owner=storage)
-        return _warp_carrier(storage.ptr, storage.size, "cpu", self.layout,
-                             owner=(storage, self.handle))
+        storage = self._storage  # host memory (device memory has its Warp carrier already)
+        base = storage.ctypes.data if storage.size else 0
+        return _warp_carrier(base, storage.size, "cpu", self.layout, owner=storage)
 
     @property
     def dtype(self) -> DType:
@@ -251,7 +242,9 @@ def view_of(msg: Any, layout: TensorLayout, *, writable: bool, stream: Any = Non
         handle = open_write(msg, stream, replace_if_spent=replace_if_spent)
     else:
         handle = open_read(msg, stream)
-    return TensorView(handle.array, layout, writable=writable, handle=handle)
+    host = handle.host_array()  # host memory: NumPy over it, no wp.array (built if asked)
+    return TensorView(handle.array if host is None else host, layout, writable=writable,
+                      handle=handle)
 
 
 def output_view(msg: Any, stream: Any = None) -> TensorView:

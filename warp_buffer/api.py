@@ -19,6 +19,7 @@ read handle orders its stream after that record.
 
 from __future__ import annotations
 
+import ctypes
 import math
 import sys
 from collections.abc import Sequence
@@ -159,6 +160,23 @@ class _Handle:
             raise HandleError(f"the buffer's address is not aligned for {dtype}")
         return wp.array(ptr=base.ptr, dtype=dtype, shape=shape, device=base.device,
                         deleter=_KeepAlive(base))
+
+    def host_array(self) -> np.ndarray | None:
+        """The bytes as a 1-D uint8 NumPy array over the host memory itself (no copy) that keeps
+        this handle, and so the storage, alive; None when the storage is device memory.
+
+        What a host consumer (NumPy, or torch on cpu) needs, without a ``wp.array``: about 1 us
+        against about 10 for :attr:`array`, per frame. Its flags say writable (legacy DLPack
+        cannot carry read-only): an imported buffer's memory is mapped read-only, so treat it
+        as such.
+        """
+        impl = self._usable()
+        host = impl._host
+        if host is None:
+            return None
+        raw = (ctypes.c_uint8 * host.size).from_address(impl._ptr or host.ctypes.data)
+        raw._keep = (self, host)  # type: ignore[attr-defined]  # the handle and the memory
+        return np.frombuffer(raw, dtype=np.uint8)
 
     @property
     def ptr(self) -> int:

@@ -348,6 +348,10 @@ class WarpBufferImpl(BufferImplBase):
             self._published = True
 
     def _mark_read(self) -> None:
+        if self._import is not None:  # read-only from birth: no writer to seal, no lock needed
+            self._check_live()
+            self._read = True
+            return
         with self._lock:
             self._check_live()
             self._seal("read")
