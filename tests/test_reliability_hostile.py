@@ -262,6 +262,30 @@ def test_values_the_wire_cannot_carry_are_refused_by_the_backend(changes, expect
     del frame
 
 
+def test_a_capacity_larger_than_the_block_is_refused_at_any_alignment():
+    """A forged capacity twice the block's, at an offset aligned for it, passes the arena's
+    geometry checks and the block's generation check; without the capacity in the generation
+    the import would read the first bytes of the next block."""
+    frames = [good_frame(i) for i in range(4)]  # two of four consecutive blocks are 8 KiB aligned
+    aligned = [(frame, good) for frame, good in frames
+               if (good.offset - _arena_data_offset(good)) % (2 * BLOCK) == 0]
+    assert aligned, [good.offset for _, good in frames]
+    frame, good = aligned[0]
+    forged = mutated(good, capacity=2 * BLOCK, size=BLOCK + 1)
+    with pytest.raises(ExportBoundsError, match="capacity"):
+        BACKEND.from_descriptor_with_endpoint(forged, PUBLISHER)
+    imported = Buffer(BACKEND.from_descriptor_with_endpoint(good, PUBLISHER))
+    assert np.array_equal(imported.to_numpy(), pattern(9, frames.index((frame, good)), BLOCK))
+    imported.release()
+    del frames, aligned, frame
+
+
+def _arena_data_offset(desc: Any) -> int:
+    from warp_buffer.arena import current_arena
+
+    return current_arena().data_offset
+
+
 def test_a_foreign_publisher_and_a_wrong_type_are_refused():
     frame, good = good_frame(0)
     foreign = EndpointInfo(**{**{f: getattr(PUBLISHER, f) for f in (

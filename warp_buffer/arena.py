@@ -69,6 +69,18 @@ GENS_OFFSET = ACKS_OFFSET + MAX_PEERS * SLOT_STRIDE
 SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_SEAL
 MAGIC = b"WARPARN\x02"
 VERSION = 2
+#: A generation's low bits: log2 of the capacity of the block it was exported from, so an
+#: importer can tell that a descriptor's capacity is the block's own. The generation word of a
+#: block says nothing about the bytes after its first 4 KiB, so a forged larger capacity at a
+#: suitably aligned offset would otherwise pass every check and read the next block.
+GENERATION_ORDER_BITS = 6
+
+
+def generation_fits(generation: int, capacity: int) -> bool:
+    """Was ``generation`` issued for a block of ``capacity`` bytes?"""
+    return generation & ((1 << GENERATION_ORDER_BITS) - 1) == capacity.bit_length() - 1
+
+
 #: The header page, and the hello a peer receives with the fd: magic, version, owner pid,
 #: session tag, data offset, data bytes, file size.
 HELLO = struct.Struct("<8sIIQQQQ")
@@ -219,9 +231,10 @@ class Arena:
         with self._lock:
             self._buddy.free(offset - self.data_offset, capacity)
 
-    def new_generation(self, offset: int) -> int:
-        """Start an export of the block at ``offset``: a generation never used before."""
-        generation = next(self._generations)
+    def new_generation(self, offset: int, capacity: int) -> int:
+        """Start an export of the ``capacity``-byte block at ``offset``: a generation never used
+        before, whose low bits hold log2(capacity) (see :func:`generation_fits`)."""
+        generation = next(self._generations) << GENERATION_ORDER_BITS | capacity.bit_length() - 1
         self.gens[self.geometry.gen_index(offset)] = generation
         return generation
 

@@ -41,6 +41,7 @@ import warp as wp
 from rosidl_buffer import Buffer
 from rosidl_buffer.endpoint import local_host_id as _real_host_id
 
+from . import arena as _arena
 from . import attach as _attach
 from . import cuda as _cuda
 from . import descriptor as _desc
@@ -280,6 +281,9 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
         if arena.gens[arena.geometry.gen_index(offset)] != generation:
             raise StaleBufferError(f"block {offset:#x} of process {owner_pid} was recycled "
                                    "(a later publish reuses it)")
+        if not _arena.generation_fits(generation, capacity):
+            raise ExportBoundsError(f"descriptor of process {owner_pid}: capacity {capacity} "
+                                    f"is not that of block {offset:#x}")
         if cuda:
             return _import_cuda(descriptor, kind, capacity, size, device_word, handles, hold)
         return WarpBufferImpl.imported(arena.address(offset), size, _cpu_device(), hold,

@@ -122,7 +122,8 @@ class Block:
         """The generation of the current export, started on the first export of the lease."""
         if self.generation == 0:
             self.ensure_arena_range()
-            self.generation = self.arena.new_generation(self.offset)  # type: ignore[union-attr]
+            self.generation = self.arena.new_generation(  # type: ignore[union-attr]
+                self.offset, self.capacity)
         return self.generation
 
     def try_reclaim(self) -> bool:
