@@ -175,3 +175,32 @@ def test_manual_executor_never_runs_callbacks_on_arrival_threads(domain, topic):
 
 
 pytestmark = pytest.mark.multiprocess
+
+
+def test_a_callback_may_destroy_its_own_subscription_on_the_arrival_thread(domain, topic):
+    """A one-shot pattern: the first callback that runs inline on Zenoh's thread undeclares its
+    own subscriber there; nothing deadlocks, later frames reach nobody, the node closes."""
+    seen: list[int] = []
+    holder: dict = {}
+
+    def on_message(msg, info) -> None:
+        seen.append(info.sequence_number)
+        if "sub" in holder and threading.get_ident() != holder["node_thread"]:
+            holder.pop("sub").destroy()
+            holder["destroyed_at"] = info.sequence_number
+
+    started = time.monotonic()
+    with Node("oneshot_sub", domain_id=domain) as node:
+        holder["node_thread"] = node._thread.ident
+        holder["sub"] = node.create_subscription(TENSOR, topic, on_message, depth=COUNT,
+                                                 with_info=True)
+        pub = Child("pub", domain=domain, topic=topic, count=COUNT, size=256, backend="cpu",
+                    subscriptions=1, interval=0.005)
+        try:
+            pub.wait_ready()
+            pub.stop()
+        finally:
+            pub.close()
+    assert "destroyed_at" in holder, "no callback ran inline"
+    assert seen[-1] == holder["destroyed_at"]  # nothing delivered after the destroy
+    assert time.monotonic() - started < 30
