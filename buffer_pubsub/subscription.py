@@ -244,12 +244,7 @@ class Subscription:
         gid = attachment.publisher_gid
         if _process.is_local_publisher(gid):
             return  # delivered intra-process already (never sent here; a forged frame)
-        publisher = self.node._publisher_token(gid)
-        item = (payload, attachment, ROUTE_LANE, received_ns, False)
-        if publisher is None:
-            self._park(item)
-            return
-        self._accept(item, publisher, inline=True)
+        self._arrived((payload, attachment, ROUTE_LANE, received_ns, False), inline=True)
 
     def _arrived(self, item: tuple[Any, ...], inline: bool = False) -> None:
         """A sample built for us waits (parked) for its publisher's token, which its
