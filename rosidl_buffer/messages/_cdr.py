@@ -503,11 +503,11 @@ class _MessageCodec:
 
     def __init__(self, type_name: str) -> None:
         self.cls = get_message_type(type_name)
-        self.fields = [_make_field(spec) for spec in get_schema(type_name).fields]
-        # The same fields with every run of consecutive primitives grouped (see _PrimitiveRun).
+        fields = [_make_field(spec) for spec in get_schema(type_name).fields]
+        # The fields with every run of consecutive primitives grouped (see _PrimitiveRun).
         self.steps: list[Any] = []
         run: list[_Primitive] = []
-        for field in [*self.fields, None]:
+        for field in [*fields, None]:
             if type(field) is _Primitive:
                 run.append(field)
                 continue
@@ -549,7 +549,8 @@ def _codec_namespace(codec: _MessageCodec) -> dict[str, Any]:
             names = (step.name,)
         for name in names:  # the slot's own setter: no Message.__setattr__ per field
             namespace[f"set_{name}"] = codec.cls.__dict__[name].__set__
-            namespace[f"get_{name}"] = operator.attrgetter(name)  # see _get
+            if keyword.iskeyword(name):  # see _get
+                namespace[f"get_{name}"] = operator.attrgetter(name)
     return namespace
 
 
