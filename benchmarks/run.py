@@ -33,7 +33,9 @@ PLANS: dict[str, dict[str, Any]] = {
     "default": {"iterations": 300, "warmup": 5, "budget_s": 2.0, "timeout_s": 15.0,
                 "rate": {"nbytes": 4096, "count": 5000, "window": 8, "budget_s": 2.0},
                 "path_timeout_s": 150.0},
-    "quick": {"iterations": 40, "warmup": 2, "budget_s": 0.4, "timeout_s": 8.0,
+    # quick: up to 200 samples within the budget, so fast paths (the lane, iceoryx2) get a
+    # stable median; slow ones stop at the budget as before (3 samples at least).
+    "quick": {"iterations": 200, "warmup": 2, "budget_s": 0.4, "timeout_s": 8.0,
               "rate": {"nbytes": 4096, "count": 1000, "window": 8, "budget_s": 0.3},
               "path_timeout_s": 45.0},
 }

@@ -30,7 +30,9 @@ from .metadata import (
     write_metadata,
 )
 from .loan import loan_state, loaned_native
-from .storage import allocate_data, backend_of, live_write_handle, storage_device
+from .storage import allocate_data, backend_of, live_write_handle, open_read, storage_device
+
+from rosidl_buffer import CpuBufferImpl
 
 T = TypeVar("T")
 
@@ -54,6 +56,15 @@ class Adapter(Generic[T]):
     def stream(self, device: str) -> Any:
         """The ``wp.Stream`` the framework runs on for a CUDA ``device`` (None: Warp's current
         one); never called for cpu storage."""
+        return None
+
+    #: Whether :meth:`host_input` builds read-only views over host memory directly.
+    host_views = False
+
+    def host_input(self, storage: np.ndarray, layout: TensorLayout) -> T | None:
+        """A read-only zero-copy native of ``layout`` (whose ``numpy_args`` is not None) over
+        host ``storage`` (1-D uint8 that keeps the memory alive), or None for the general path;
+        called only when :attr:`host_views`."""
         return None
 
     def from_view(self, view: TensorView) -> T:
@@ -144,7 +155,26 @@ def from_output_tensor_msg(adapter: Adapter[T], msg: Any) -> T:
 
 
 def from_input_tensor_msg(adapter: Adapter[T], msg: Any, clone: bool = True) -> T:
-    return input_native(adapter, msg, layout_of(msg), clone)
+    layout = layout_of(msg)
+    if not clone and adapter.host_views and layout.numpy_args is not None:
+        # perf: the per-frame case of a subscriber (a received message in host memory) built
+        # straight over its bytes: no TensorView or DLPack round trip (~2.5 us instead of ~5 for
+        # CPU storage, ~5 instead of ~11 for warp storage on Warp's cpu device).
+        impl = msg.data.get_impl()
+        native = None
+        if type(impl) is CpuBufferImpl:
+            native = adapter.host_input(impl.view(), layout)
+        elif impl.get_backend_type() == "warp" and impl.device == "cpu":
+            handle = open_read(msg)  # the array keeps it, and so the storage, alive
+            try:
+                host = handle.host_array()
+                native = None if host is None else adapter.host_input(host, layout)
+            finally:
+                if native is None and handle is not live_write_handle(msg):
+                    handle.release()  # the general path below opens its own
+        if native is not None:
+            return native
+    return input_native(adapter, msg, layout, clone)
 
 
 def to_tensor_msg(adapter: Adapter[Any], msg_or_value: Any, value: Any = None, *,

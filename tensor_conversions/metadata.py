@@ -17,7 +17,7 @@ import numpy as np
 from rosidl_buffer.messages import get_message_type
 
 from .dtypes import DType, dtype_from_metadata
-from .errors import InvalidTensorMetadataError, WrongMessageTypeError
+from .errors import InvalidTensorMetadataError, UnsupportedDTypeError, WrongMessageTypeError
 
 __all__ = [
     "TENSOR_MSG_TYPE",
@@ -119,6 +119,18 @@ class TensorLayout:
         """Smallest ``len(data)`` that holds this layout."""
         return self.byte_offset + self.span_bytes
 
+    @_cached  # perf: layouts are immutable; computed once, not per access
+    def numpy_args(self) -> tuple[Any, ...] | None:
+        """``(shape, np.dtype, byte_offset, byte_strides)`` for ``np.ndarray`` over the bytes,
+        or None where NumPy cannot carry it (bfloat16, an empty tensor)."""
+        if self.numel == 0:
+            return None
+        try:
+            dtype = self.dtype.numpy_dtype()
+        except UnsupportedDTypeError:
+            return None
+        return self.shape, dtype, self.byte_offset, self.byte_strides
+
     @classmethod
     def contiguous(cls, dtype: DType, shape: Sequence[int]) -> TensorLayout:
         dims = normalize_shape(shape)
@@ -159,6 +171,7 @@ def check_tensor_msg(msg: Any) -> None:
 # A layout is validated once per distinct metadata, not once per frame: the memo is keyed by the
 # metadata values and the data size (never by object identity) and bounded.
 _LAYOUTS: dict[tuple[Any, ...], TensorLayout] = {}
+_INT64 = np.dtype(np.int64)
 _MAX_LAYOUTS = 256
 
 
@@ -170,8 +183,14 @@ def layout_of(msg: Any) -> TensorLayout:
     :class:`InvalidTensorMetadataError` for inconsistent shape/strides/byte_offset.
     """
     check_tensor_msg(msg)
-    key = (msg.dtype_code, msg.dtype_bits, msg.dtype_lanes, _ints(msg.shape, "shape"),
-           _ints(msg.strides, "strides"), msg.byte_offset, len(msg.data))
+    shape, strides = msg.shape, msg.strides
+    if (type(shape) is np.ndarray and type(strides) is np.ndarray and shape.dtype is _INT64
+            and strides.dtype is _INT64 and shape.ndim == 1 and strides.ndim == 1):
+        dims, steps = tuple(shape.tolist()), tuple(strides.tolist())  # perf: the decoded form
+    else:
+        dims, steps = _ints(shape, "shape"), _ints(strides, "strides")
+    key = (msg.dtype_code, msg.dtype_bits, msg.dtype_lanes, dims, steps, msg.byte_offset,
+           len(msg.data))
     found = _LAYOUTS.get(key)
     if found is None:
         found = _validate(*key)

@@ -19,6 +19,7 @@ from . import image as _image
 from . import pointcloud as _pointcloud
 from .dlpack import TensorView, import_warp, warp_dtype
 from .dtypes import DType, dtype_from_numpy
+from .metadata import TensorLayout
 from .errors import UnsupportedBackendError, UnsupportedValueError
 
 __all__ = [
@@ -52,6 +53,14 @@ class _NumpyAdapter(_api.Adapter[np.ndarray]):
             raise UnsupportedBackendError(
                 f"NumPy cannot address {device} memory; use clone=True for a host copy, "
                 "or the torch/warp module")
+
+    host_views = True
+
+    def host_input(self, storage: np.ndarray, layout: TensorLayout) -> np.ndarray:
+        shape, dtype, offset, strides = layout.numpy_args
+        array = np.ndarray(shape, dtype, buffer=storage, offset=offset, strides=strides)
+        array.flags.writeable = False
+        return array
 
     def from_view(self, view: TensorView) -> np.ndarray:
         _host_only(view, "zero-copy view")
