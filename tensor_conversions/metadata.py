@@ -149,10 +149,14 @@ def _ints(value: Any, field: str) -> tuple[int, ...]:
     if type(value) is np.ndarray and value.dtype.kind in "iu":
         return tuple(value.reshape(-1).tolist())  # one C call for the usual int64 field
     try:
-        return tuple(int(v) for v in np.asarray(value).reshape(-1))
-    except (TypeError, ValueError):
-        raise InvalidTensorMetadataError(
-            f"{field} must be a sequence of ints, got {value!r}") from None
+        items = np.asarray(value).reshape(-1).tolist()
+        ints = tuple(int(v) for v in items)
+    except (TypeError, ValueError, OverflowError):
+        ints = None
+    # int() would truncate 2.5 to 2: a fractional dimension is an error, not a smaller tensor
+    if ints is None or any(i != v for i, v in zip(ints, items)):
+        raise InvalidTensorMetadataError(f"{field} must be a sequence of ints, got {value!r}")
+    return ints
 
 
 _TENSOR_CLASS: list[type] = []
