@@ -440,3 +440,56 @@ def test_a_forked_child_leaves_its_parents_lane_alone() -> None:
     finally:
         writer.close()
         reader.close()
+
+
+@requires_iceoryx2
+@pytest.mark.parametrize("attached", [False, True], ids=["queue-mode", "waitset-mode"])
+def test_waker_wakes_for_every_notify_and_idles_after_them(attached: bool) -> None:
+    """With no reader attached a wait blocks on a queue, with one on the WaitSet: in both, and
+    while readers come and go, each notify wakes the sleeping waiter at once, and no stale
+    wake-up is left to make the next idle wait return early (a busy loop)."""
+    waker = fast_lane.LaneWaker()
+    reader = fast_lane.LaneReader(route())
+    acked = threading.Event()
+    stop = threading.Event()
+
+    def waiter() -> None:
+        while not stop.is_set():
+            waker.wait(3.0)  # a lost wake-up costs this whole timeout
+            acked.set()
+
+    thread = threading.Thread(target=waiter)
+    try:
+        if attached:
+            waker.attach(reader, lambda _: None)
+        thread.start()
+        worst = 0.0
+        for i in range(60):
+            if i % 10 == 5:  # switch modes between notifies
+                waker.detach(reader) if attached else waker.attach(reader, lambda _: None)
+                attached = not attached
+                time.sleep(0.01)
+            time.sleep(0.003)  # let the waiter fall asleep again
+            acked.clear()
+            started = time.monotonic()
+            waker.notify()
+            assert acked.wait(5.0)
+            worst = max(worst, time.monotonic() - started)
+        assert worst < 1.0, f"a notify took {worst:.2f} s to wake the waiter"
+    finally:
+        stop.set()
+        waker.notify()
+        thread.join(5)
+    try:
+        # a count left on the eventfd by a notify whose flag was already consumed: the WaitSet
+        # reports it once, the waker reads it, and the next idle wait sleeps its full timeout
+        waker.attach(reader, lambda _: None)
+        waker.wait(0.0)
+        os.eventfd_write(waker._eventfd, 1)
+        waker.wait(0.3)
+        idle = time.monotonic()
+        waker.wait(0.3)
+        assert time.monotonic() - idle >= 0.25
+    finally:
+        waker.close()
+        reader.close()
