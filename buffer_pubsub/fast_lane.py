@@ -401,6 +401,7 @@ class LaneWaker:
         finally:
             with self._lock:
                 self._waiter = None
+                self._queue_mode = False  # also after a KeyboardInterrupt inside the wait
                 release = self._closed
             if release:
                 self._release()
@@ -413,7 +414,8 @@ class LaneWaker:
         if self._queue_mode:
             try:
                 if not self._notified:  # read after the mode is set: a notify is seen or queued
-                    self._queue.get(timeout=timeout)
+                    self._queue.get(timeout=None if timeout is None else
+                                    min(max(timeout, 0.0), threading.TIMEOUT_MAX))
             except queue.Empty:
                 pass
             finally:

@@ -165,6 +165,7 @@ def from_input_tensor_msg(adapter: Adapter[T], msg: Any, clone: bool = True) -> 
         if type(impl) is CpuBufferImpl:
             native = adapter.host_input(impl.view(), layout)
         elif impl.get_backend_type() == "warp" and impl.device == "cpu":
+            adapter.check_dtype(layout.dtype)  # before the read: a refusal consumes nothing
             handle = open_read(msg)  # the array keeps it, and so the storage, alive
             try:
                 host = handle.host_array()

@@ -287,20 +287,32 @@ def test_busy_poll_delivers_without_blocking() -> None:
 
 
 @requires_iceoryx2
-def test_ctrl_c_interrupts_a_wait() -> None:
-    """iceoryx2 leaves SIGINT to Python: a KeyboardInterrupt ends a wait at once."""
+@pytest.mark.parametrize("attached", [False, True], ids=["queue-mode", "waitset-mode"])
+def test_ctrl_c_interrupts_a_wait(attached: bool) -> None:
+    """iceoryx2 leaves SIGINT to Python: a KeyboardInterrupt ends a wait at once, whether it
+    blocks on the queue (no reader attached) or on the WaitSet; the waker still works after."""
     waker = fast_lane.LaneWaker()
+    reader = fast_lane.LaneReader(route())
     timer = threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGINT))
-    started = time.monotonic()
     try:
+        if attached:
+            waker.attach(reader, lambda _: None)
+            waker.wait(0.0)
+        started = time.monotonic()
         timer.start()
         with pytest.raises(KeyboardInterrupt):
             waker.wait(5.0)
             time.sleep(1.0)  # a signal handled after the wait would still raise here
         assert time.monotonic() - started < 1.0
+        threading.Timer(0.05, waker.notify).start()
+        started = time.monotonic()
+        waker.wait(5.0)  # the next notify wakes the next wait
+        assert time.monotonic() - started < 1.0
+        waker.wait(-0.5)  # a deadline already past returns at once, in either mode
     finally:
         timer.cancel()
         waker.close()
+        reader.close()
 
 
 def test_service_name_is_stable_and_hashed_when_too_long() -> None:
@@ -490,6 +502,25 @@ def test_waker_wakes_for_every_notify_and_idles_after_them(attached: bool) -> No
         idle = time.monotonic()
         waker.wait(0.3)
         assert time.monotonic() - idle >= 0.25
+    finally:
+        waker.close()
+        reader.close()
+
+
+@requires_iceoryx2
+def test_close_wakes_a_wait_on_the_waitset() -> None:
+    """With a reader attached the wait blocks on the WaitSet: a close from another thread wakes
+    it, and the waiting thread releases the WaitSet."""
+    waker = fast_lane.LaneWaker()
+    reader = fast_lane.LaneReader(route())
+    try:
+        waker.attach(reader, lambda _: None)
+        waker.wait(0.0)
+        threading.Timer(0.05, waker.close).start()
+        started = time.monotonic()
+        waker.wait(5.0)
+        waker.wait(5.0)  # closed: returns at once
+        assert time.monotonic() - started < 1.0
     finally:
         waker.close()
         reader.close()
