@@ -17,6 +17,7 @@ Per publish:
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
@@ -57,13 +58,13 @@ def seal_and_list_backends(msg: Message,
     if not buffers:
         return _NO_BACKENDS, 0
     if len(buffers) == 1:  # the common case: one buffer, its backend's set made once
-        buffer = buffers[0]
-        buffer.seal()
-        name = buffer.get_backend_type()
+        impl = buffers[0].get_impl()  # perf: its impl's methods, without Buffer's forwarding
+        impl.seal()
+        name = impl.get_backend_type()
         backends = _ONE_BACKEND.get(name)
         if backends is None:
             backends = _ONE_BACKEND.setdefault(name, frozenset((name,)))
-        return backends, len(buffer)
+        return backends, impl.size()
     nbytes = 0
     for buffer in buffers:
         buffer.seal()
@@ -128,7 +129,9 @@ class Publisher:
         self._lock = threading.Lock()
         self._ready = threading.Condition(self._lock)  # a peer's route settled, or it left
         self._peers: dict[bytes, _Peer] = {}
-        self._sequence = 0
+        # next() of a count is atomic under the GIL: sequence numbers need no lock per publish
+        self._sequences = itertools.count(1)
+        self._sequence = 0  # the last one used
         self._closed = False
         # As rmw_zenoh: keep-last drops when Zenoh's queue to a peer is full (a frozen
         # subscriber never stalls publish()), keep-all blocks (no loss, publish() waits).
@@ -283,12 +286,12 @@ class Publisher:
                 f"publisher of {self.msg_type.__msgtype__} got {type(msg).__name__}")
         validate_message(msg)
         backends, nbytes = seal_and_list_backends(msg, self._flat_buffers)  # the write ends
-        with self._lock:
-            if self._closed:
-                raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
-            self._sequence += 1
-            sequence = self._sequence
-            remote = self._remote
+        # perf: no lock here. A flag and a tuple read are atomic, and a destroy() racing this
+        # publish is no different from one that comes right after the check.
+        if self._closed:
+            raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
+        remote = self._remote
+        self._sequence = sequence = next(self._sequences)
         attachment = wire.Attachment(sequence, time.time_ns(), self.gid)
         if not remote:
             self._publish_intra(msg, backends, attachment)
