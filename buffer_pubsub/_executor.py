@@ -84,7 +84,7 @@ class Executor:
             except IndexError:
                 break
             gate = self._gate
-            if gate is not None:
+            if gate is not None and not gate.acquire(blocking=False):
                 while not gate.acquire(timeout=self.GATE_POLL_S):  # a callback runs elsewhere
                     if self._stopped:
                         ready.appendleft(item)

@@ -394,6 +394,10 @@ class LaneWaker:
             if self._closed:
                 return
             self._waiter = threading.get_ident()
+            # Nothing attached and nothing to attach: block on the queue (see notify). Decided
+            # here, under the lock notify() takes, so no wake-up is lost in between.
+            self._queue_mode = (not self._attached and not self._pending
+                                and not self.busy_poll_s)
         try:
             self._apply_pending()
             self._wait_once(timeout)
@@ -409,18 +413,13 @@ class LaneWaker:
     def _wait_once(self, timeout: float | None) -> None:
         if self.busy_poll_s > 0 and self._spin(timeout):
             return
-        with self._lock:
-            self._queue_mode = not self._attached and not self._pending and not self._closed
-        if self._queue_mode:
+        if self._queue_mode:  # set by wait(); reset in its finally
             try:
                 if not self._notified:  # read after the mode is set: a notify is seen or queued
                     self._queue.get(timeout=None if timeout is None else
                                     min(max(timeout, 0.0), threading.TIMEOUT_MAX))
             except queue.Empty:
                 pass
-            finally:
-                with self._lock:
-                    self._queue_mode = False
             self._consume_notification()
             return
         if self._notified:  # notified before we got here: no need to sleep

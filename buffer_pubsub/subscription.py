@@ -411,12 +411,12 @@ class Subscription:
             if self._closed or not self._queue:
                 self._scheduled = False
                 return
-            payload, attachment, route, received_ns, owned = self._queue.popleft()
+            item = self._queue.popleft()
             again = bool(self._queue)
             self._scheduled = again
         if again:  # others wait: take turns with the node's other subscriptions
             self.node._executor.schedule(self)
-        self._run_item((payload, attachment, route, received_ns, owned))
+        self._run_item(item)
 
     def _run_item(self, item: tuple[Any, ...], inline: bool = False) -> None:
         """Deserialize a queued payload if it still is one, then run the callback."""
