@@ -160,12 +160,12 @@ def from_input_tensor_msg(adapter: Adapter[T], msg: Any, clone: bool = True) -> 
         # perf: the per-frame case of a subscriber (a received message in host memory) built
         # straight over its bytes: no TensorView or DLPack round trip (~2.5 us instead of ~5 for
         # CPU storage, ~5 instead of ~11 for warp storage on Warp's cpu device).
+        adapter.check_dtype(layout.dtype)  # the general path's typed error, before any read
         impl = msg.data.get_impl()
         native = None
         if type(impl) is CpuBufferImpl:
             native = adapter.host_input(impl.view(), layout)
         elif impl.get_backend_type() == "warp" and impl.device == "cpu":
-            adapter.check_dtype(layout.dtype)  # before the read: a refusal consumes nothing
             handle = open_read(msg)  # the array keeps it, and so the storage, alive
             try:
                 host = handle.host_array()

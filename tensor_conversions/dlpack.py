@@ -207,10 +207,7 @@ def _host_carrier(storage: np.ndarray, layout: TensorLayout, owner: Any) -> Any:
     if layout.dtype.code == DLDataTypeCode.BFLOAT:  # NumPy has no bfloat16
         base = storage.ctypes.data if storage.size else 0
         return _warp_carrier(base, storage.size, "cpu", layout, owner=owner)
-    if layout.numel == 0:
-        return np.empty(layout.shape, dtype=layout.dtype.numpy_dtype())
-    return np.ndarray(layout.shape, dtype=layout.dtype.numpy_dtype(), buffer=storage,
-                      offset=layout.byte_offset, strides=layout.byte_strides)
+    return layout.ndarray_over(storage)
 
 
 def _warp_carrier(base_ptr: int, nbytes: int, device: str, layout: TensorLayout, owner: Any) -> Any:

@@ -131,6 +131,15 @@ class TensorLayout:
             return None
         return self.shape, dtype, self.byte_offset, self.byte_strides
 
+    def ndarray_over(self, storage: np.ndarray) -> np.ndarray:
+        """This layout as an ``np.ndarray`` over host ``storage`` (1-D uint8, no copy); an empty
+        tensor is a new empty array, a dtype NumPy lacks raises :class:`UnsupportedDTypeError`."""
+        args = self.numpy_args
+        if args is None:
+            return np.empty(self.shape, dtype=self.dtype.numpy_dtype())
+        shape, dtype, offset, strides = args
+        return np.ndarray(shape, dtype, buffer=storage, offset=offset, strides=strides)
+
     @classmethod
     def contiguous(cls, dtype: DType, shape: Sequence[int]) -> TensorLayout:
         dims = normalize_shape(shape)

@@ -57,8 +57,7 @@ class _NumpyAdapter(_api.Adapter[np.ndarray]):
     host_views = True
 
     def host_input(self, storage: np.ndarray, layout: TensorLayout) -> np.ndarray:
-        shape, dtype, offset, strides = layout.numpy_args
-        array = np.ndarray(shape, dtype, buffer=storage, offset=offset, strides=strides)
+        array = layout.ndarray_over(storage)
         array.flags.writeable = False
         return array
 

@@ -87,10 +87,7 @@ class _TorchAdapter(_api.Adapter[torch.Tensor]):
         # (from_numpy would warn).
         if not storage.flags.writeable:
             return None
-        dtype_to_torch(layout.dtype)  # the typed error of the general path for what torch lacks
-        shape, dtype, offset, strides = layout.numpy_args
-        return torch.from_numpy(np.ndarray(shape, dtype, buffer=storage, offset=offset,
-                                           strides=strides))
+        return torch.from_numpy(layout.ndarray_over(storage))
 
     def from_view(self, view: TensorView) -> torch.Tensor:
         return view.reshape_result(torch.from_dlpack(view))
