@@ -251,7 +251,14 @@ class WarpBufferImpl(BufferImplBase):
     def seal(self) -> None:
         """End the write now (the transport calls it on every publish route): an open write
         handle is closed and its completion recorded; no write afterwards."""
+        if self._sealed_host():
+            return  # sealed already (every route seals; the first one did the work)
         self._mark_published()
+
+    def _sealed_host(self) -> bool:
+        """Host memory already published with no writer: sealing again would change nothing
+        (read without the lock: no write handle opens once published)."""
+        return self._published and self._writer is None and self._host is not None
 
     def release(self) -> None:
         """Drop an import's hold on the publisher's block now (idempotent); the imported buffer

@@ -125,8 +125,7 @@ class LoanedBufferImpl(WarpBufferImpl):
     def seal(self) -> None:
         """End the write (publish) and make the pages read-only in this process (CUDA: record
         the write's completion on the device's current stream)."""
-        if self._protected or (self._published and self._writer is None
-                               and self._pages is None and self._host is not None):
+        if self._protected or (self._pages is None and self._sealed_host()):
             return  # sealed already (every route seals; the first one did the work)
         with self._lock:
             if self._writer is None and self._host is None:
