@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
-from rosidl_buffer import Buffer, EndpointInfo
+from rosidl_buffer import Buffer, BufferImplBase, EndpointInfo
 from rosidl_buffer.messages import Message, deserialize_message, iter_buffers, serialize_message
 
 from . import _lane_routes, _process, fast_lane, wire
@@ -47,16 +47,17 @@ _log = logging.getLogger(__name__)
 _BUFFER_AWARE_ENCODING = zenoh.Encoding.APPLICATION_CDR.with_schema(wire.BUFFER_AWARE_SCHEMA)
 
 
-def seal_and_list_backends(msg: Message,
-                           flat: tuple[str, ...] | None) -> tuple[frozenset[str], int]:
+def seal_and_list_backends(msg: Message, flat: tuple[str, ...] | None
+                           ) -> tuple[frozenset[str], int, tuple[BufferImplBase, ...]]:
     """Seal every buffer of ``msg`` (once per publish, every route); return the backend names
-    they live in and their total size in bytes, in one walk."""
+    they live in, their total size in bytes and their impls (for ``end_publish``), in one
+    walk."""
     if flat is not None:
         buffers: Any = [getattr(msg, name) for name in flat]
     else:
         buffers = list(iter_buffers(msg))
     if not buffers:
-        return _NO_BACKENDS, 0
+        return _NO_BACKENDS, 0, ()
     if len(buffers) == 1:  # the common case: one buffer, its backend's set made once
         impl = buffers[0].get_impl()  # perf: its impl's methods, without Buffer's forwarding
         impl.seal()
@@ -64,12 +65,13 @@ def seal_and_list_backends(msg: Message,
         backends = _ONE_BACKEND.get(name)
         if backends is None:
             backends = _ONE_BACKEND.setdefault(name, frozenset((name,)))
-        return backends, impl.size()
+        return backends, impl.size(), (impl,)
     nbytes = 0
     for buffer in buffers:
         buffer.seal()
         nbytes += len(buffer)
-    return frozenset(buffer.get_backend_type() for buffer in buffers), nbytes
+    return (frozenset(buffer.get_backend_type() for buffer in buffers), nbytes,
+            tuple(buffer.get_impl() for buffer in buffers))
 
 
 _NO_BACKENDS: frozenset[str] = frozenset()
@@ -285,19 +287,23 @@ class Publisher:
             raise InvalidEndpointError(
                 f"publisher of {self.msg_type.__msgtype__} got {type(msg).__name__}")
         validate_message(msg)
-        backends, nbytes = seal_and_list_backends(msg, self._flat_buffers)  # the write ends
-        # perf: no lock here. A flag and a tuple read are atomic, and a destroy() racing this
-        # publish is no different from one that comes right after the check.
-        if self._closed:
-            raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
-        remote = self._remote
-        self._sequence = sequence = next(self._sequences)
-        attachment = wire.Attachment(sequence, time.time_ns(), self.gid)
-        if not remote:
-            self._publish_intra(msg, backends, attachment)
-            return
-        with self._out_lock:
-            self._publish_remote(msg, backends, nbytes, attachment, remote)
+        backends, nbytes, impls = seal_and_list_backends(msg, self._flat_buffers)  # write ends
+        try:
+            # perf: no lock here. A flag and a tuple read are atomic, and a destroy() racing
+            # this publish is no different from one that comes right after the check.
+            if self._closed:
+                raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
+            remote = self._remote
+            self._sequence = sequence = next(self._sequences)
+            attachment = wire.Attachment(sequence, time.time_ns(), self.gid)
+            if not remote:
+                self._publish_intra(msg, backends, attachment)
+                return
+            with self._out_lock:
+                self._publish_remote(msg, backends, nbytes, attachment, remote)
+        finally:
+            for impl in impls:  # after the sends: readers are on their way meanwhile
+                impl.end_publish()
 
     def _publish_remote(self, msg: Message, backends: frozenset[str], nbytes: int,
                         attachment: wire.Attachment, peers: tuple[_Peer, ...]) -> None:

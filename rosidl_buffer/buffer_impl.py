@@ -51,6 +51,12 @@ class BufferImplBase(abc.ABC):
         a backend that orders writes (an event, a write handle) closes them here. Idempotent.
         """
 
+    def end_publish(self) -> None:
+        """Every route of a publish has sent the message (called once per publish, after
+        :meth:`seal` and the last send, also when sending failed). A backend that fences off
+        writes through views kept past publish does it here, off the path a reader waits on
+        (warp_buffer makes a loan's pages read-only). Default: nothing."""
+
     def release(self) -> None:
         """Give back what this impl holds (shared-memory holds, device memory) now, rather than
         when it is garbage collected. Idempotent; data access afterwards raises a backend error.

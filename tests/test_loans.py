@@ -88,7 +88,9 @@ def test_warp_reclaim_rearms_a_published_buffer_and_unprotects_it():
     assert isinstance(impl, LoanedBufferImpl)
     impl._host[:] = 7
     buffer.seal()
-    assert impl.is_published and impl.is_protected
+    assert impl.is_published and not impl.is_protected  # until every route has sent it
+    impl.end_publish()
+    assert impl.is_protected
     assert int(impl._host[0]) == 7  # still readable
     assert impl.reclaim()
     assert not impl.is_published and not impl.is_protected
@@ -104,6 +106,7 @@ def test_a_loan_protects_its_own_window_onto_the_pages_it_uses():
     assert impl._pages.nbytes == 3 * mmap.PAGESIZE < block.capacity
     impl._host[:] = 4
     buffer.seal()
+    impl.end_publish()
     assert impl.is_protected
     assert int(block.host[8999]) == 4  # the same bytes, seen through the arena's mapping
     block.host[block.capacity - 1] = 1  # which is never protected (a fault kills the test)
@@ -122,9 +125,11 @@ def test_without_a_window_the_block_is_protected_in_place(monkeypatch):
     block = impl._block
     assert impl._ptr == block.data_ptr and impl._pages.nbytes == 2 * mmap.PAGESIZE
     buffer.seal()
+    impl.end_publish()
     assert impl.is_protected
     assert impl.reclaim() and not impl.is_protected
     buffer.seal()
+    impl.end_publish()
     del buffer, impl
     gc.collect()
     block.host[:] = 3  # returned to the pool writable though the last loan left it protected
@@ -136,6 +141,7 @@ def test_no_window_and_no_protection_when_turned_off(monkeypatch):
     impl = buffer.get_impl()
     assert impl._ptr == impl._block.data_ptr and impl._pages is None
     buffer.seal()
+    impl.end_publish()
     assert impl.is_published and not impl.is_protected
 
 
@@ -299,6 +305,43 @@ _STALE_CHILD = textwrap.dedent("""
         out[5] = 2.0  # writing through it after publish must not happen
         print("WROTE", flush=True)
 """)
+
+
+class _RecordingImpl(CpuBufferImpl):
+    """CPU storage that records when the transport seals it and ends its publish."""
+
+    def __init__(self, events: list[str]) -> None:
+        super().__init__(np.zeros(16, np.uint8))
+        self.events = events
+
+    def seal(self) -> None:
+        self.events.append("seal")
+
+    def end_publish(self) -> None:
+        self.events.append("end_publish")
+
+
+def test_publish_ends_the_write_before_the_sends_and_fences_after_them(domain, topic, backends):
+    events: list[str] = []
+    msg = get_message_type(TENSOR)(dtype_code=1, dtype_bits=8, dtype_lanes=1, shape=[16],
+                                   data=Buffer(_RecordingImpl(events)))
+    with Node("loan_order", domain_id=domain, backends=backends, executor="manual") as node:
+        sub = node.create_subscription(TENSOR, topic, lambda m: None)
+        pub = node.create_publisher(TENSOR, topic)
+        deliver = sub._deliver_intra
+
+        def recorded(*args):
+            events.append("send")
+            deliver(*args)
+
+        sub._deliver_intra = recorded
+        pub.publish(msg)
+        assert events == ["seal", "send", "end_publish"]
+        events.clear()
+        pub.destroy()
+        with pytest.raises(Exception, match="closed"):
+            pub.publish(msg)  # a publish that fails after the seal still ends it
+        assert events == ["seal", "end_publish"]
 
 
 def test_writing_through_a_view_kept_past_publish_faults(domain, topic):

@@ -13,7 +13,9 @@ again when the block is re-loaned and when it goes back to the pool. Blocks whos
 page-aligned (never the case for the arena) and CUDA memory are not protected: there, a view
 kept past publish must not be written (documented on ``loan``).
 
-The protection costs two ``mprotect`` calls per loan, on the pages the buffer's bytes cover
+The pages turn read-only at :meth:`LoanedBufferImpl.end_publish`, which the publisher calls once
+every route has sent the message (still inside ``publish()``), so the call is not on the path a
+reader waits on. The protection costs two ``mprotect`` calls per loan, on the pages the buffer's bytes cover
 (not the whole block). They act on the loan's own mapping of its block (a *window*: one more
 ``mmap`` of the arena's memfd at the block's offset, made once per pooled buffer, unmapped when
 the buffer and its arrays are gone): every view, the impl's own arrays included, is built over
@@ -123,9 +125,9 @@ class LoanedBufferImpl(WarpBufferImpl):
         return impl
 
     def seal(self) -> None:
-        """End the write (publish) and make the pages read-only in this process (CUDA: record
-        the write's completion on the device's current stream)."""
-        if self._protected or (self._pages is None and self._sealed_host()):
+        """End the write (publish; CUDA: record the write's completion on the stream the loan's
+        views write on). The pages turn read-only at :meth:`end_publish`."""
+        if self._sealed_host():
             return  # sealed already (every route seals; the first one did the work)
         with self._lock:
             if self._writer is None and self._host is None:
@@ -133,8 +135,16 @@ class LoanedBufferImpl(WarpBufferImpl):
                 # queued on the stream they write on (write_on), else Warp's current stream
                 self._complete_write(self._write_stream)
             self._mark_published()
-            pages = self._pages
-            if pages is not None and not self._protected:
+
+    def end_publish(self) -> None:
+        """The message left on every route: make the pages read-only in this process now. The
+        publisher's thread is still inside ``publish()``, so no write of its own comes between,
+        and the ``mprotect`` (6-10 us after a sleep) runs while readers already wake."""
+        pages = self._pages
+        if pages is None or self._protected:
+            return
+        with self._lock:
+            if self._published and not self._protected:
                 _protect(pages.addr, pages.nbytes, False)
                 self._protected = True
 
