@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from . import memory
+from ._env import env_float
 
 __all__ = [
     "MIN_BLOCK",
@@ -89,10 +90,7 @@ SEQ_BITS = 40  # a delivery sequence is epoch << SEQ_BITS | number
 
 def arena_bytes() -> int:
     """Data bytes of a new arena: ``WARP_BUFFER_ARENA_GIB`` (default 64) GiB, a power of two."""
-    try:
-        gib = float(os.environ.get("WARP_BUFFER_ARENA_GIB", "64"))
-    except ValueError:
-        gib = 64.0
+    gib = env_float("WARP_BUFFER_ARENA_GIB", 64.0)
     wanted = max(MIN_BLOCK * 16, int(gib * (1 << 30)))
     return 1 << (wanted.bit_length() - 1)
 

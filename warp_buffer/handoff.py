@@ -37,6 +37,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from ._env import env_float
 from .arena import HELLO, MAGIC, SEALS, VERSION, Arena, Geometry, alive
 from .errors import DescriptorError, ExportError, ForeignExportError, StaleBufferError
 
@@ -67,10 +68,7 @@ def socket_name(uid: int, pid: int, session: int) -> bytes:
 def linger_s() -> float:
     """``WARP_BUFFER_EXIT_LINGER_S`` (default 2): how long a cleanly exiting publisher keeps
     serving peers that were sent descriptors but never fetched the arena."""
-    try:
-        return max(0.0, float(os.environ.get("WARP_BUFFER_EXIT_LINGER_S", "2")))
-    except ValueError:
-        return 2.0
+    return max(0.0, env_float("WARP_BUFFER_EXIT_LINGER_S", 2.0))
 
 
 def _peer_cred(sock: socket.socket) -> tuple[int, int]:

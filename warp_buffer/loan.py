@@ -38,6 +38,7 @@ from typing import Any
 from rosidl_buffer import Buffer
 
 from . import memory
+from ._env import env_flag
 from .arena import host_view
 from .buffer_impl import WarpBufferImpl
 
@@ -51,8 +52,7 @@ _libc.mprotect.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
 def protection_enabled() -> bool:
     """``WARP_BUFFER_LOAN_PROTECT`` (default on): loaned host blocks are read-only between
     publish and their next loan."""
-    value = os.environ.get("WARP_BUFFER_LOAN_PROTECT", "1").strip().lower()
-    return value not in ("0", "false", "no", "off")
+    return env_flag("WARP_BUFFER_LOAN_PROTECT", True)
 
 
 def _protect(ptr: int, nbytes: int, writable: bool) -> None:

@@ -48,6 +48,7 @@ import numpy as np
 import warp as wp
 
 from . import arena as _arena
+from ._env import env_flag, env_float
 from . import cuda, handoff
 from . import descriptor as _desc
 from .errors import EmptyBufferError, ExportError, ExportUnavailableError, InvalidSizeError
@@ -75,16 +76,9 @@ MAX_BLOCK = 1 << 40
 PROBES = 8
 
 
-def _env_float(name: str, default: float) -> float:
-    try:
-        return float(os.environ.get(name, default))
-    except ValueError:
-        return default
-
-
 def ipc_disabled() -> bool:
     """``WARP_BUFFER_DISABLE_IPC=1``: no exports; every peer falls back to CPU bytes."""
-    return os.environ.get("WARP_BUFFER_DISABLE_IPC", "").strip().lower() in ("1", "true", "yes", "on")
+    return env_flag("WARP_BUFFER_DISABLE_IPC", False)
 
 
 def size_class(nbytes: int) -> int:
@@ -322,7 +316,7 @@ _vmm_refused: dict[str, str] = {}  # device alias -> why its CUDA blocks use leg
 
 def _vmm_refusal(device: Any) -> str | None:
     """Why ``device``'s CUDA blocks cannot be VMM blocks (None: they can)."""
-    if os.environ.get("WARP_BUFFER_CUDA_VMM", "1").strip().lower() in ("0", "false", "no", "off"):
+    if not env_flag("WARP_BUFFER_CUDA_VMM", True):
         return "WARP_BUFFER_CUDA_VMM=0"
     if not device.is_ipc_supported:
         return "no CUDA IPC events on the device"  # a VMM block's write event travels by IPC
@@ -491,7 +485,7 @@ class BlockPool:
             self.free_bytes += block.capacity
 
     def _enforce_idle_cap(self) -> None:
-        cap = int(_env_float("WARP_BUFFER_POOL_MAX_IDLE_BYTES", 1 << 30))
+        cap = int(env_float("WARP_BUFFER_POOL_MAX_IDLE_BYTES", 1 << 30))
         if self.free_bytes > cap:
             self.trim(max_free_bytes=cap)
 
@@ -588,7 +582,7 @@ class _Janitor:
 
     def _run(self) -> None:
         while True:
-            idle = max(0.0, _env_float("WARP_BUFFER_POOL_IDLE_S", 10.0))
+            idle = max(0.0, env_float("WARP_BUFFER_POOL_IDLE_S", 10.0))
             time.sleep(min(1.0, max(0.05, idle / 4)))
             with _pools_lock:
                 pools = list(_pools.values())

@@ -23,6 +23,8 @@ import warnings
 from collections.abc import Iterator
 from typing import Any
 
+from ._env import env_flag
+
 __all__ = ["VERBOSE_ENV", "init_warp", "verbose_requested"]
 
 VERBOSE_ENV = "WARP_BUFFER_VERBOSE"
@@ -35,7 +37,7 @@ _done = False
 
 def verbose_requested() -> bool:
     """True when env ``WARP_BUFFER_VERBOSE`` asks for Warp's own output (1/true/yes/on)."""
-    return os.environ.get(VERBOSE_ENV, "").strip().lower() in ("1", "true", "yes", "on")
+    return env_flag(VERBOSE_ENV, False)
 
 
 class _LoggingWarpLogger:
