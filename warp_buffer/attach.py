@@ -18,7 +18,6 @@ import collections
 import ctypes
 import os
 import threading
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -225,14 +224,8 @@ def forget_idle() -> int:
             _sessions.pop(key, None)
             arena.close()
             dropped += 1
-            for hook in session_closed_hooks:
-                hook(key)
+            handoff.session_gone(key)  # caches keyed by session (CUDA imports) forget it too
     return dropped
-
-
-#: Called with ``(owner_pid, session)`` when a session is let go (its owner gone, nothing held),
-#: so caches keyed by session (the CUDA import cache) forget it too.
-session_closed_hooks: list[Callable[[tuple[int, int]], None]] = []
 
 
 def attached_sessions() -> list[AttachedArena]:

@@ -42,7 +42,7 @@ from .arena import HELLO, MAGIC, SEALS, VERSION, Arena, Geometry, alive
 from .errors import DescriptorError, ExportError, ForeignExportError, StaleBufferError
 
 __all__ = ["socket_name", "Server", "fetch_arena", "fetch_cuda_block", "linger_s",
-           "session_gone_hooks"]
+           "session_gone", "session_gone_hooks"]
 
 _log = logging.getLogger(__name__)
 _UCRED = struct.Struct("3i")
@@ -55,9 +55,10 @@ ASK_CUDA_VMM = b"WBVMM\x00\x00\x01"
 #: The answer to ``ASK_CUDA_VMM``: magic, offset, serial, allocation bytes (0: refused, no fd).
 VMM_REPLY = struct.Struct("<8sQQQ")
 
-#: Called with ``(owner_pid, session)`` when the hand-off socket of a session this process
-#: fetched reports its publisher gone (the kept connection closed, or a connection refused), so
-#: caches keyed by session (the CUDA import cache) let it go at once.
+#: Called with ``(owner_pid, session)`` when a session this process fetched is gone: its hand-off
+#: socket reports the publisher gone (the kept connection closed, or a connection refused), or
+#: its mapping was let go (owner gone, nothing held), so caches keyed by session (the CUDA import
+#: cache) let it go at once.
 session_gone_hooks: list[Callable[[tuple[int, int]], None]] = []
 
 
@@ -225,7 +226,7 @@ def _connect(owner_pid: int, session: int, where: str) -> socket.socket:
         try:
             sock.connect(socket_name(os.getuid(), owner_pid, session))
         except (ConnectionRefusedError, FileNotFoundError):
-            _session_gone((owner_pid, session))
+            session_gone((owner_pid, session))
             raise StaleBufferError(f"{where} is gone (the publisher exited before this process "
                                    "attached to its memory)") from None
         except OSError as exc:
@@ -309,7 +310,9 @@ def fetch_cuda_block(owner_pid: int, session: int, offset: int, serial: int) -> 
         sock.close()
 
 
-def _session_gone(key: tuple[int, int]) -> None:
+def session_gone(key: tuple[int, int]) -> None:
+    """Run :data:`session_gone_hooks` for ``key``: its hand-off connection closed, or its
+    mapping was let go (owner gone, nothing held)."""
     for hook in list(session_gone_hooks):
         try:
             hook(key)
@@ -364,7 +367,7 @@ class _Watcher:
                     poller.unregister(fileno)
                     del watched[fileno]
                     sock.close()
-                    _session_gone(key)
+                    session_gone(key)
                 else:  # a server never writes here; discard what a forged one sent
                     try:
                         sock.recv(4096, socket.MSG_DONTWAIT)

@@ -346,8 +346,8 @@ def _forget_session_key(key: tuple[int, int]) -> None:
 
 
 # S5: a gone session is forgotten when its mapping is let go (attach.forget_idle) and as soon
-# as its hand-off socket reports the publisher gone; the backend adds on_endpoint_gone.
-_attach.session_closed_hooks.append(_forget_session_key)
+# as its hand-off socket reports the publisher gone (both run handoff.session_gone); the
+# backend adds on_endpoint_gone.
 handoff.session_gone_hooks.append(_forget_session_key)
 
 
