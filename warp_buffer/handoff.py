@@ -250,6 +250,19 @@ def _ask(sock: socket.socket, request: bytes) -> None:
         pass
 
 
+def _exchange(sock: socket.socket, where: str, request: bytes, reply_size: int,
+              fds: list[int]) -> bytes:
+    """Send ``request``; the reply of at most ``reply_size`` bytes, its fd (if any) appended to
+    ``fds`` (the caller closes what it does not keep)."""
+    try:
+        _ask(sock, request)
+        data, received, _flags, _addr = socket.recv_fds(sock, reply_size, 1)
+    except OSError as exc:
+        raise StaleBufferError(f"{where}: the hand-off failed ({exc})") from None
+    fds.extend(received)
+    return data
+
+
 def fetch_arena(owner_pid: int, session: int) -> tuple[int, Geometry]:
     """Connect to session ``(owner_pid, session)`` of this user and receive its arena fd, checked
     (seals, size, credentials); returns ``(fd, geometry)``. The fd shares the publisher's open
@@ -259,11 +272,7 @@ def fetch_arena(owner_pid: int, session: int) -> tuple[int, Geometry]:
     sock = _connect(owner_pid, session, where)
     fds: list[int] = []
     try:
-        try:
-            _ask(sock, REQUEST.pack(ASK_ARENA, 0, 0))
-            data, fds, _flags, _addr = socket.recv_fds(sock, HELLO.size, 1)
-        except OSError as exc:
-            raise StaleBufferError(f"{where}: the hand-off failed ({exc})") from None
+        data = _exchange(sock, where, REQUEST.pack(ASK_ARENA, 0, 0), HELLO.size, fds)
         if len(fds) != 1 or len(data) != HELLO.size:
             raise StaleBufferError(f"{where}: the hand-off carried no arena")
         fd = fds.pop()
@@ -291,11 +300,8 @@ def fetch_cuda_block(owner_pid: int, session: int, offset: int, serial: int) -> 
     sock = _connect(owner_pid, session, where)
     fds: list[int] = []
     try:
-        try:
-            _ask(sock, REQUEST.pack(ASK_CUDA_VMM, offset, serial))
-            data, fds, _flags, _addr = socket.recv_fds(sock, VMM_REPLY.size, 1)
-        except OSError as exc:
-            raise StaleBufferError(f"{where}: the hand-off failed ({exc})") from None
+        data = _exchange(sock, where, REQUEST.pack(ASK_CUDA_VMM, offset, serial),
+                         VMM_REPLY.size, fds)
         if len(data) != VMM_REPLY.size:
             raise StaleBufferError(f"{where}: the hand-off carried no answer")
         magic, got_offset, got_serial, nbytes = VMM_REPLY.unpack(data)
