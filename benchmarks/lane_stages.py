@@ -168,9 +168,11 @@ def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
         waker.close()  # a waker given to the node stays ours to close
 
 
-def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0
-              ) -> list[tuple[int, dict[str, int]]]:
-    """Publish ``count`` messages one at a time; every message's stamps, by kind."""
+def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0,
+              spin: bool = False) -> list[tuple[int, dict[str, int]]]:
+    """Publish ``count`` messages one at a time; every message's stamps, by kind. ``spin``:
+    wait for each message's stamps by polling (this process never sleeps, so its stages run
+    warm)."""
     import numpy as np
     import tensor_conversions.numpy as tc
     from rosidl_buffer.messages import get_message_type
@@ -231,6 +233,8 @@ def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0
                 stamps["published"] = clock()
                 stamps["t0"] = t0
                 mine = dict(stamps)
+                while spin and not parent.poll(0):
+                    pass
                 kind, got, _, theirs = parent.recv()
                 if kind != FULL or got != index:
                     raise RuntimeError(f"expected message {index}, got {kind, got}")
@@ -239,6 +243,8 @@ def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0
                     now = clock()
                     STAMP.pack_into(frame, 0, index, now)
                     write(bare, frame)
+                    while spin and not parent.poll(0):
+                        pass
                     _, _, sent, theirs = parent.recv()
                     records.append((BARE, {"t0": sent, **theirs}))
             if bare is not None:
@@ -304,6 +310,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--busy-poll", type=float, default=0.0, metavar="S",
                         help="the subscriber's lane waker spins S seconds before it blocks "
                              "(a core at 100%% meanwhile): the stages without the idle wake-up")
+    parser.add_argument("--spin", action="store_true",
+                        help="the publisher polls for each message's stamps instead of "
+                             "sleeping (with --busy-poll: every stage warm, no wake-up)")
     parser.add_argument("--role", choices=("pub", "sub"), default="pub")
     parser.add_argument("--run")
     parser.add_argument("--port", type=int)
@@ -314,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
         subscriber(args.run, args.port, args.domain, args.route, args.busy_poll,
                    Connection(args.fd))
         return 0
-    records = publisher(args.count, args.nbytes, args.route, args.busy_poll)
+    records = publisher(args.count, args.nbytes, args.route, args.busy_poll, args.spin)
     per = 2 if args.route == "lane" else 1
     warm = records[per * min(20, args.count // 10):]  # first imports map files, warm caches
     what = ("loaned warp tensor over the fast lane" if args.route == "lane"
