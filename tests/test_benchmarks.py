@@ -134,3 +134,26 @@ def test_add_arguments_defaults() -> None:
     args = parser.parse_args([])
     assert args.out == bench.default_out_dir() and not args.quick
     assert parser.parse_args(["--quick", "--sizes", "4K"]).sizes == "4K"
+
+
+@pytest.mark.multiprocess
+@pytest.mark.parametrize("options", [[], ["--spin", "--busy-poll", "0.001"]],
+                         ids=["blocking", "all-warm"])
+def test_lane_stages_reports_every_stage(options: list[str]) -> None:
+    from benchmarks.lane_stages import STAGES
+
+    process = subprocess.run(
+        [sys.executable, "-m", "benchmarks.lane_stages", "--count", "40", *options],
+        cwd=ROOT, capture_output=True, text=True, timeout=120)
+    if "cannot run the lane" in process.stderr:
+        pytest.skip("no iceoryx2 lane on this machine")
+    assert process.returncode == 0, process.stderr[-3000:]
+    rows = {}
+    for line in process.stdout.splitlines()[2:]:
+        name, p50, p99 = line.rsplit(None, 2)
+        rows[name.strip()] = (float(p50), float(p99))
+    for name, _start, _end in STAGES["lane"]:
+        assert name in rows, (name, process.stdout)
+    total = rows["one-way total (loan -> readable view)"]
+    assert 0 < total[0] <= total[1]
+    assert any(name.startswith("lane alone") for name in rows)
