@@ -37,9 +37,9 @@ import zenoh
 
 from .errors import TransportConfigError
 
-__all__ = ["CONFIG_URI_ENV", "CONNECT_TIMEOUT_ENV", "DEFAULT_CONFIG", "ROUTER_DEFAULTS",
-           "ROUTER_ENV", "connect_timeout_s", "make_config", "make_router_config",
-           "resolve_domain_id", "zenoh_error_text"]
+__all__ = ["CONFIG_URI_ENV", "CONNECT_TIMEOUT_ENV", "DEFAULT_CONFIG", "DROP_FRAGMENTS_WAIT_US",
+           "ROUTER_DEFAULTS", "ROUTER_ENV", "connect_timeout_s", "make_config",
+           "make_router_config", "resolve_domain_id", "zenoh_error_text"]
 
 ROUTER_ENV = "WARP_BUFFER_ZENOH_ROUTER"
 CONFIG_URI_ENV = "ZENOH_SESSION_CONFIG_URI"
@@ -47,14 +47,27 @@ CONNECT_TIMEOUT_ENV = "WARP_BUFFER_ZENOH_CONNECT_TIMEOUT_S"
 DOMAIN_ENV = "ROS_DOMAIN_ID"
 DEFAULT_CONNECT_TIMEOUT_S = 10.0
 
+#: How long (us) a keep-last message may take to queue its fragments (see DEFAULT_CONFIG).
+DROP_FRAGMENTS_WAIT_US = 500_000
+
 #: The embedded default (no router): loopback-only peer discovery by multicast scouting.
 DEFAULT_CONFIG: dict[str, Any] = {
     "mode": "peer",
     "listen": {"endpoints": ["tcp/127.0.0.1:0"]},
     "scouting": {"multicast": {"enabled": True, "interface": "lo"}, "gossip": {"enabled": True}},
-    # Zenoh's SHM transport made CPU-fallback samples slower here (its buffers have no Python
-    # buffer protocol, so Python copies in and out); same-host zero copy is the backends' job.
-    "transport": {"shared_memory": {"enabled": False}},
+    "transport": {
+        # Zenoh's SHM transport made CPU-fallback samples slower here (its buffers have no
+        # Python buffer protocol, so Python copies in and out); same-host zero copy is the
+        # backends' job.
+        "shared_memory": {"enabled": False},
+        # A keep-last (DROP) message that needs many fragments may take this long to queue them
+        # all before the rest is dropped (Zenoh's default, 50 ms, lost every CPU message over
+        # ~40 MiB on loopback here, ~6 MB on 1 GbE, even with no congestion). A peer already
+        # frozen still costs 1 ms a message (wait_before_drop): only the message in flight
+        # when it froze waits up to this.
+        "link": {"tx": {"queue": {"congestion_control": {
+            "drop": {"max_wait_before_drop_fragments": DROP_FRAGMENTS_WAIT_US}}}}},
+    },
 }
 
 

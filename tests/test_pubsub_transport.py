@@ -25,6 +25,7 @@ pytestmark = pytest.mark.multiprocess
 
 use_fake_backend()
 
+from buffer_pubsub.config import DROP_FRAGMENTS_WAIT_US  # noqa: E402
 from buffer_pubsub import (  # noqa: E402
     DEFAULT_CONFIG,
     ExecutorModeError,
@@ -278,6 +279,52 @@ def test_payload_over_the_limit_is_a_typed_error(domain, topic, backends):
     finally:
         sub.close()
     assert [r["index"] for r in result["records"]] == [1]
+
+
+def test_big_cpu_payloads_of_a_keep_last_publisher_arrive(domain, topic, backends):
+    """Keep-last publishers drop under congestion (DROP), but a message that merely needs many
+    fragments must not be dropped on a healthy link: with Zenoh's 50 ms default for queueing
+    them, every message of 64 MiB and more vanished on loopback here."""
+    sizes = (32 << 20, 96 << 20)
+    sub = Child("sub", domain=domain, topic=topic, accept="cpu", expect=len(sizes), timeout=60)
+    try:
+        with Node("big_last", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic, depth=2)  # keep-last: DROP
+            assert pub._congestion == zenoh.CongestionControl.DROP
+            sub.wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            for index, n in enumerate(sizes):
+                pub.publish(make_frame(0, index, n, "cpu"))
+                time.sleep(0.5)  # one in flight: nothing to drop but the fragments' deadline
+            result = sub.stop(timeout=60)
+    finally:
+        sub.close()
+    assert [r["index"] for r in result["records"]] == [0, 1], result["counters"]
+    assert all(r["ok"] for r in result["records"])
+
+
+def test_a_peer_frozen_during_big_messages_holds_publish_once_at_most(domain, topic, backends):
+    """The fragments' deadline (DROP_FRAGMENTS_WAIT_US) is spent once, by the message in flight
+    when the peer froze; afterwards each message gives up at Zenoh's first full queue (1 ms)."""
+    frozen = Child("sub", domain=domain, topic=topic, accept="cpu")
+    durations = []
+    try:
+        with Node("big_frozen", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic, depth=2)
+            frozen.wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            os.kill(frozen.proc.pid, signal.SIGSTOP)
+            msg = make_frame(0, 0, 8 << 20, "cpu")
+            for _ in range(12):
+                start = time.perf_counter()
+                pub.publish(msg)
+                durations.append(time.perf_counter() - start)
+    finally:
+        frozen.close()
+    cap = DROP_FRAGMENTS_WAIT_US / 1e6
+    assert max(durations) < cap + 0.5, durations
+    slow = [d for d in durations if d > 0.1]
+    assert len(slow) <= 2, durations  # the queue fills within a message or two, then 1 ms each
 
 
 def _one_gib_message(n: int, pattern: bool = True):
