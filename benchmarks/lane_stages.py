@@ -76,11 +76,11 @@ def _settings(run: str, port: int, domain: int) -> Any:
 
 def _node(role: str, run: str, port: int, domain: int, **options: Any) -> Any:
     import buffer_pubsub
-    from benchmarks.paths.zenoh_common import make_config
+    from benchmarks.paths.zenoh_common import our_node_config
 
     settings = _settings(run, port, domain)
     return buffer_pubsub.Node(f"lane_stages_{role}_{run[:8]}", domain_id=domain,
-                              config=make_config(settings, role == "sub", shared_memory=False),
+                              config=our_node_config(settings, role == "sub"),
                               **options)
 
 

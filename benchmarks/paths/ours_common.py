@@ -14,7 +14,7 @@ from typing import Any, Callable
 
 from benchmarks import copies
 from benchmarks.paths import PathSettings, PathUnavailable
-from benchmarks.paths.zenoh_common import make_config
+from benchmarks.paths.zenoh_common import our_node_config
 from benchmarks.protocol import STAMP_SIZE, stamp_into
 
 TENSOR_TYPE = "tensor_msgs/msg/ExperimentalTensor"
@@ -60,7 +60,7 @@ def require_warp_backend(export: bool) -> None:
 def _node(settings: PathSettings, role: str, listen: bool) -> Any:
     buffer_pubsub = _imports()[0]
     return buffer_pubsub.Node(f"bench_{role}_{settings.run_id}",
-                              config=make_config(settings, listen, shared_memory=False),
+                              config=our_node_config(settings, listen),
                               domain_id=settings.domain_id)
 
 

@@ -31,6 +31,18 @@ def make_config(settings: PathSettings, listen: bool, shared_memory: bool | None
     return config
 
 
+def our_node_config(settings: PathSettings, listen: bool) -> Any:
+    """:func:`make_config` (SHM off) with the transport settings of buffer_pubsub's embedded
+    default that shape delivery (the fragments' deadline of keep-last messages), so our nodes
+    run here as they do out of the box."""
+    from buffer_pubsub.config import DROP_FRAGMENTS_WAIT_US
+
+    config = make_config(settings, listen, shared_memory=False)
+    config.insert_json5("transport/link/tx/queue/congestion_control/drop/"
+                        "max_wait_before_drop_fragments", str(DROP_FRAGMENTS_WAIT_US))
+    return config
+
+
 def open_session(settings: PathSettings, listen: bool, shared_memory: bool | None) -> Any:
     """A peer session configured by :func:`make_config`."""
     import zenoh
