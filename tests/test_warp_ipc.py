@@ -386,3 +386,49 @@ def test_the_ipc_core_benchmark_measures_every_figure():
     assert flight["sub_fds_holding"] - flight["sub_fds_before"] <= 2
     assert report["dev_shm"] == {"SIGTERM": 0, "SIGKILL": 0}
     assert [row["nbytes"] for row in report["copies"]] == [4096]
+
+
+def _mapped(address: int) -> bool:
+    with open("/proc/self/maps", encoding="ascii") as maps:
+        for line in maps:
+            start, end = (int(x, 16) for x in line.split()[0].split("-"))
+            if start <= address < end:
+                return True
+    return False
+
+
+def test_a_view_kept_past_release_reads_its_own_bytes_until_it_is_gone():
+    """A NumPy view of an import, kept past release() and past its publisher's death, keeps its
+    own mapping: it never reads what a later session maps at that address."""
+    with Child("publish", {"nbytes": 4096, "seed": 31, "count": 1}) as first:
+        result = first.result()
+        impl = ipc.import_buffer(descriptor.unpack(bytes.fromhex(result["descriptors"][0])))
+        with from_input_buffer(Buffer(impl)) as handle:
+            view = handle.array.numpy()
+        impl.release()
+        first.process.send_signal(signal.SIGKILL)
+        first.process.wait(timeout=30)
+    address = view.ctypes.data
+    with Child("publish", {"nbytes": 4096, "seed": 32, "count": 1}) as second:
+        result = second.result()
+        later = ipc.import_buffer(descriptor.unpack(bytes.fromhex(result["descriptors"][0])))
+        assert not [a for a in attach.attached_sessions() if a.owner_pid == first.process.pid]
+        np.testing.assert_array_equal(view, expected_pattern(4096, 31))  # still its own bytes
+        assert later.to_cpu().view()[:8].tobytes() == expected_pattern(8, 32).tobytes()
+        later.release()
+        second.finish()
+    assert _mapped(address)
+    del view, handle, impl
+    gc.collect()
+    assert not _mapped(address)  # the last view gone, the dead session's mapping went with it
+
+
+def test_a_released_import_refuses_its_cached_array():
+    buffer = allocate_buffer(4096, "cpu")
+    with from_output_buffer(buffer) as out:
+        out.host_array()[:] = 1
+    impl = ipc.import_buffer(ipc.export_buffer(buffer))
+    assert impl.array.shape == (4096,)  # made and cached before the release
+    impl.release()
+    with pytest.raises(HandleReleasedError):
+        impl.array

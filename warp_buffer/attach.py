@@ -7,6 +7,11 @@ dict lookup plus a lock), and let go once its owner is gone and nothing here hol
 Its mapping keeps the memory alive: frames held or queued here stay readable after the publisher
 exits or dies.
 
+Letting a session go only drops this module's reference: the mappings and the file description
+are released when the last object using them is gone (reference counts), so a NumPy view kept
+past ``release()`` keeps reading the bytes it was made over, never whatever a later mapping puts
+at that address, and an import racing the let-go still finds the arena mapped.
+
 A hold is a read lock (OFD, on the block's first byte) taken on this process's own open file
 description of the arena, counted per block so that several imports of one block in one process
 share one lock. The kernel drops the lock if the process dies.
@@ -32,32 +37,55 @@ from .arena import (
     Geometry,
     alive,
     existing_arena,
-    host_view,
 )
 from .errors import ExportError, StaleBufferError
 
 __all__ = ["AttachedArena", "Hold", "attach", "attached_sessions", "forget_idle"]
 
 
+class _DataMapping:
+    """The data region of an attached arena, unmapped when the last array over it is gone (the
+    arena's ``data`` array holds it as its base; every view of an import derives from that)."""
+
+    __slots__ = ("__array_interface__", "_region")
+
+    def __init__(self, address: int, nbytes: int, owned: bool) -> None:
+        self.__array_interface__ = {"data": (address, True), "shape": (nbytes,),
+                                    "typestr": "|u1", "version": 3}
+        self._region = (address, nbytes) if owned else None  # None: our own arena's mapping
+
+    def __del__(self) -> None:
+        region, self._region = self._region, None
+        if region is not None:
+            try:
+                memory.unmap(*region)
+            except Exception:  # pragma: no cover - interpreter shutdown
+                pass
+
+
 class AttachedArena:
-    """A publisher session's arena as this process sees it."""
+    """A publisher session's arena as this process sees it. Its header mapping and file
+    description are released when the object is collected: holds and imports in progress keep
+    it (see the module docstring)."""
 
     def __init__(self, owner_pid: int, session: int, geometry: Geometry, fd: int,
-                 base: int, data_base: int, mappings: list[tuple[int, int]]) -> None:
+                 base: int, data_base: int, owned: bool) -> None:
         self.owner_pid = owner_pid
         self.session = session
         self.geometry = geometry
         self.fd = fd  # our own open file description: our locks
         self.base = base
-        self._mappings = mappings  # what we unmap when let go (empty for our own arena)
+        # ``owned``: the mappings are ours to unmap (False for our own arena, imported here)
+        self._head = (base, geometry.data_offset) if owned else None
         self.data_offset = geometry.data_offset
         self.gens = (ctypes.c_uint64 * (geometry.data_bytes // 4096)).from_address(
             base + GENS_OFFSET)
         self.acks = (ctypes.c_uint64 * (MAX_PEERS * SLOT_STRIDE // 8)).from_address(
             base + ACKS_OFFSET)
         self._data_base = data_base
-        self.data = host_view(data_base, geometry.data_bytes)
-        self.data.flags.writeable = False  # views of imports are read-only
+        # Views of imports are read-only slices of this array (their base): while one lives,
+        # the data stays mapped (_DataMapping).
+        self.data = np.asarray(_DataMapping(data_base, geometry.data_bytes, owned))
         self._holds: dict[int, int] = {}
         self._lock = threading.Lock()
         self._deferred: collections.deque[int] = collections.deque()
@@ -85,15 +113,14 @@ class AttachedArena:
         except OSError as exc:
             os.close(fd)
             raise ExportError(f"cannot map the arena of process {owner_pid}: {exc}") from None
-        return cls(owner_pid, session, geometry, fd, head, data,
-                   [(head, geometry.data_offset), (data, size - geometry.data_offset)])
+        return cls(owner_pid, session, geometry, fd, head, data, owned=True)
 
     @classmethod
     def local(cls, arena: Arena) -> AttachedArena:
         """Our own session, imported in this very process: our mapping, a new description."""
         fd = memory.reopen(arena.fd)
         return cls(arena.pid, arena.session, arena.geometry, fd, arena.base,
-                   arena.base + arena.data_offset, [])
+                   arena.base + arena.data_offset, owned=False)
 
     def address(self, offset: int) -> int:
         """Address of file offset ``offset`` (in the data region) in this process."""
@@ -160,11 +187,14 @@ class AttachedArena:
             self._flush_deferred()
             return len(self._holds)
 
-    def close(self) -> None:
-        for addr, length in self._mappings:
-            memory.unmap(addr, length)
-        self._mappings = []
-        os.close(self.fd)
+    def __del__(self) -> None:
+        head, self._head = self._head, None
+        try:
+            if head is not None:
+                memory.unmap(*head)
+            os.close(self.fd)
+        except Exception:  # pragma: no cover - interpreter shutdown
+            pass
 
 
 class Hold:
@@ -216,13 +246,14 @@ def attach(owner_pid: int, session: int) -> AttachedArena:
 
 
 def forget_idle() -> int:
-    """Unmap sessions whose owner is gone and of which nothing is held here; returns how many
-    (called when a new session is attached, so the address space stays bounded)."""
+    """Let go of sessions whose owner is gone and of which nothing is held here; returns how
+    many (called when a new session is attached, so the address space stays bounded). Each is
+    unmapped once nothing of this process uses it any more (see the module docstring)."""
     dropped = 0
     for key, arena in list(_sessions.items()):
         if arena.held == 0 and not alive(arena.owner_pid):
             _sessions.pop(key, None)
-            arena.close()
+            del arena
             dropped += 1
             handoff.session_gone(key)  # caches keyed by session (CUDA imports) forget it too
     return dropped

@@ -173,11 +173,11 @@ class WarpBufferImpl(BufferImplBase):
 
     @property
     def _array(self) -> wp.array:
+        if self._released:
+            raise HandleReleasedError("this buffer was released; its memory is no longer "
+                                      "accessible through it")
         array = self._arr
         if array is None:
-            if self._released:
-                raise HandleReleasedError("this buffer was released; its memory is no longer "
-                                          "accessible through it")
             with self._lock:
                 if self._arr is None:
                     owner, ptr = self._owner, self._ptr
