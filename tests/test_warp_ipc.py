@@ -9,8 +9,13 @@ import errno
 import fcntl
 import gc
 import os
+import json
 import signal
+import socket
+import subprocess
+import sys
 import tempfile
+import textwrap
 import time
 
 import numpy as np
@@ -432,3 +437,66 @@ def test_a_released_import_refuses_its_cached_array():
     impl.release()
     with pytest.raises(HandleReleasedError):
         impl.array
+
+
+def test_peers_that_connect_and_say_nothing_do_not_delay_the_others():
+    buffer, desc = _published(4096, seed=41)
+    name = handoff.socket_name(os.getuid(), os.getpid(), desc.session)
+    idle = []
+    try:
+        for _ in range(3):  # e.g. subscribers frozen right after connecting
+            sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            sock.connect(name)
+            idle.append(sock)
+        start = time.monotonic()
+        fd, geometry = handoff.fetch_arena(os.getpid(), desc.session)
+        took = time.monotonic() - start
+        os.close(fd)
+    finally:
+        for sock in idle:
+            sock.close()
+    assert took < 1.0, f"the hand-off waited {took:.2f} s behind idle connections"
+    assert geometry.data_bytes > 0
+    del buffer
+
+
+_FORKING_PUBLISHER = textwrap.dedent("""
+    import json, os, sys, time
+    from warp_buffer import allocate_buffer, descriptor, from_output_buffer, ipc
+    buffer = allocate_buffer(4096, "cpu")
+    with from_output_buffer(buffer) as out:
+        out.host_array()[:] = 5
+    desc = ipc.export_buffer(buffer)
+    worker = os.fork()  # a worker forked without exec (multiprocessing's "fork")
+    if worker == 0:
+        time.sleep(30)
+        os._exit(0)
+    print(json.dumps({"desc": descriptor.pack(desc).hex(), "worker": worker}), flush=True)
+    time.sleep(60)
+""")
+
+
+def test_a_forked_worker_does_not_keep_its_dead_parents_hand_off_socket():
+    proc = subprocess.Popen([sys.executable, "-c", _FORKING_PUBLISHER], stdout=subprocess.PIPE,
+                            text=True, cwd=os.path.dirname(os.path.dirname(__file__)))
+    worker = None
+    try:
+        result = json.loads(proc.stdout.readline())
+        worker = result["worker"]
+        desc = descriptor.unpack(bytes.fromhex(result["desc"]))
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+        start = time.monotonic()
+        with pytest.raises(StaleBufferError, match="is gone"):
+            ipc.import_buffer(desc)  # refused at once, not after a 5 s wait on the worker's copy
+        assert time.monotonic() - start < 1.0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()
+        if worker:
+            try:
+                os.kill(worker, signal.SIGKILL)
+            except ProcessLookupError:
+                pass

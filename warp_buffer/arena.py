@@ -344,8 +344,12 @@ def existing_arena() -> Arena | None:
 
 
 def _after_fork_in_child() -> None:
-    # The parent's arena is not ours to allocate from: a child starts its own session.
+    # The parent's arena is not ours to allocate from: a child starts its own session. Nor is
+    # its hand-off socket ours to hold: inherited, it would stay bound after the parent died,
+    # and peers connecting to it would wait for an answer that never comes.
     global _arena, _arena_lock
+    if _arena is not None and _arena.server is not None:
+        _arena.server.abandon()
     _arena = None
     _arena_lock = threading.Lock()
 

@@ -47,6 +47,10 @@ __all__ = ["socket_name", "Server", "fetch_arena", "fetch_cuda_block", "linger_s
 _log = logging.getLogger(__name__)
 _UCRED = struct.Struct("3i")
 CONNECT_TIMEOUT_S = 5.0
+#: A request that is not there this soon after its connection is waited for on its own thread.
+PROMPT_REQUEST_S = 0.05
+#: Peers waited for at once that way; more are refused (a flood of idle connections).
+MAX_STRAGGLERS = 32
 WATCH_POLL_S = 0.2  # how soon a newly fetched session is watched
 #: A peer's request: what, block offset, allocation serial (both 0 for the arena).
 REQUEST = struct.Struct("<8sQQ")
@@ -88,6 +92,13 @@ def _recv_exact(sock: socket.socket, nbytes: int) -> bytes:
     return data
 
 
+def _readable(sock: socket.socket, timeout_s: float) -> bool:
+    """Is there something to read on ``sock`` within ``timeout_s`` (poll: any fd number)?"""
+    poller = select.poll()
+    poller.register(sock, select.POLLIN)
+    return bool(poller.poll(timeout_s * 1000))
+
+
 def _closed(sock: socket.socket) -> bool:
     """Has the other end of an idle, blocking ``sock`` gone (EOF or error, never waits)?"""
     try:
@@ -101,7 +112,9 @@ def _closed(sock: socket.socket) -> bool:
 class Server:
     """The session's listener: one daemon thread that answers each peer's request (the arena
     fd, or a CUDA VMM block's fd) and keeps each peer's arena connection open until either
-    side goes (so the peer sees this session end)."""
+    side goes (so the peer sees this session end). A peer whose request is not there at once
+    (frozen or idle after connecting) is waited for on a thread of its own, so it never delays
+    the others."""
 
     def __init__(self, arena: Arena) -> None:
         self._arena = arena
@@ -109,6 +122,7 @@ class Server:
         self.connected: set[int] = set()  # pids that fetched the arena
         self._cond = threading.Condition()
         self._peers: list[socket.socket] = []  # kept arena connections (under _cond)
+        self._stragglers = 0  # peers waited for on threads of their own (under _cond)
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
         self._sock.bind(socket_name(os.getuid(), arena.pid, arena.session))
         self._sock.listen(128)
@@ -124,17 +138,32 @@ class Server:
             except OSError:
                 return  # closed
             self._sweep()
-            keep = False
-            try:
-                keep = self._answer(conn)
-            except OSError as exc:  # a peer that went away mid-hand-off
-                _log.debug("hand-off failed: %s", exc)
-            if keep:
-                with self._cond:
-                    if not self._closed:
-                        self._peers.append(conn)
-                        continue
-            conn.close()
+            if _readable(conn, PROMPT_REQUEST_S):
+                self._handle(conn)  # the usual case: the request came with the connection
+                continue
+            with self._cond:
+                straggling = self._stragglers < MAX_STRAGGLERS
+                self._stragglers += straggling
+            if not straggling:
+                _log.debug("hand-off: too many peers slow to ask, one refused")
+                conn.close()
+                continue
+            threading.Thread(target=self._handle, args=(conn, True), daemon=True,
+                             name="warp_buffer-handoff-peer").start()
+
+    def _handle(self, conn: socket.socket, straggler: bool = False) -> None:
+        """Answer ``conn`` and keep it or close it."""
+        keep = False
+        try:
+            keep = self._answer(conn)
+        except OSError as exc:  # a peer that went away (or stalled) mid-hand-off
+            _log.debug("hand-off failed: %s", exc)
+        with self._cond:
+            self._stragglers -= straggler
+            if keep and not self._closed:
+                self._peers.append(conn)
+                return
+        conn.close()
 
     def _answer(self, conn: socket.socket) -> bool:
         """Answer one request; True when ``conn`` is a peer's arena connection to keep."""
@@ -200,6 +229,16 @@ class Server:
                 if not waiting or left <= 0:
                     return
                 self._cond.wait(min(left, 0.05))
+
+    def abandon(self) -> None:
+        """In a forked child: close this process's copies of the sockets, without the shutdown
+        that would end the parent's (which keeps serving)."""
+        with self._cond:
+            self._closed = True
+            peers, self._peers = self._peers, []
+        self._sock.close()
+        for conn in peers:
+            conn.close()
 
     def close(self) -> None:
         """Stop serving; every peer's kept connection closes (they learn the session ended)."""
