@@ -500,3 +500,9 @@ def test_a_forked_worker_does_not_keep_its_dead_parents_hand_off_socket():
                 os.kill(worker, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_the_arena_is_readable_by_its_owner_only():
+    buffer, _desc = _published(4096, seed=43)
+    assert os.fstat(current_arena().fd).st_mode & 0o777 == 0o600
+    del buffer

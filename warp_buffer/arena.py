@@ -181,6 +181,7 @@ class Arena:
         size = self.geometry.file_size
         fd = os.memfd_create("warp_buffer", os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
         try:
+            os.fchmod(fd, 0o600)  # a memfd starts as 0777; ours is readable by its owner only
             os.ftruncate(fd, size)
             fcntl.fcntl(fd, fcntl.F_ADD_SEALS, SEALS)
             self.base = memory.map_fd(fd, size)
