@@ -187,7 +187,8 @@ def to_image_msg(value: np.ndarray, encoding: str, *, backend: str | None = None
 # ------------------------------------------------------------ sensor_msgs/msg/PointCloud2
 def from_input_pointcloud_msg(msg: Any, fields: Sequence[str] = ("x", "y", "z"),
                               clone: bool = True) -> np.ndarray:
-    """An ``(N, len(fields))`` tensor of the cloud's points: a zero-copy strided view where
+    """An ``(N, F)`` tensor of the cloud's points (``F``: a column per field, ``count`` of
+    them for a multi-count field): a zero-copy strided view where
     the layout allows (then ``clone`` copies it), else one float32 host copy; see
     :mod:`tensor_conversions.pointcloud`."""
     return _pointcloud.from_input_pointcloud_msg(_ADAPTER, msg, fields, clone)

@@ -9,7 +9,8 @@
 the chosen fields share one dtype, have ``count == 1``, sit next to each other in the order asked
 (offsets ``o, o + itemsize, ...``), the byte order is this machine's, and rows have no padding
 (``row_step == width * point_step`` or ``height == 1``). Otherwise it is ONE copy on the host:
-each field converted to float32 and gathered (``clone`` is then irrelevant).
+each field converted to float32 and gathered (``clone`` is then irrelevant). ``F`` counts
+columns: a field of ``count`` k (e.g. a 3-vector ``normal``) gives k of them, in order.
 """
 
 from __future__ import annotations
@@ -126,9 +127,12 @@ def from_input_pointcloud_msg(adapter: _api.Adapter[Any], msg: Any,
     if layout is not None:
         return _api.input_native(adapter, msg, layout, clone)
     points = structured_view(msg).reshape(-1)
-    table = np.empty((points.shape[0], len(names)), dtype=np.float32)
-    for column, name in enumerate(names):
-        table[:, column] = points[name]
+    columns = [points[name].reshape(points.shape[0], -1) for name in names]  # count k: k wide
+    table = np.empty((points.shape[0], sum(c.shape[1] for c in columns)), dtype=np.float32)
+    start = 0
+    for column in columns:
+        table[:, start:start + column.shape[1]] = column
+        start += column.shape[1]
     carrier = _CopyMsg(table)
     return _api.input_native(adapter, carrier, carrier.layout, clone=False)
 

@@ -252,6 +252,20 @@ def test_mixed_dtypes_are_converted_to_float32():
     assert xy.dtype == np.float64  # adjacent float64 fields: a view keeps their dtype
 
 
+@pytest.mark.parametrize("framework", list(MODULES))
+def test_a_multi_count_field_gives_one_column_per_element(framework):
+    module = MODULES[framework]
+    n = 4
+    values = np.arange(n * 4, dtype=np.float32).reshape(n, 4)  # a 3-vector and a scalar
+    msg = CLOUD(height=1, width=n, is_bigendian=False, point_step=16, row_step=16 * n,
+                data=values.view(np.uint8).reshape(-1), is_dense=True,
+                fields=[FIELD(name="normal", offset=0, datatype=FLOAT32, count=3),
+                        FIELD(name="curvature", offset=12, datatype=FLOAT32, count=1)])
+    got = module.from_input_pointcloud_msg(msg, ("curvature", "normal"))
+    assert tuple(got.shape) == (n, 4)
+    np.testing.assert_array_equal(to_raw(got), to_raw(values[:, [3, 0, 1, 2]]))
+
+
 def test_pointcloud_errors_are_typed():
     msg = _cloud(_xyzi(2))
     with pytest.raises(tc.InvalidTensorMetadataError, match="rgb"):
