@@ -19,6 +19,7 @@ from warp_buffer import (
     DeviceUnavailableError,
     EmptyBufferError,
     HandleReleasedError,
+    InvalidSizeError,
     SizeMismatchError,
     WarpBufferError,
     UnsupportedSourceError,
@@ -245,6 +246,15 @@ def test_to_buffer_takes_dlpack_sources_and_checks_sizes():
             assert isinstance(info.value, TypeError) and isinstance(info.value, WarpBufferError)
         reader.release()
     assert issubclass(SizeMismatchError, WarpBufferError) and issubclass(SizeMismatchError, ValueError)
+
+
+def test_a_buffer_larger_than_a_warp_array_is_a_typed_error_at_allocation():
+    from warp_buffer.pool import MAX_BUFFER_BYTES
+
+    for nbytes in (MAX_BUFFER_BYTES + 1, 2**31 + 4096, 2**40):
+        with pytest.raises(InvalidSizeError, match="2\\*\\*31 - 1"):
+            allocate_buffer(nbytes, "cpu")
+    assert size_class(MAX_BUFFER_BYTES) == 2**31
 
 
 def test_size_classes_are_powers_of_two_from_a_page():

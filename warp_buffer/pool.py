@@ -72,7 +72,9 @@ __all__ = [
 _log = logging.getLogger(__name__)
 
 MIN_BLOCK = _arena.MIN_BLOCK
-MAX_BLOCK = 1 << 40
+#: The largest warp buffer: its storage is one 1-D ``wp.array`` of uint8, and Warp allows at
+#: most 2**31 - 1 elements per dimension.
+MAX_BUFFER_BYTES = 2**31 - 1
 PROBES = 8
 
 
@@ -85,8 +87,10 @@ def size_class(nbytes: int) -> int:
     """The capacity of the block that holds ``nbytes``: the next power of two, at least 4 KiB."""
     if nbytes <= 0:
         raise EmptyBufferError(f"a warp buffer holds at least one byte, not {nbytes}")
-    if nbytes > MAX_BLOCK:
-        raise InvalidSizeError(f"{nbytes} bytes is more than a warp buffer can hold ({MAX_BLOCK})")
+    if nbytes > MAX_BUFFER_BYTES:
+        raise InvalidSizeError(
+            f"{nbytes} bytes is more than a warp buffer can hold ({MAX_BUFFER_BYTES}: its storage "
+            "is one wp.array, and Warp allows 2**31 - 1 elements per dimension); split it")
     return max(MIN_BLOCK, 1 << (nbytes - 1).bit_length())
 
 
