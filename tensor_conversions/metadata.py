@@ -226,6 +226,9 @@ def _validate(code: Any, bits: Any, lanes: Any, shape: tuple[int, ...], strides:
             f"{list(shape)}")
     if any(s < 0 for s in strides):
         raise InvalidTensorMetadataError(f"negative strides {list(strides)} are not supported")
+    # A dimension of size 0 or 1 never steps: its stride is meaningless, and a huge one (2**62)
+    # would overflow the frameworks' byte strides.
+    strides = tuple(0 if d <= 1 else s for d, s in zip(shape, strides))
     byte_offset = int(byte_offset)
     if byte_offset < 0:
         raise InvalidTensorMetadataError(f"byte_offset {byte_offset} is negative")

@@ -173,18 +173,20 @@ def _reference(data: np.ndarray, np_dtype, shape, strides, byte_offset) -> np.nd
     ((4,), (3,), 12),               # every third element
     ((2, 2, 2, 3), (), 4),          # rank-4 contiguous at an offset
     ((3, 2), (0, 1), 0),            # broadcast (zero stride)
+    ((1, 4), (2**62, 1), 0),        # a size-1 dimension's stride never steps, however large
 ])
 def test_strided_and_offset_payloads(framework, shape, strides, byte_offset):
     module = MODULES[framework]
     data = np.random.default_rng(1).integers(0, 256, 256, dtype=np.uint8)
     msg = make_msg(data, 2, 32, shape, strides, byte_offset)
-    full_strides = strides or tc.contiguous_strides(shape)
+    full_strides = tuple(0 if d == 1 else s
+                         for d, s in zip(shape, strides or tc.contiguous_strides(shape)))
     expected = _reference(data, np.float32, shape, full_strides, byte_offset)
     for clone in (True, False):
         out = module.from_input_tensor_msg(msg, clone=clone)
         got = out.numpy() if framework != "numpy" else out
         np.testing.assert_array_equal(got.view(np.uint32), expected.view(np.uint32))
-    if 0 in full_strides:
+    if any(s == 0 and d > 1 for d, s in zip(shape, full_strides)):
         return  # a broadcast view aliases elements: frameworks refuse writes, correctly
     # Writing through a strided output view lands on exactly those bytes, and only on them.
     out = module.from_output_tensor_msg(msg)
