@@ -45,12 +45,16 @@ class Buffer(Generic[T]):
             )
         if isinstance(data, BufferImplBase):
             if dtype is not None and np.dtype(dtype) != data.dtype:
-                raise TypeError(f"impl stores {data.dtype}, not {np.dtype(dtype)}")
+                raise InvalidBufferDataError(f"impl stores {data.dtype}, not {np.dtype(dtype)}")
             self._impl: BufferImplBase = data
+        elif isinstance(data, str):
+            raise InvalidBufferDataError(
+                "Buffer takes bytes or array-like data, not a str: encode it first")
         else:
             try:
                 self._impl = CpuBufferImpl(data, np.uint8 if dtype is None else dtype)
-            except TypeError as exc:  # e.g. float values for a uint8 buffer: never cast silently
+            except (TypeError, ValueError, OverflowError) as exc:
+                # float values for a uint8 buffer (never cast silently), 300 for a uint8, ...
                 raise InvalidBufferDataError(
                     f"cannot store {type(data).__name__} "
                     f"{getattr(data, 'dtype', '')} data in a "

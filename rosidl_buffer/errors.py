@@ -65,9 +65,10 @@ class UnknownMessageTypeError(RosidlBufferError, LookupError):
     """No message definition of that name ships with the project or is known to rosbags."""
 
 
-class InvalidBufferDataError(RosidlBufferError, TypeError):
-    """Data that a ``uint8[]`` buffer cannot hold as given: ``None``, or values of another kind
-    (a float array into a uint8 field); never silently truncated or cast."""
+class InvalidBufferDataError(RosidlBufferError, TypeError, ValueError):
+    """Data that a ``uint8[]`` buffer cannot hold as given: ``None``, a ``str``, values of
+    another kind (a float array into a uint8 field) or out of its range (300); never silently
+    truncated or cast. Also a ``TypeError`` and a ``ValueError``."""
 
 
 class UnknownFieldError(RosidlBufferError, AttributeError, TypeError):

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from plugins.fake_backend import FakeBufferImpl
 
+from rosidl_buffer.errors import InvalidBufferDataError
 from rosidl_buffer import Buffer, BufferImplBase, CpuBackendRequiredError, CpuBufferImpl
 from rosidl_buffer.messages import deserialize_message, get_message_type, serialize_message
 
@@ -66,9 +67,13 @@ def test_none_is_rejected():
         Buffer(None)
 
 
-def test_out_of_range_values_are_rejected():
-    with pytest.raises(OverflowError):
+def test_out_of_range_values_and_strings_are_rejected_typed():
+    with pytest.raises(InvalidBufferDataError, match="256"):  # also a ValueError
         Buffer([1, 256])
+    with pytest.raises(ValueError):
+        Buffer([1, 256])
+    with pytest.raises(InvalidBufferDataError, match="str"):
+        Buffer("abc")
 
 
 def test_impl_selects_its_backend():

@@ -21,6 +21,7 @@ from warp_buffer import (
     HandleReleasedError,
     InvalidSizeError,
     SizeMismatchError,
+    SizeTypeError,
     WarpBufferError,
     UnsupportedSourceError,
     WarpBufferImpl,
@@ -66,7 +67,7 @@ def test_empty_or_negative_sizes_raise_a_typed_error(nbytes):
 def test_unavailable_device_and_bad_size_type():
     with pytest.raises(DeviceUnavailableError):
         allocate_buffer(16, "cuda:7")
-    with pytest.raises(TypeError):
+    with pytest.raises(SizeTypeError):  # also a TypeError
         allocate_buffer(16.0)  # type: ignore[arg-type]
 
 
@@ -239,6 +240,8 @@ def test_to_buffer_takes_dlpack_sources_and_checks_sizes():
             to_buffer(values, out)
         with pytest.raises(TypeError):
             to_buffer(object(), out)
+        with pytest.raises(UnsupportedSourceError, match="Python objects"):
+            to_buffer(np.array([1, "x"], dtype=object), out)
         reader = from_input_buffer(_written(values.nbytes + 1))
         for wrong in ([1, 2, 3], "abc", (1, 2), reader, out):
             with pytest.raises(UnsupportedSourceError) as info:
@@ -340,3 +343,11 @@ def test_cuda_write_read_on_other_streams_to_cpu_and_clone():  # pragma: no cove
     with from_output_buffer(host) as out:
         to_buffer(torch.arange(16, dtype=torch.float32, device="cuda"), out)
     np.testing.assert_array_equal(host.to_numpy().view(np.float32), np.arange(16))
+
+
+def test_a_strided_memoryview_is_copied_in():
+    source = bytes(range(32))
+    buffer = allocate_buffer(16, "cpu")
+    with from_output_buffer(buffer) as out:
+        to_buffer(memoryview(source)[::2], out)
+    assert buffer.to_numpy().tobytes() == source[::2]

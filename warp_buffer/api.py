@@ -38,6 +38,7 @@ from .errors import (
     HandleError,
     HandleReleasedError,
     SizeMismatchError,
+    SizeTypeError,
     UnsupportedSourceError,
     WriteHandleError,
 )
@@ -60,7 +61,7 @@ def allocate_buffer(nbytes: int, device: Any = None) -> Buffer:
     :class:`DeviceUnavailableError` for a device this machine does not have.
     """
     if isinstance(nbytes, bool) or not isinstance(nbytes, (int, np.integer)):
-        raise TypeError(f"nbytes must be an int, got {type(nbytes).__name__}")
+        raise SizeTypeError(f"nbytes must be an int, got {type(nbytes).__name__}")
     return Buffer(WarpBufferImpl.allocate(int(nbytes), device))
 
 
@@ -347,9 +348,14 @@ def _as_bytes(src: Any) -> np.ndarray | wp.array:
         raise UnsupportedSourceError(
             f"to_buffer takes array data (a wp.array, a DLPack tensor, a NumPy array, bytes or a "
             f"Buffer), not a {type(src).__name__}; wrap a sequence in np.asarray first")
+    if isinstance(src, memoryview) and not src.c_contiguous:
+        return np.ascontiguousarray(np.asarray(src)).reshape(-1).view(np.uint8)  # one copy
     if isinstance(src, (bytes, bytearray, memoryview)):
         return np.frombuffer(src, dtype=np.uint8)
     if isinstance(src, np.ndarray):
+        if src.dtype.hasobject:
+            raise UnsupportedSourceError(
+                f"to_buffer copies array data, not an array of Python objects ({src.dtype})")
         return np.ascontiguousarray(src).reshape(-1).view(np.uint8)
     if isinstance(src, wp.array):
         array = src

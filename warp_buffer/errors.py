@@ -12,6 +12,7 @@ and keep running. Errors that also describe a standard condition inherit the mat
     ├── DeviceMemoryError           a CUDA allocation failed (out of device memory); also a
     │                               MemoryError
     ├── InvalidSizeError            a buffer size that cannot be allocated
+    │   ├── SizeTypeError           a size that is not an int; also a TypeError
     │   └── EmptyBufferError        zero-byte buffers are rejected (as the backend guide says)
     ├── SizeMismatchError           to_buffer source and destination sizes differ
     ├── UnsupportedSourceError      to_buffer got something that is not array data (a list, a
@@ -40,6 +41,7 @@ __all__ = [
     "DeviceUnavailableError",
     "DeviceMemoryError",
     "InvalidSizeError",
+    "SizeTypeError",
     "EmptyBufferError",
     "SizeMismatchError",
     "UnsupportedSourceError",
@@ -70,6 +72,10 @@ class DeviceMemoryError(WarpBufferError, MemoryError):
 
 class InvalidSizeError(WarpBufferError, ValueError):
     """A buffer size that cannot be allocated (too large for a block)."""
+
+
+class SizeTypeError(InvalidSizeError, TypeError):
+    """A buffer size that is not an integer (``allocate_buffer(16.0)``)."""
 
 
 class EmptyBufferError(InvalidSizeError):
