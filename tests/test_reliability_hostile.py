@@ -159,7 +159,9 @@ def _forged(frame: Any, good: Any, names: dict[str, int]) -> bytes:
 CASES = [
     Case("recycled block (generation)", StaleBufferError,
          lambda f, g: payload_for(f, mutated(g, generation=g.generation + 1))),
-    Case("missing export (dead owner)", StaleBufferError, _field(owner_pid=dead_pid())),
+    # A publisher exports its own memory only: another pid is refused before any hand-off.
+    Case("another process's export (dead owner)", ForeignExportError,
+         _field(owner_pid=dead_pid())),
     Case("missing export (session)", StaleBufferError, _field(session=12345)),
     Case("size beyond the block", ExportBoundsError, _field(size=BLOCK + 1)),
     Case("offset inside a block", ExportBoundsError, lambda f, g: payload_for(

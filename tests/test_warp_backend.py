@@ -249,6 +249,7 @@ def test_bad_descriptors_raise_typed_errors(backend, monkeypatch):
     cases = [
         (ForeignExportError, good, _info(EndpointType.PUBLISHER, host_id="another-host")),
         (ForeignExportError, good, _info(EndpointType.PUBLISHER, user_id=os.getuid() + 1)),
+        (ForeignExportError, changed(owner_pid=good.owner_pid + 1), publisher),  # not its own
         (StaleBufferError, changed(generation=good.generation + 500), publisher),
         (StaleBufferError, changed(session=good.session ^ 0xFF), publisher),
         (ExportBoundsError, changed(size=good.capacity + 1), publisher),

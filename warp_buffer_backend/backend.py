@@ -308,6 +308,13 @@ class WarpBufferBackend(BufferBackend):
             refusal = self._judge_publisher(endpoint_info, descriptor)
         if refusal is not None:
             raise refusal[0](refusal[1])
+        owner = getattr(descriptor, "owner_pid", None)
+        if (type(owner) is int and owner > 0 and endpoint_info.process_id
+                and owner != endpoint_info.process_id):
+            # A publisher exports its own memory only (an import is re-exported from a copy)
+            raise ForeignExportError(
+                f"descriptor names memory of process {owner}, but its publisher is process "
+                f"{endpoint_info.process_id}")
         return import_buffer(descriptor)
 
     def _judge_publisher(self, info: EndpointInfo,
