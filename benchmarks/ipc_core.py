@@ -69,21 +69,24 @@ def _quiet_warp() -> None:
     wp.config.log_level = wp.LOG_WARNING
 
 
-def _infos() -> tuple[Any, Any, Any]:
+def _infos(publisher_pid: int | None = None) -> tuple[Any, Any, Any]:
+    """The backend, a subscription's info (this process) and the publisher's (``publisher_pid``,
+    default this process: the child is told its parent's, whose memory its descriptors name)."""
     from rosidl_buffer import EndpointInfo, EndpointType, local_host_id
     from warp_buffer_backend import WarpBufferBackend
 
     backend = WarpBufferBackend()
 
-    def info(kind: Any, gid: int) -> Any:
+    def info(kind: Any, gid: int, pid: int = os.getpid()) -> Any:
         supported = {"warp": backend.get_backend_metadata()} if kind is EndpointType.SUBSCRIPTION \
             else {}
         return EndpointInfo(gid=gid.to_bytes(16, "little"), node_name="bench", node_namespace="/",
                             topic_name="/bench", topic_type="sensor_msgs/msg/Image",
-                            endpoint_type=kind, host_id=local_host_id(), process_id=os.getpid(),
+                            endpoint_type=kind, host_id=local_host_id(), process_id=pid,
                             user_id=os.getuid(), supported_backends=supported)
 
-    return backend, info(EndpointType.SUBSCRIPTION, 1), info(EndpointType.PUBLISHER, 2)
+    return (backend, info(EndpointType.SUBSCRIPTION, 1),
+            info(EndpointType.PUBLISHER, 2, publisher_pid or os.getpid()))
 
 
 # --------------------------------------------------------------------------- child roles
@@ -93,9 +96,10 @@ def _child(role: str, path: str, count: int) -> None:
     from rosidl_buffer.messages import deserialize_message
     from warp_buffer import descriptor
 
-    backend, _sub, pub = _infos()
     out: dict[str, Any] = {"fds_before": _fds()}
-    sys.stdin.readline()  # the descriptors are all there
+    # The descriptors are all there: "go" (the parent published them) or the publisher's pid.
+    line = sys.stdin.readline().strip()
+    backend, _sub, pub = _infos(publisher_pid=int(line) if line.isdigit() else os.getppid())
     raw = open(path, "rb").read()
     size = descriptor.LAYOUT.size + 4
     frames = [raw[i:i + size] for i in range(0, len(raw), size)]
@@ -248,7 +252,7 @@ def dev_shm_after_deaths() -> dict[str, int]:
             try:
                 _result(pub)
                 assert sub.stdin is not None
-                sub.stdin.write("go\n")
+                sub.stdin.write(f"{pub.pid}\n")  # whose memory the descriptors name
                 sub.stdin.flush()
                 _result(sub)
                 pids = (pub.pid, sub.pid)

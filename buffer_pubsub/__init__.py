@@ -33,6 +33,7 @@ buffer_pubsub knows backends only through :class:`rosidl_buffer.BufferBackend` a
 from .config import DEFAULT_CONFIG, make_config
 from .errors import (
     ExecutorModeError,
+    InvalidTimeoutError,
     InvalidEndpointError,
     InvalidNameError,
     LoanError,
@@ -52,6 +53,7 @@ from .subscription import MessageInfo, Subscription, SubscriptionCounters
 __all__ = [
     "DEFAULT_CONFIG",
     "ExecutorModeError",
+    "InvalidTimeoutError",
     "InvalidEndpointError",
     "InvalidNameError",
     "Loan",

@@ -70,7 +70,20 @@ class Executor:
         self.waker.notify()
 
     def spin_once(self, timeout: float | None) -> int:
-        """Run what is ready now; if nothing is, wait up to ``timeout`` for something first."""
+        """Run what is ready now; if nothing is, wait up to ``timeout`` (None: no limit) until
+        something ran: a wake-up that brought no callback (an attach, housekeeping) waits on."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            ran = self._spin_pass(timeout)
+            if ran or self._stopped:
+                return ran
+            if deadline is not None:
+                timeout = deadline - time.monotonic()
+                if timeout <= 0:
+                    return 0
+
+    def _spin_pass(self, timeout: float | None) -> int:
+        """One wait (if nothing is ready) and what is ready after it."""
         inline = self._inline
         if not self._ready and not self._stopped:
             self.waker.wait(timeout)
@@ -109,4 +122,4 @@ class Executor:
     def run(self) -> None:
         """The executor thread's loop, until :meth:`stop`."""
         while not self._stopped:
-            self.spin_once(self.TICK_S)
+            self._spin_pass(self.TICK_S)

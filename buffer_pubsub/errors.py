@@ -6,7 +6,7 @@ from rosidl_buffer.errors import RosidlBufferError
 
 __all__ = ["PubSubError", "WireFormatError", "NodeClosedError", "TransportConfigError",
            "InvalidEndpointError", "InvalidNameError", "PayloadTooLargeError", "TransportError",
-           "ExecutorModeError"]
+           "ExecutorModeError", "InvalidTimeoutError"]
 
 
 class PubSubError(RosidlBufferError):
@@ -43,6 +43,10 @@ class TransportError(PubSubError, RuntimeError):
 
 class ExecutorModeError(PubSubError, RuntimeError):
     """``spin()`` / ``spin_once()`` on a node whose callbacks run on its own executor thread."""
+
+
+class InvalidTimeoutError(PubSubError, ValueError):
+    """A timeout that is not a number of seconds (NaN, a string)."""
 
 
 class LoanError(PubSubError, RuntimeError):

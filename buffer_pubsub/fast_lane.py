@@ -411,13 +411,15 @@ class LaneWaker:
                 self._release()
 
     def _wait_once(self, timeout: float | None) -> None:
+        if timeout is not None:
+            # clamped (NaN -> 0): an unrepresentable Duration aborts the process in iceoryx2
+            timeout = min(timeout, threading.TIMEOUT_MAX) if timeout > 0 else 0.0
         if self.busy_poll_s > 0 and self._spin(timeout):
             return
         if self._queue_mode:  # set by wait(); reset in its finally
             try:
                 if not self._notified:  # read after the mode is set: a notify is seen or queued
-                    self._queue.get(timeout=None if timeout is None else
-                                    min(max(timeout, 0.0), threading.TIMEOUT_MAX))
+                    self._queue.get(timeout=timeout)
             except queue.Empty:
                 pass
             self._consume_notification()
@@ -429,7 +431,7 @@ class LaneWaker:
             ready, _ = self._waitset.wait_and_process()
         else:
             ready, _ = self._waitset.wait_and_process_with_timeout(
-                self._iox2.Duration.from_secs_f64(max(timeout, 0.0)))
+                self._iox2.Duration.from_secs_f64(timeout))
         for attachment_id in ready:
             attachment = self._by_id.get(attachment_id)
             if attachment is not None:

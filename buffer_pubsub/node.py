@@ -14,12 +14,14 @@ vanish on DELETE, which Zenoh also sends when a peer process dies (SIGKILL inclu
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import math
 import os
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import zenoh
@@ -33,7 +35,13 @@ from ._waker import Waker
 from ._zenoh import run_bounded, typed_zenoh_errors, undeclare_quietly
 from .config import make_config, resolve_domain_id
 from .connectivity import open_session
-from .errors import ExecutorModeError, InvalidEndpointError, NodeClosedError, PubSubError
+from .errors import (
+    ExecutorModeError,
+    InvalidEndpointError,
+    InvalidTimeoutError,
+    NodeClosedError,
+    PubSubError,
+)
 from .names import expand_topic_name, validate_namespace, validate_node_name
 from .publisher import Publisher
 from .subscription import Subscription
@@ -108,6 +116,7 @@ class Node:
         # executor="thread": a Zenoh sample may run its callback on its arrival thread (see
         # buffer_pubsub._inline); the gate keeps one callback of the node at a time.
         self._gate = threading.Lock() if executor == "thread" else None
+        self._spin_lock = threading.Lock()  # executor="manual": the one thread that spins
         self._inline_callbacks = executor == "thread" and bool(inline_callbacks)
         self._executor = Executor(waker, self._housekeeping, self._gate)
         self._sweeper = _lane_routes.DeadPeerSweeper(self.locality)
@@ -199,28 +208,43 @@ class Node:
 
     # -- spinning (executor="manual") ----------------------------------------------------------
     def spin_once(self, timeout: float | None = None) -> int:
-        """Run the callbacks ready now, waiting up to ``timeout`` seconds (None: until one is)
-        for the first; returns how many ran. Only for ``Node(executor="manual")``."""
-        self._check_spin()
-        return self._executor.spin_once(timeout)
+        """Run the callbacks ready now, waiting up to ``timeout`` seconds for the first (as
+        rclpy: None or negative waits until one is ready, 0 does not wait); returns how many ran.
+        Only for ``Node(executor="manual")``, one spinning thread at a time."""
+        wait = _wait_s(timeout)
+        with self._spinning():
+            return self._executor.spin_once(wait)
 
     def spin(self, timeout: float | None = None) -> None:
-        """Run callbacks on this thread until the node is closed (or ``timeout`` seconds pass).
-        Ctrl-C raises KeyboardInterrupt here, as in rclpy. Only for ``executor="manual"``."""
-        self._check_spin()
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while not self._closed:
-            left = None if deadline is None else deadline - time.monotonic()
-            if left is not None and left <= 0:
-                return
-            self._executor.spin_once(Executor.TICK_S if left is None else min(left, Executor.TICK_S))
+        """Run callbacks on this thread until the node is closed (or ``timeout`` seconds pass;
+        None or negative: no limit). Ctrl-C raises KeyboardInterrupt here, as in rclpy. Only
+        for ``executor="manual"``, one spinning thread at a time."""
+        wait = _wait_s(timeout)
+        with self._spinning():
+            deadline = None if wait is None else time.monotonic() + wait
+            while not self._closed:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    return
+                self._executor.spin_once(
+                    Executor.TICK_S if left is None else min(left, Executor.TICK_S))
 
-    def _check_spin(self) -> None:
+    @contextlib.contextmanager
+    def _spinning(self) -> Iterator[None]:
+        """This thread spins the node: refused on a node that spins itself, a closed one, or
+        one another thread spins (its callbacks would overlap: they run one at a time)."""
         if self.executor_mode != "manual":
             raise ExecutorModeError(
                 f"node {self.name!r} runs callbacks on its own thread; create it with "
                 "executor='manual' to spin it")
         self._check_open()
+        if not self._spin_lock.acquire(blocking=False):
+            raise ExecutorModeError(f"node {self.name!r} is already spinning (in another "
+                                    "thread, or this callback's own spin)")
+        try:
+            yield
+        finally:
+            self._spin_lock.release()
 
     def _housekeeping(self) -> None:
         """Periodic (executor tick): expire samples parked for a publisher never discovered."""
@@ -426,6 +450,21 @@ def _lane_waker(waker: Waker | None, option: bool | None
         _log.info("fast lane off for this node: %s", error)
         return None, None
     return lane, lane
+
+
+def _wait_s(timeout: float | None) -> float | None:
+    """A spin timeout as rclpy reads it: None, negative or infinite waits without limit, 0
+    does not wait; NaN and non-numbers are refused (InvalidTimeoutError)."""
+    if timeout is None:
+        return None
+    try:
+        seconds = float(timeout)
+    except (TypeError, ValueError):
+        raise InvalidTimeoutError(
+            f"timeout must be a number of seconds or None, not {timeout!r}") from None
+    if math.isnan(seconds):
+        raise InvalidTimeoutError("timeout must be a number of seconds or None, not NaN")
+    return None if seconds < 0 or seconds >= threading.TIMEOUT_MAX else seconds
 
 
 #: Zenoh 1.10 delivers no network message over 1 GiB, whatever ``max_message_size`` says

@@ -30,6 +30,7 @@ from buffer_pubsub import (  # noqa: E402
     DEFAULT_CONFIG,
     ExecutorModeError,
     InvalidNameError,
+    InvalidTimeoutError,
     Node,
     PayloadTooLargeError,
     wire,
@@ -255,6 +256,54 @@ def test_manual_executor_runs_callbacks_on_the_spinning_thread(domain, topic, ba
     with Node("threaded", domain_id=domain, backends=backends) as node:
         with pytest.raises(ExecutorModeError):
             node.spin_once(0)
+
+
+@pytest.mark.parametrize("lane", [True, False], ids=["lane", "no-lane"])
+def test_spin_timeouts_read_as_rclpy_and_never_abort(domain, topic, backends, lane):
+    """None, negative, inf or huge: wait until a callback is ready (inf once aborted the
+    process in iceoryx2's Duration); NaN and strings: a typed error; the same with or
+    without the lane."""
+    got = []
+    with Node("spin_t", domain_id=domain, backends=backends, executor="manual",
+              fast_lane=lane) as node:
+        node.create_subscription(TENSOR, topic, got.append,
+                                 acceptable_buffer_backends="warp" if lane else "cpu")
+        pub = node.create_publisher(TENSOR, topic)
+        for index, timeout in enumerate((float("inf"), 1e300, -1.0, None)):
+            timer = threading.Timer(0.2, pub.publish, (make_frame(0, index, 64, "cpu"),))
+            timer.start()
+            start = time.monotonic()
+            try:
+                assert node.spin_once(timeout) == 1, timeout
+            finally:
+                timer.cancel()
+            assert 0.1 < time.monotonic() - start < 10
+        for bad in (float("nan"), "soon"):
+            with pytest.raises(InvalidTimeoutError):
+                node.spin_once(bad)
+            with pytest.raises(InvalidTimeoutError):
+                node.spin(bad)
+        assert node.spin_once(0) == 0
+    assert len(got) == 4
+
+
+def test_a_node_is_spun_by_one_thread_at_a_time(domain, topic, backends):
+    with Node("spin_one", domain_id=domain, backends=backends, executor="manual") as node:
+        node.create_subscription(TENSOR, topic, lambda m: None)
+        pub = node.create_publisher(TENSOR, topic)
+        spinning = threading.Thread(target=node.spin_once, args=(None,))
+        spinning.start()
+        try:
+            deadline = time.monotonic() + 5
+            while not node._spin_lock.locked() and time.monotonic() < deadline:
+                time.sleep(0.01)
+            with pytest.raises(ExecutorModeError, match="already spinning"):
+                node.spin_once(0)  # its callbacks would overlap the other thread's
+        finally:
+            pub.publish(make_frame(0, 0, 64, "cpu"))
+            spinning.join(timeout=10)
+        assert not spinning.is_alive()
+        assert node.spin_once(0) == 0  # free again
 
 
 # --------------------------------------------------------------------------- 5. payload limit
