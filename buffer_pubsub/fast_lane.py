@@ -54,6 +54,9 @@ NODE_OPTION = "fast_lane"
 MAX_PAYLOAD = 8192
 #: Services and ports a lane service admits: publishers of one topic on this host per subscription.
 MAX_WRITERS = 32
+#: The deepest keep-last subscription the lane serves: iceoryx2 preallocates its queue (about
+#: MAX_PAYLOAD bytes a slot, in /dev/shm), so deeper ones stay on Zenoh, which does not.
+MAX_DEPTH = 1024
 _OFF = {"0", "false", "off", "no"}
 _string_at = ctypes.string_at
 _SERVICE_ROOT = "warp_buffer"

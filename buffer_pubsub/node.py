@@ -276,8 +276,8 @@ class Node:
         if history not in (wire.KEEP_LAST, wire.KEEP_ALL):
             raise InvalidEndpointError(
                 f"history must be {wire.KEEP_LAST!r} or {wire.KEEP_ALL!r}, got {history!r}")
-        if isinstance(depth, bool) or not isinstance(depth, int) or depth < 1:
-            raise InvalidEndpointError(f"depth must be a positive int, got {depth!r}")
+        if isinstance(depth, bool) or not isinstance(depth, int) or not 0 < depth <= MAX_DEPTH:
+            raise InvalidEndpointError(f"depth must be an int in 1..{MAX_DEPTH}, got {depth!r}")
         return depth, history
 
     def _topic(self, topic: str) -> str:
@@ -450,6 +450,11 @@ def _lane_waker(waker: Waker | None, option: bool | None
         _log.info("fast lane off for this node: %s", error)
         return None, None
     return lane, lane
+
+
+#: The deepest queue a publisher or subscription may ask for (rmw's depth is a size_t; a keep-last
+#: queue grows with what it holds, never preallocated).
+MAX_DEPTH = 2**31 - 1
 
 
 def _wait_s(timeout: float | None) -> float | None:

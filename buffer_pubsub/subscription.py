@@ -40,7 +40,7 @@ import zenoh
 from rosidl_buffer import RosidlBufferError
 from rosidl_buffer.messages import Message, deserialize_message, release_buffers
 
-from . import _lane_routes, _process, wire
+from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info
 from ._inline import InlinePolicy
 from ._zenoh import undeclare_quietly
@@ -155,8 +155,9 @@ class Subscription:
         # publishers that cannot open the lane (other host or user, lane off, older peers).
         self._lane_reader = None
         lane = node._lane
-        # (Keep-all stays on Zenoh: iceoryx2's keep-last queue would drop.)
-        if (lane is not None and history == wire.KEEP_LAST
+        # (Keep-all stays on Zenoh: iceoryx2's keep-last queue would drop; so do queues
+        # deeper than the lane preallocates, see fast_lane.MAX_DEPTH.)
+        if (lane is not None and history == wire.KEEP_LAST and depth <= fast_lane.MAX_DEPTH
                 and wire.accepts_backends(token.backends)):
             self._lane_reader = _lane_routes.open_reader(self.base_key, self.gid, depth)
             if self._lane_reader is not None:

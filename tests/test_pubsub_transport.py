@@ -29,6 +29,7 @@ from buffer_pubsub.config import DROP_FRAGMENTS_WAIT_US  # noqa: E402
 from buffer_pubsub import (  # noqa: E402
     DEFAULT_CONFIG,
     ExecutorModeError,
+    InvalidEndpointError,
     InvalidNameError,
     InvalidTimeoutError,
     Node,
@@ -516,3 +517,23 @@ def test_backend_forgets_endpoints_that_churn(domain, topic, backends):
     assert seen <= forgotten, "the backend was not told that churned peers are gone"
     # The publisher itself is reported gone when its node closes.
     assert pub.gid in {e.gid for e in fake.gone[gone:]}
+
+
+def test_depth_is_bounded_and_deep_subscriptions_stay_off_the_lane(domain, topic, backends):
+    from buffer_pubsub import fast_lane
+    from buffer_pubsub.node import MAX_DEPTH
+
+    with Node("depths", domain_id=domain, backends=backends) as node:
+        for depth in (0, -1, MAX_DEPTH + 1, 2**64):
+            with pytest.raises(InvalidEndpointError, match="depth"):
+                node.create_subscription(TENSOR, topic, lambda m: None, depth=depth)
+        shallow = node.create_subscription(TENSOR, topic, lambda m: None,
+                                           depth=fast_lane.MAX_DEPTH,
+                                           acceptable_buffer_backends="warp")
+        deep = node.create_subscription(TENSOR, topic, lambda m: None,
+                                        depth=fast_lane.MAX_DEPTH + 1,
+                                        acceptable_buffer_backends="warp")
+        assert deep._lane_reader is None  # iceoryx2 would preallocate ~8 KiB a slot
+        assert deep._queue.maxlen == fast_lane.MAX_DEPTH + 1
+        if node._lane is not None:
+            assert shallow._lane_reader is not None
