@@ -164,6 +164,9 @@ def _numeric_array_check(spec: FieldSpec) -> _Check:
 
     def check_array(value: Any) -> None:
         array = value if isinstance(value, np.ndarray) else np.asarray(value)
+        if array.size == 0 and array.ndim == 1 and not isinstance(value, np.ndarray):
+            _check_length(0, spec)  # [] / (): NumPy calls it float64, but it holds no value
+            return
         if array.dtype.kind not in kinds:
             raise _fail(f"expected {spec.element} values, got an array of {array.dtype}")
         if array.ndim != 1:

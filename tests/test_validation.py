@@ -28,6 +28,7 @@ def _camera_info(**fields):
     {"k": np.zeros(9), "d": [0.1, 0.2]},  # an array, a list of floats
     {"k": np.zeros(9, np.int32)},  # integers in a float array
     {"distortion_model": "plumb_bob"},
+    {"d": []},  # an empty list (NumPy would call it float64)
 ])
 def test_accepted_values(fields):
     validate_message(_camera_info(**fields))
@@ -39,6 +40,7 @@ def test_accepted_values(fields):
     ({"width": -1}, "CameraInfo.width: .* out of range"),
     ({"height": 480.0}, "CameraInfo.height: expected an int"),
     ({"k": np.zeros(8)}, "CameraInfo.k: expected exactly 9 elements"),
+    ({"k": []}, "CameraInfo.k: expected exactly 9 elements"),
     ({"k": np.zeros((3, 3))}, "CameraInfo.k: expected a 1-D sequence"),
     ({"d": np.array(["a"])}, "CameraInfo.d: expected float64 values"),
     ({"distortion_model": b"plumb_bob"}, "CameraInfo.distortion_model: expected str"),
@@ -57,3 +59,11 @@ def test_nested_messages_are_checked_too():
     msg.roi.width = -3
     with pytest.raises(SerializationError, match="roi"):
         validate_message(msg)
+
+
+@pytest.mark.parametrize("empty", [[], (), np.array([], np.int64)])
+def test_an_empty_integer_array_is_accepted(empty):
+    tensor = get_message_type("tensor_msgs/msg/ExperimentalTensor")(shape=[0], strides=empty)
+    validate_message(tensor)
+    ints = get_message_type("std_msgs/msg/Int32MultiArray")(data=empty)
+    validate_message(ints)
