@@ -26,7 +26,7 @@ from typing import Any
 
 import zenoh
 
-from rosidl_buffer import BufferBackend, local_host_id
+from rosidl_buffer import BufferBackend, RosidlBufferError, local_host_id
 from rosidl_buffer.messages import Message, get_message_type, get_type_hash
 
 from . import _lane_routes, _process, fast_lane as _fast_lane, wire
@@ -40,7 +40,6 @@ from .errors import (
     InvalidEndpointError,
     InvalidTimeoutError,
     NodeClosedError,
-    PubSubError,
 )
 from .names import expand_topic_name, validate_namespace, validate_node_name
 from .publisher import Publisher
@@ -108,7 +107,10 @@ class Node:
         self._graph_cond = threading.Condition(self._lock)
         self._graph: dict[bytes, wire.EndpointToken] = {}  # gid -> endpoint
         self._gone: OrderedDict[bytes, wire.EndpointToken] = OrderedDict()  # recently left
-        self._keys: dict[str, bytes] = {}  # liveliness key -> gid
+        # liveliness key -> its endpoint; a gid claimed by several keys (a forged twin, a
+        # foreign implementation) is the first key's while it lives, then the next one's
+        self._keys: dict[str, wire.EndpointToken] = {}
+        self._gid_keys: dict[bytes, list[str]] = {}
         self._publishers: list[Publisher] = []
         self._subscriptions: list[Subscription] = []
         self._own_lane = waker is None  # a LaneWaker the user gave stays the user's to close
@@ -360,7 +362,9 @@ class Node:
         key = str(sample.key_expr)
         try:
             token = wire.parse_token(key)
-        except PubSubError as exc:
+            if isinstance(token, wire.EndpointToken):
+                token.gid  # derived from the key: a malformed one fails here, not in a hook
+        except RosidlBufferError as exc:  # PubSubError, or a type name no message can have
             _log.debug("ignoring liveliness token %s: %s", key, exc)
             return
         if not isinstance(token, wire.EndpointToken):
@@ -369,35 +373,64 @@ class Node:
             if self._closed:
                 return
             if sample.kind == zenoh.SampleKind.PUT:
-                gid = token.gid
-                self._keys[key] = gid
-                self._graph[gid] = token
-                self._gone.pop(gid, None)
-                appeared = True
+                events = self._endpoint_put(key, token)
             else:
-                gid = self._keys.pop(key, None)
-                if gid is None:
-                    return
-                token = self._graph.pop(gid, token)
-                self._sweeper.peer_gone(token)  # a SIGKILLed peer's iceoryx2 files
-                if token.is_publisher:
-                    self._gone[gid] = token
-                    while len(self._gone) > RECENTLY_GONE:
-                        self._gone.popitem(last=False)
-                appeared = False
-            publishers = [p for p in self._publishers if p._matches(token)]
-            subscriptions = [s for s in self._subscriptions if s._matches(token)]
+                events = self._endpoint_deleted(key)
+            hooks = [(token, appeared, [p for p in self._publishers if p._matches(token)],
+                      [s for s in self._subscriptions if s._matches(token)])
+                     for token, appeared in events]
             self._graph_cond.notify_all()
         # Hooks run outside the lock (a backend may be slow); Publisher._on_peer re-checks the
         # graph under the lock before it keeps a peer, so a DELETE racing past its PUT leaves
         # no ghost behind.
-        for publisher in publishers:
-            try:
-                publisher._on_peer(token, appeared)
-            except Exception:  # a failing backend hook must not break discovery
-                _log.exception("negotiation with %s failed", token.key())
-        for subscription in subscriptions:
-            subscription._on_publisher(token, appeared)
+        for token, appeared, publishers, subscriptions in hooks:
+            for publisher in publishers:
+                try:
+                    publisher._on_peer(token, appeared)
+                except Exception:  # a failing backend hook must not break discovery
+                    _log.exception("negotiation with %s failed", token.key())
+            for subscription in subscriptions:
+                subscription._on_publisher(token, appeared)
+
+    def _endpoint_put(self, key: str, token: wire.EndpointToken
+                      ) -> list[tuple[wire.EndpointToken, bool]]:
+        """Record ``key``'s endpoint; what appeared (call with the lock held). A gid another
+        live key already claims keeps that endpoint: a twin never replaces it."""
+        gid = token.gid
+        if key in self._keys:
+            return []  # a repeated PUT
+        self._keys[key] = token
+        keys = self._gid_keys.setdefault(gid, [])
+        keys.append(key)
+        if len(keys) > 1:
+            _log.debug("liveliness key %s repeats the gid of %s: kept aside", key, keys[0])
+            return []
+        self._graph[gid] = token
+        self._gone.pop(gid, None)
+        return [(token, True)]
+
+    def _endpoint_deleted(self, key: str) -> list[tuple[wire.EndpointToken, bool]]:
+        """Forget ``key``'s endpoint; what vanished and what took its gid over (lock held)."""
+        token = self._keys.pop(key, None)
+        if token is None:
+            return []
+        gid = token.gid
+        keys = self._gid_keys.get(gid, [])
+        if key in keys:
+            keys.remove(key)
+        if self._graph.get(gid) is not token:
+            return []  # a twin kept aside went away
+        self._sweeper.peer_gone(token)  # a SIGKILLed peer's iceoryx2 files
+        if keys:  # another live key claims the gid: its endpoint is the one now
+            successor = self._graph[gid] = self._keys[keys[0]]
+            return [(token, False), (successor, True)]
+        del self._graph[gid]
+        self._gid_keys.pop(gid, None)
+        if token.is_publisher:
+            self._gone[gid] = token
+            while len(self._gone) > RECENTLY_GONE:
+                self._gone.popitem(last=False)
+        return [(token, False)]
 
     def _still_in_graph(self, token: wire.EndpointToken) -> bool:
         """Is ``token`` (still) a discovered endpoint? Call with ``self._lock`` held."""

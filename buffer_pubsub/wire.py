@@ -110,9 +110,10 @@ def dds_type_name(type_name: str) -> str:
 
 
 def ros_type_name(dds_name: str) -> str:
-    """Inverse of :func:`dds_type_name`."""
+    """Inverse of :func:`dds_type_name`; each part must be a name (``pkg::msg::dds_::Name_``)."""
     parts = dds_name.split("::")
-    if len(parts) != 4 or parts[2] != "dds_" or not parts[3].endswith("_"):
+    if (len(parts) != 4 or parts[2] != "dds_" or not parts[3].endswith("_")
+            or not all(part.isidentifier() for part in (parts[0], parts[1], parts[3][:-1]))):
         raise WireFormatError(f"not a DDS type name: {dds_name!r}")
     return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
 

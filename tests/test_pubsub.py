@@ -417,3 +417,65 @@ def test_keep_last_depth_drops_the_oldest(domain, topic, backends):
             time.sleep(0.01)
     assert got[-3:] == [7, 8, 9] and sub.counters.dropped == 10 - len(got)
     assert np.all(np.diff(got) > 0)
+
+
+def _raw_session():
+    return zenoh.open(zenoh.Config.from_json5(
+        '{mode:"peer",listen:{endpoints:["tcp/127.0.0.1:0"]},'
+        'scouting:{multicast:{enabled:true,interface:"lo"}}}'))
+
+
+def _wait(predicate, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def test_a_twin_token_with_the_same_gid_never_replaces_or_removes_the_endpoint(
+        domain, topic, backends):
+    """A foreign token repeating a subscription's 13 stock segments (same gid, no extra
+    segment) is kept aside: the real endpoint stays, and the twin's DELETE removes nothing."""
+    with Node("twin_pub", domain_id=domain, backends=backends) as node, _raw_session() as raw:
+        pub = node.create_publisher(TENSOR, topic)
+        real = wire.EndpointToken(
+            domain_id=domain, zid=str(raw.zid()), node_id=0, entity_id=1,
+            kind=wire.SUBSCRIPTION_KIND, namespace="", node_name="real", topic=topic,
+            type_name=TENSOR, type_hash=pub._token.type_hash, qos=wire.qos_segment(10),
+            buffer_aware=True, backends={"cpu": ""})
+        real_key = real.key()
+        twin_key = "/".join(real_key.split("/")[:wire.STOCK_ENDPOINT_SEGMENTS])
+        assert twin_key != real_key and wire.parse_token(twin_key).gid == real.gid
+        real_token = raw.liveliness().declare_token(real_key)
+        assert _wait(lambda: real.gid in pub._peers)
+        twin_token = raw.liveliness().declare_token(twin_key)
+        time.sleep(0.5)
+        assert node._graph[real.gid].buffer_aware  # still the real one
+        twin_token.undeclare()
+        time.sleep(0.5)
+        assert real.gid in pub._peers and pub.get_subscription_count() == 1
+        real_token.undeclare()
+        assert _wait(lambda: pub.get_subscription_count() == 0 and not pub._peers)
+
+
+def test_tokens_with_impossible_type_names_are_ignored(domain, topic, backends, caplog):
+    with Node("odd_types", domain_id=domain, backends=backends) as node, _raw_session() as raw:
+        good = wire.EndpointToken(
+            domain_id=domain, zid=str(raw.zid()), node_id=0, entity_id=1,
+            kind=wire.SUBSCRIPTION_KIND, namespace="", node_name="odd", topic=topic,
+            type_name=TENSOR, type_hash="RIHS01_00", qos=wire.qos_segment(10)).key().split("/")
+        tokens = []
+        for dds in ("::::dds_::_", "a::b::dds_::_", "::msg::dds_::X_", "a b::msg::dds_::X_"):
+            parts = list(good)
+            parts[10] = dds
+            tokens.append(raw.liveliness().declare_token("/".join(parts)))
+        time.sleep(0.7)
+        names = dict(node.get_topic_names_and_types())
+        for token in tokens:
+            token.undeclare()
+    assert "callback error" not in caplog.text
+    assert not [t for t in node._graph.values() if t.node_name == "odd"]
+    assert not any("/msg/X" == n or n.startswith("a/b") for types in names.values()
+                   for n in types)
