@@ -131,7 +131,6 @@ class Publisher:
         self._lock = threading.Lock()
         self._ready = threading.Condition(self._lock)  # a peer's route settled, or it left
         self._peers: dict[bytes, _Peer] = {}
-        # next() of a count is atomic under the GIL: sequence numbers need no lock per publish
         self._sequences = itertools.count(1)
         self._sequence = 0  # the last one used
         self._closed = False
@@ -141,7 +140,8 @@ class Publisher:
                             else zenoh.CongestionControl.DROP)
         # One CDR output buffer, reused while the serialized size stays the same: Zenoh copies
         # the bytes during put(), and a fresh buffer per message costs page faults (~10 ms at
-        # 16 MiB). The lock keeps concurrent publish() calls from sharing it.
+        # 16 MiB). The lock keeps concurrent publish() calls from sharing it, and their
+        # sequence numbers in the order they are sent.
         self._out: bytearray | None = None
         self._out_lock = threading.Lock()
         self._flat_buffers = flat_buffer_fields(msg_type)
@@ -294,12 +294,14 @@ class Publisher:
             if self._closed:
                 raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
             remote = self._remote
-            self._sequence = sequence = next(self._sequences)
-            attachment = wire.Attachment(sequence, time.time_ns(), self.gid)
-            if not remote:
-                self._publish_intra(msg, backends, attachment)
-                return
+            # Numbered and sent under one lock: concurrent publish() calls leave in the order of
+            # their sequence numbers (else subscribers count the overtaken ones as lost).
             with self._out_lock:
+                self._sequence = sequence = next(self._sequences)
+                attachment = wire.Attachment(sequence, time.time_ns(), self.gid)
+                if not remote:
+                    self._publish_intra(msg, backends, attachment)
+                    return
                 self._publish_remote(msg, backends, nbytes, attachment, remote)
         finally:
             for impl in impls:  # after the sends: readers are on their way meanwhile
