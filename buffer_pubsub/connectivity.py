@@ -28,6 +28,10 @@ _log = logging.getLogger("buffer_pubsub")
 #: Seconds after which an unreachable router or peer is reported.
 WARN_AFTER_S = 3.0
 _HINT = "is a router running there? start one with `warp-buffer router`"
+_LOCAL_HINT = "check the Zenoh configuration (listen and connect endpoints)"
+_FD_HINT = ("the process is out of file descriptors: raise `ulimit -n`, or share one Node "
+            "between publishers and subscriptions instead of a Node each (each holds a Zenoh "
+            "session)")
 
 
 def _get(config: zenoh.Config, key: str) -> object:
@@ -54,8 +58,9 @@ def open_session(config: zenoh.Config | str | os.PathLike[str] | None = None,
         session = zenoh.open(zconfig)
     except zenoh.ZError as exc:
         where = f"Zenoh router {', '.join(endpoints)}" if endpoints else "Zenoh"
-        raise TransportConfigError(
-            f"cannot connect to {where}: {zenoh_error_text(exc)} ({_HINT})") from exc
+        text = zenoh_error_text(exc)
+        hint = _FD_HINT if "Too many open files" in text else _HINT if endpoints else _LOCAL_HINT
+        raise TransportConfigError(f"cannot connect to {where}: {text} ({hint})") from exc
     finally:
         opened.set()
     if endpoints and not client:

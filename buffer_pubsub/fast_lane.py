@@ -336,14 +336,24 @@ class LaneWaker:
         self._waiter: int | None = None  # the thread in wait(), if any
         self._released = threading.Event()
         self._closed = False
-        self._eventfd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
-        self._waitset = (iox2.WaitSetBuilder.new()
-                         .signal_handling_mode(iox2.SignalHandlingMode.Disabled)
-                         .create(iox2.ServiceType.Ipc))
-        # Kept: the WaitSet's guard refers to this object without owning it.
-        self._wake_fd = iox2.FileDescriptor.non_owning_new(self._eventfd)
-        self._wake_guard = self._waitset.attach_notification_fd(self._wake_fd)
-        self._wake_id = iox2.WaitSetAttachmentId.from_guard(self._wake_guard)
+        try:
+            self._eventfd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
+        except OSError as error:  # out of file descriptors: the node runs without the lane
+            raise LaneUnavailableError(f"no eventfd for the lane's waker: {error}") from None
+        try:
+            self._waitset = (iox2.WaitSetBuilder.new()
+                             .signal_handling_mode(iox2.SignalHandlingMode.Disabled)
+                             .create(iox2.ServiceType.Ipc))
+            # Kept: the WaitSet's guard refers to this object without owning it.
+            self._wake_fd = iox2.FileDescriptor.non_owning_new(self._eventfd)
+            self._wake_guard = self._waitset.attach_notification_fd(self._wake_fd)
+            self._wake_id = iox2.WaitSetAttachmentId.from_guard(self._wake_guard)
+        except Exception as error:  # WaitSetCreateError (InsufficientResources: fds), ...
+            self._wake_guard = self._wake_fd = self._waitset = None
+            os.close(self._eventfd)
+            raise LaneUnavailableError(
+                f"iceoryx2 cannot make the lane's WaitSet: {type(error).__name__}: {error}"
+            ) from None
         _iox2.track(self, early=True)
 
     # -- any thread ----------------------------------------------------------------------------

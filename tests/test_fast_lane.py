@@ -524,3 +524,46 @@ def test_close_wakes_a_wait_on_the_waitset() -> None:
     finally:
         waker.close()
         reader.close()
+
+
+@requires_iceoryx2
+def test_a_waker_that_cannot_get_its_waitset_is_unavailable_and_leaks_no_fd(monkeypatch) -> None:
+    iox2 = _iox2.load()
+
+    class NoResources:
+        @staticmethod
+        def new():
+            raise RuntimeError("WaitSetCreateError: InsufficientResources")
+
+    monkeypatch.setattr(iox2, "WaitSetBuilder", NoResources)
+    before = len(os.listdir("/proc/self/fd"))
+    with pytest.raises(fast_lane.LaneUnavailableError, match="WaitSet"):
+        fast_lane.LaneWaker()
+    assert len(os.listdir("/proc/self/fd")) == before  # its eventfd was closed
+
+
+def test_a_node_out_of_file_descriptors_gets_a_typed_error_that_says_so() -> None:
+    code = (
+        "import resource, sys\n"
+        "resource.setrlimit(resource.RLIMIT_NOFILE, (200, 200))\n"
+        "from buffer_pubsub import Node\n"
+        "from rosidl_buffer import RosidlBufferError\n"
+        "nodes = []\n"
+        "try:\n"
+        "    for i in range(60):\n"
+        "        node = Node(f'fds_{i}', domain_id=int(sys.argv[1]))\n"
+        "        nodes.append(node)\n"
+        "        node.create_subscription('tensor_msgs/msg/ExperimentalTensor', '/fds', lambda m: None,\n"
+        "                                 acceptable_buffer_backends='warp')\n"
+        "    print('NO LIMIT')\n"
+        "except RosidlBufferError as error:\n"
+        "    print('TYPED', type(error).__name__, error)\n"
+        "finally:\n"
+        "    for node in nodes:\n"
+        "        node.close()\n")
+    domain = 150 + os.getpid() % 80
+    result = subprocess.run([sys.executable, "-c", code, str(domain)], capture_output=True,
+                            text=True, timeout=120, cwd=pathlib.Path(__file__).parent.parent)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.startswith("TYPED"), (result.stdout, result.stderr[-2000:])
+    assert "file descriptors" in result.stdout
