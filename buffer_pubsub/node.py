@@ -21,7 +21,7 @@ import os
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import zenoh
@@ -314,7 +314,7 @@ class Node:
         topic: str,
         callback: Callable[..., Any],
         depth: int = 10,
-        acceptable_buffer_backends: str = "cpu",
+        acceptable_buffer_backends: str | Sequence[str] = "cpu",
         *,
         with_info: bool = False,
         history: str = wire.KEEP_LAST,
@@ -323,7 +323,8 @@ class Node:
         on this node's executor for every message of ``topic``.
 
         ``acceptable_buffer_backends``: ``"cpu"``, ``"any"`` (every loaded backend) or a comma
-        separated list of backend names; advertised to publishers through discovery.
+        separated list of backend names (or a list of them); advertised to publishers through
+        discovery.
         ``history="keep_last"`` keeps the newest ``depth`` messages waiting for the callback
         (older ones are dropped and counted); ``"keep_all"`` keeps every one (as rmw_zenoh).
         """

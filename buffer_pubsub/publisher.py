@@ -35,7 +35,13 @@ from ._info import endpoint_gone, endpoint_info
 from .loan import Loan, LoanPool, flat_buffer_fields
 from ._validation import validate_message
 from ._zenoh import undeclare_quietly
-from .errors import InvalidEndpointError, NodeClosedError, PayloadTooLargeError, TransportError
+from .errors import (
+    InvalidEndpointError,
+    LoanError,
+    NodeClosedError,
+    PayloadTooLargeError,
+    TransportError,
+)
 
 if TYPE_CHECKING:
     from .node import Node
@@ -269,6 +275,10 @@ class Publisher:
         until the next loan of the block); elsewhere it would change what zero-copy readers
         see. ``max_loans`` (default 16) bounds the pooled messages per factory key.
         """
+        if self._closed:
+            raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
+        if not callable(factory):
+            raise LoanError(f"a loan needs a factory that makes a message, got {factory!r}")
         if max_loans is not None:
             self._loans.max_loans = max(1, int(max_loans))
         return Loan(self, factory)

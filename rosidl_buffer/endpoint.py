@@ -10,7 +10,7 @@ import enum
 import functools
 import os
 import socket
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
@@ -79,12 +79,18 @@ def local_host_id() -> str:
     return socket.gethostname()
 
 
-def parse_acceptable_backends(option: str, available: list[str]) -> list[str]:
+def parse_acceptable_backends(option: str | Sequence[str], available: list[str]) -> list[str]:
     """Resolve a subscription's ``acceptable_buffer_backends`` option to backend names.
 
     ``"cpu"`` (or empty) = CPU only; ``"any"`` = every available backend; otherwise a comma
-    separated list of names, each of which must be available. ``"cpu"`` is always included.
+    separated list of names (or a list of them), each of which must be available. ``"cpu"`` is
+    always included. Raises ValueError for anything else.
     """
+    if isinstance(option, (list, tuple)) and all(isinstance(name, str) for name in option):
+        option = ",".join(option)
+    if option is not None and not isinstance(option, str):
+        raise ValueError(f"acceptable_buffer_backends must be a str (or a list of names), got "
+                         f"{type(option).__name__}")
     text = (option or "cpu").strip()
     if text == "any":
         names = list(available)

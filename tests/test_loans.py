@@ -415,7 +415,7 @@ def test_the_loans_benchmark_reports_every_figure():
 
 
 def test_loan_misuse_raises_typed_errors(domain, topic, backends):
-    from buffer_pubsub import LoanError
+    from buffer_pubsub import LoanError, NodeClosedError
 
     with Node("loan_err", domain_id=domain, backends=backends) as node:
         pub = node.create_publisher(TENSOR, topic)
@@ -426,7 +426,12 @@ def test_loan_misuse_raises_typed_errors(domain, topic, backends):
         with pytest.raises(LoanError, match="not a message"):
             with pub.loan(lambda: np.zeros(4)):
                 pass
+        with pytest.raises(LoanError, match="factory"):
+            pub.loan(5)
         assert isinstance(LoanError("x"), RuntimeError)
+        pub.destroy()
+        with pytest.raises(NodeClosedError):
+            pub.loan(_cpu_factory)
 
 
 @pytest.mark.cuda

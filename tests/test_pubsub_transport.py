@@ -565,3 +565,15 @@ def test_concurrent_publishers_threads_count_nothing_lost(domain, topic, backend
         assert _wait(lambda: sub.received + sub.counters.dropped >= 2 * per_thread, 20)
     assert sub.counters.lost == 0 and sub.counters.sequence_jumps == 0
     assert sub.received + sub.counters.dropped == 2 * per_thread
+
+
+def test_acceptable_backends_take_a_list_and_refuse_other_types(domain, topic, backends):
+    with Node("accept_list", domain_id=domain, backends=backends) as node:
+        names = [name for name in node.backends][:1] or []
+        sub = node.create_subscription(TENSOR, topic, lambda m: None,
+                                       acceptable_buffer_backends=["cpu", *names])
+        assert set(sub.accepted) == {"cpu", *names}
+        for bad in (5, [1, 2], {"cpu": 1}):
+            with pytest.raises(InvalidEndpointError, match="acceptable_buffer_backends"):
+                node.create_subscription(TENSOR, topic, lambda m: None,
+                                         acceptable_buffer_backends=bad)
