@@ -168,6 +168,20 @@ def qos_segment(depth: int, history: str = KEEP_LAST) -> str:
     return f"::{_HISTORY_ENUM[history]},{'' if depth == 42 else depth}:,:,:,,"
 
 
+def qos_depth(segment: str) -> int:
+    """The keep-last depth of a QoS segment (42 where it is left out); 0 for keep-all or a
+    segment that names none."""
+    if qos_history(segment) == KEEP_ALL:
+        return 0
+    parts = segment.split(":")
+    fields = parts[2].split(",") if len(parts) > 2 else []
+    if len(fields) < 2:
+        return 0
+    if fields[1] == "":
+        return 42
+    return int(fields[1]) if fields[1].isdigit() else 0
+
+
 def qos_history(segment: str) -> str:
     """The history policy of a QoS segment (keep-last unless it names keep-all, 2)."""
     parts = segment.split(":")

@@ -42,6 +42,9 @@ class EndpointInfo:
     process_id: int
     user_id: int
     supported_backends: Mapping[str, str] = field(default_factory=dict, hash=False, compare=False)
+    #: A keep-last endpoint's history depth (its QoS profile, as rmw's endpoint info carries);
+    #: 0 for keep-all, or when unknown.
+    history_depth: int = field(default=0, hash=False, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.gid, (bytes, bytearray)) or len(self.gid) != GID_SIZE:

@@ -7,6 +7,7 @@ Every child is reaped in ``finally`` (a stopped one is killed and continued).
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import signal
@@ -577,3 +578,30 @@ def test_acceptable_backends_take_a_list_and_refuse_other_types(domain, topic, b
             with pytest.raises(InvalidEndpointError, match="acceptable_buffer_backends"):
                 node.create_subscription(TENSOR, topic, lambda m: None,
                                          acceptable_buffer_backends=bad)
+
+
+def test_a_frozen_warp_subscriber_pins_at_most_its_depth_of_blocks(domain, topic, backends):
+    """A SIGSTOPped keep-last subscriber can only ever import its latest descriptors: the
+    publisher's pool holds about depth blocks for it, not one per publish (1.5 GB after 1,500
+    MiB frames before)."""
+    from tests._pubsub_helpers import warp_available
+    from warp_buffer import pool_stats
+
+    if not warp_available():
+        pytest.skip("the warp backend is not available")
+    depth = 4
+    frozen = Child("sub", domain=domain, topic=topic, accept="warp", depth=depth)
+    try:
+        with Node("pin_pub", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic)
+            frozen.wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            before = pool_stats().get("cpu", {}).get("created", 0)
+            os.kill(frozen.proc.pid, signal.SIGSTOP)
+            for index in range(60):
+                pub.publish(make_frame(0, index, 64 * 1024, "warp"))
+            gc.collect()
+            pinned = pool_stats()["cpu"]["created"] - before  # blocks it could not reuse
+    finally:
+        frozen.close()
+    assert pinned <= depth + 4, f"{pinned} blocks pinned for a subscriber of depth {depth}"

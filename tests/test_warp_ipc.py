@@ -506,3 +506,26 @@ def test_the_arena_is_readable_by_its_owner_only():
     buffer, _desc = _published(4096, seed=43)
     assert os.fstat(current_arena().fd).st_mode & 0o777 == 0o600
     del buffer
+
+
+def test_a_peer_that_never_imports_pins_at_most_its_window():
+    """A frozen keep-last peer can only ever import its latest descriptors (its depth and one
+    or two in hand): older ones pin no block, and a late import of one is refused as stale."""
+    slot = ipc.peer_slot(os.urandom(16), os.getpid(), window=3)
+    published = [_published(4096, seed=50 + i, peer=slot) for i in range(8)]
+    reclaimable = [buffer.get_impl()._block.try_reclaim() for buffer, _ in published]
+    assert reclaimable == [True] * 5 + [False] * 3  # the last 3 may still be imported
+    with pytest.raises(StaleBufferError):
+        ipc.import_buffer(published[0][1])  # its block was retired: never read as a new frame
+    late = ipc.import_buffer(published[-1][1])  # inside the window: still valid
+    assert checksum(late.to_cpu().view()) == checksum(expected_pattern(4096, 57))
+    late.release()
+
+
+def test_without_a_window_a_peer_pins_until_it_imports():
+    slot = ipc.peer_slot(os.urandom(16), os.getpid())
+    published = [_published(4096, seed=60 + i, peer=slot) for i in range(4)]
+    assert not any(buffer.get_impl()._block.try_reclaim() for buffer, _ in published)
+    impl = ipc.import_buffer(published[-1][1])  # a later one imported: the earlier are dropped
+    impl.release()
+    assert all(buffer.get_impl()._block.try_reclaim() for buffer, _ in published)

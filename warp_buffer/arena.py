@@ -86,6 +86,7 @@ def generation_fits(generation: int, capacity: int) -> bool:
 #: session tag, data offset, data bytes, file size.
 HELLO = struct.Struct("<8sIIQQQQ")
 SEQ_BITS = 40  # a delivery sequence is epoch << SEQ_BITS | number
+SEQ_MASK = (1 << SEQ_BITS) - 1
 
 
 def arena_bytes() -> int:
@@ -162,6 +163,9 @@ class PeerSlot:
     epoch: int
     pid: int
     issued: int = 0  # the last sequence number handed out
+    # How many of the latest descriptors the peer can still import (its keep-last queue, and
+    # one or two in hand); older ones it can never read: they pin nothing. 0: no limit.
+    window: int = 0
     numbers: Any = dataclasses.field(default_factory=lambda: itertools.count(1))
 
     def next_sequence(self) -> int:
@@ -203,6 +207,7 @@ class Arena:
         self._slots: dict[Any, PeerSlot] = {}
         self._free_slots = list(range(MAX_PEERS - 1, -1, -1))
         self._epochs = [0] * MAX_PEERS
+        self._slot_at: list[PeerSlot | None] = [None] * MAX_PEERS  # by slot index
         self._last_liveness = 0.0
         self.server: Any = None
         # CUDA VMM blocks by the offset of their lock range: the server hands a peer holding
@@ -251,9 +256,10 @@ class Arena:
         return True
 
     # -- peers ------------------------------------------------------------------------------
-    def peer_slot(self, key: Any, pid: int) -> PeerSlot | None:
+    def peer_slot(self, key: Any, pid: int, window: int = 0) -> PeerSlot | None:
         """The delivery slot of peer ``key`` (its subscription gid), assigned on first use;
-        None when every slot is taken (the peer is then served by CPU)."""
+        None when every slot is taken (the peer is then served by CPU). ``window``: see
+        :class:`PeerSlot` (a keep-last peer's depth, plus what it may hold in hand)."""
         if not self._free_slots and key not in self._slots:
             self._last_liveness = 0.0
             self.forget_dead_peers()  # make room: dead peers first
@@ -265,7 +271,9 @@ class Arena:
                 index = self._free_slots.pop()
                 self._epochs[index] += 1
                 self.acks[index * (SLOT_STRIDE // 8)] = 0
-                slot = self._slots[key] = PeerSlot(index, self._epochs[index], pid)
+                slot = self._slots[key] = PeerSlot(index, self._epochs[index], pid,
+                                                   window=max(0, window))
+                self._slot_at[index] = slot
             return slot
 
     def forget_peer(self, key: Any) -> None:
@@ -274,17 +282,23 @@ class Arena:
             slot = self._slots.pop(key, None)
             if slot is not None:
                 self._epochs[slot.index] += 1
+                self._slot_at[slot.index] = None
                 self._free_slots.append(slot.index)
 
     def delivered(self, pending: dict[int, int]) -> bool:
         """Has every peer in ``pending`` (slot index -> sequence) imported its descriptor, or a
-        later one (it then dropped this one: keep-last), or gone away?"""
-        acks, epochs = self.acks, self._epochs
+        later one (it then dropped this one: keep-last), or gone away, or been sent more than
+        its window since (its keep-last queue overwrote it: a frozen peer pins at most that
+        many blocks; should it import this one after all, the generation check refuses it)?"""
+        acks, epochs, slots = self.acks, self._epochs, self._slot_at
         for index, sequence in pending.items():
             if epochs[index] != sequence >> SEQ_BITS:
                 continue  # the peer was forgotten
             if acks[index * (SLOT_STRIDE // 8)] < sequence:
-                return False
+                slot = slots[index]
+                if (slot is None or not slot.window
+                        or slot.issued - (sequence & SEQ_MASK) < slot.window):
+                    return False
         return True
 
     def forget_dead_peers(self) -> None:

@@ -94,9 +94,10 @@ def local_user_id() -> int:
     return os.getuid()
 
 
-def peer_slot(key: Any, pid: int) -> PeerSlot | None:
-    """The delivery slot of a peer subscription (``key``: its gid) in this process's arena."""
-    return current_arena().peer_slot(key, pid)
+def peer_slot(key: Any, pid: int, window: int = 0) -> PeerSlot | None:
+    """The delivery slot of a peer subscription (``key``: its gid) in this process's arena;
+    ``window``: how many of its latest descriptors it can still import (0: no limit)."""
+    return current_arena().peer_slot(key, pid, window)
 
 
 def forget_peer(key: Any) -> None:

@@ -47,6 +47,8 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
+#: Descriptors a keep-last peer may hold beyond its depth: taken off its queue, not yet imported.
+IN_HAND = 2
 
 DESCRIPTOR_TYPE = _desc.DESCRIPTOR_TYPE
 METADATA_VERSION = 2
@@ -277,7 +279,10 @@ class WarpBufferBackend(BufferBackend):
             return None
         slot = peer.slot
         if slot is None:
-            slot = peer.slot = peer_slot(endpoint_info.gid, endpoint_info.process_id)
+            # A keep-last peer can import only its latest descriptors (its depth, and one or
+            # two in hand): older ones pin no block (see warp_buffer.arena.PeerSlot.window).
+            window = endpoint_info.history_depth + IN_HAND if endpoint_info.history_depth else 0
+            slot = peer.slot = peer_slot(endpoint_info.gid, endpoint_info.process_id, window)
             if slot is None:
                 _log.warning("every delivery slot of this process is taken: peer %s is served "
                              "by CPU", endpoint_info.gid.hex())
