@@ -30,9 +30,11 @@ __all__ = ["ENV_DOMAIN", "LaneStartError", "cleanup_dead_nodes", "close_node", "
 _log = logging.getLogger(__name__)
 
 #: Environment variable naming the lane's iceoryx2 domain; processes talk over the lane only
-#: within one domain (default ``"default"``). The test suite gives each run a domain of its own.
+#: within one domain (default: ``u<uid>``, one per user: the lane serves processes of one user
+#: only, and another user's files would not open). The test suite gives each run its own.
 ENV_DOMAIN = "WARP_BUFFER_FAST_LANE_DOMAIN"
-DEFAULT_DOMAIN = "default"
+DEFAULT_DOMAIN = f"u{os.getuid()}"
+_SHM = "/dev/shm"
 PREFIX = "warp_lane_"
 _DOMAIN = re.compile(r"^[A-Za-z0-9]{1,32}$")
 
@@ -117,7 +119,31 @@ def process_node() -> Any:
         if _node_pid == 0:
             atexit.register(close_node)
         _node_pid = pid
+        _make_private(resource_prefix())
         return _node
+
+
+def _make_private(prefix: str) -> None:
+    """Owner-only modes for the domain's files iceoryx2 creates readable by all (its per-domain
+    ``global_mgmt`` segment, 0666): nothing of ours in /dev/shm is open to other users."""
+    try:
+        names = [n for n in os.listdir(_SHM) if n.startswith(prefix)]
+    except OSError:
+        return
+    uid = os.getuid()
+    for name in names:
+        try:  # through an fd opened without following links: the file itself, nothing else
+            fd = os.open(os.path.join(_SHM, name), os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        except OSError:  # removed meanwhile, a link, or not ours to open
+            continue
+        try:
+            info = os.fstat(fd)
+            if info.st_uid == uid and info.st_mode & 0o077:
+                os.fchmod(fd, info.st_mode & 0o700)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
 
 
 def track(owner: Any, early: bool = False) -> None:

@@ -567,3 +567,21 @@ def test_a_node_out_of_file_descriptors_gets_a_typed_error_that_says_so() -> Non
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.startswith("TYPED"), (result.stdout, result.stderr[-2000:])
     assert "file descriptors" in result.stdout
+
+
+@requires_iceoryx2
+def test_the_lanes_files_are_readable_by_their_owner_only() -> None:
+    _iox2.process_node()
+    reader = fast_lane.LaneReader(f"modes/{uuid.uuid4().hex}")
+    try:
+        prefix = _iox2.resource_prefix()
+        names = [name for name in os.listdir("/dev/shm") if name.startswith(prefix)]
+        assert any(name.endswith(".global_mgmt") for name in names), names
+        for name in names:  # iceoryx2 makes its global_mgmt segment 0666
+            assert os.stat(os.path.join("/dev/shm", name)).st_mode & 0o077 == 0, name
+    finally:
+        reader.close()
+
+
+def test_the_default_lane_domain_is_the_users_own() -> None:
+    assert _iox2.DEFAULT_DOMAIN == f"u{os.getuid()}"
