@@ -605,3 +605,22 @@ def test_a_frozen_warp_subscriber_pins_at_most_its_depth_of_blocks(domain, topic
     finally:
         frozen.close()
     assert pinned <= depth + 4, f"{pinned} blocks pinned for a subscriber of depth {depth}"
+
+
+@pytest.mark.parametrize("segment, depth", [
+    (wire.qos_segment(10), 10), (wire.qos_segment(42), 42), (wire.qos_segment(1), 1),
+    (wire.qos_segment(5, "keep_all"), 0), ("::1,7:,:,:,,", 7), ("garbage", 0), ("::1,x:", 0),
+])
+def test_the_keep_last_depth_is_read_from_a_qos_segment(segment, depth):
+    assert wire.qos_depth(segment) == depth
+
+
+def test_endpoint_info_carries_a_subscriptions_depth(domain, topic, backends):
+    from buffer_pubsub._info import endpoint_info
+
+    with Node("depth_info", domain_id=domain, backends=backends) as node:
+        last = node.create_subscription(TENSOR, topic, lambda m: None, depth=7)
+        every = node.create_subscription(TENSOR, topic, lambda m: None, depth=7,
+                                         history="keep_all")
+        assert endpoint_info(last._token).history_depth == 7
+        assert endpoint_info(every._token).history_depth == 0
