@@ -498,6 +498,8 @@ def _wait_s(timeout: float | None) -> float | None:
         return None
     try:
         seconds = float(timeout)
+    except OverflowError:  # an int beyond any float (10**400): no limit, as inf
+        return None
     except (TypeError, ValueError):
         raise InvalidTimeoutError(
             f"timeout must be a number of seconds or None, not {timeout!r}") from None

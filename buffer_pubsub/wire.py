@@ -179,7 +179,7 @@ def qos_depth(segment: str) -> int:
         return 0
     if fields[1] == "":
         return 42
-    return int(fields[1]) if fields[1].isdigit() else 0
+    return int(fields[1]) if fields[1].isdecimal() and fields[1].isascii() else 0
 
 
 def qos_history(segment: str) -> str:

@@ -127,7 +127,9 @@ def from_input_pointcloud_msg(adapter: _api.Adapter[Any], msg: Any,
     if layout is not None:
         return _api.input_native(adapter, msg, layout, clone)
     points = structured_view(msg).reshape(-1)
-    columns = [points[name].reshape(points.shape[0], -1) for name in names]  # count k: k wide
+    # A field of count k gives k columns (from its dtype: the count holds with no point too)
+    columns = [points[name].reshape(points.shape[0], int(np.prod(points.dtype[name].shape)))
+               for name in names]
     table = np.empty((points.shape[0], sum(c.shape[1] for c in columns)), dtype=np.float32)
     start = 0
     for column in columns:

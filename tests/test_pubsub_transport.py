@@ -271,7 +271,7 @@ def test_spin_timeouts_read_as_rclpy_and_never_abort(domain, topic, backends, la
         node.create_subscription(TENSOR, topic, got.append,
                                  acceptable_buffer_backends="warp" if lane else "cpu")
         pub = node.create_publisher(TENSOR, topic)
-        for index, timeout in enumerate((float("inf"), 1e300, -1.0, None)):
+        for index, timeout in enumerate((float("inf"), 1e300, 10**400, -1.0, None)):
             timer = threading.Timer(0.2, pub.publish, (make_frame(0, index, 64, "cpu"),))
             timer.start()
             start = time.monotonic()
@@ -286,7 +286,7 @@ def test_spin_timeouts_read_as_rclpy_and_never_abort(domain, topic, backends, la
             with pytest.raises(InvalidTimeoutError):
                 node.spin(bad)
         assert node.spin_once(0) == 0
-    assert len(got) == 4
+    assert len(got) == 5
 
 
 def test_a_node_is_spun_by_one_thread_at_a_time(domain, topic, backends):
@@ -610,6 +610,7 @@ def test_a_frozen_warp_subscriber_pins_at_most_its_depth_of_blocks(domain, topic
 @pytest.mark.parametrize("segment, depth", [
     (wire.qos_segment(10), 10), (wire.qos_segment(42), 42), (wire.qos_segment(1), 1),
     (wire.qos_segment(5, "keep_all"), 0), ("::1,7:,:,:,,", 7), ("garbage", 0), ("::1,x:", 0),
+    ("::1,\u00b2:,:", 0),  # a digit to str.isdigit(), not to int()
 ])
 def test_the_keep_last_depth_is_read_from_a_qos_segment(segment, depth):
     assert wire.qos_depth(segment) == depth

@@ -264,6 +264,8 @@ def test_a_multi_count_field_gives_one_column_per_element(framework):
     got = module.from_input_pointcloud_msg(msg, ("curvature", "normal"))
     assert tuple(got.shape) == (n, 4)
     np.testing.assert_array_equal(to_raw(got), to_raw(values[:, [3, 0, 1, 2]]))
+    msg.width, msg.row_step, msg.data = 0, 0, b""  # no point: still 4 columns
+    assert tuple(module.from_input_pointcloud_msg(msg, ("curvature", "normal")).shape) == (0, 4)
 
 
 def test_pointcloud_errors_are_typed():

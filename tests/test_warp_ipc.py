@@ -16,6 +16,7 @@ import subprocess
 import sys
 import tempfile
 import textwrap
+import threading
 import time
 
 import numpy as np
@@ -529,3 +530,93 @@ def test_without_a_window_a_peer_pins_until_it_imports():
     impl = ipc.import_buffer(published[-1][1])  # a later one imported: the earlier are dropped
     impl.release()
     assert all(buffer.get_impl()._block.try_reclaim() for buffer, _ in published)
+
+
+def _reap(pid: int, timeout: float = 10.0) -> int | None:
+    """The exit status of child ``pid``, or None (then killed) if it did not exit in time."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            return status
+        time.sleep(0.01)
+    os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+    return None
+
+
+def test_a_forked_child_releasing_an_inherited_import_keeps_the_parents_hold():
+    """The child shares the description the parent's read lock lives on: its release must not
+    unlock it, or the publisher recycles a block the parent still reads."""
+    buffer, desc = _published(4096, seed=70)
+    impl = ipc.import_buffer(desc)
+    block = buffer.get_impl()._block
+    assert not block.try_reclaim()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        try:
+            impl.release()
+        finally:
+            os._exit(0)
+    assert _reap(pid) == 0
+    assert not block.try_reclaim()  # still held by the parent
+    impl.release()
+    assert block.try_reclaim()
+
+
+def test_a_fork_while_a_thread_holds_the_servers_lock_does_not_hang_the_child():
+    buffer, _desc = _published(4096, seed=71)
+    server = current_arena().server
+    held, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with server._cond:
+            held.set()
+            release.wait(10)
+
+    thread = threading.Thread(target=hold)
+    thread.start()
+    try:
+        assert held.wait(5)
+        pid = os.fork()  # the at-fork handler abandons the parent's server in the child
+        if pid == 0:  # pragma: no cover - the child
+            os._exit(0)
+        assert _reap(pid, 5.0) == 0, "the child hung in the at-fork handler"
+    finally:
+        release.set()
+        thread.join()
+    del buffer
+
+
+def test_a_peer_that_sent_part_of_a_request_delays_nobody():
+    buffer, desc = _published(4096, seed=72)
+    name = handoff.socket_name(os.getuid(), os.getpid(), desc.session)
+    partial = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        partial.connect(name)
+        partial.send(b"\\x01")  # one byte of a 24-byte request, then nothing
+        time.sleep(0.1)
+        start = time.monotonic()
+        fd, _geometry = handoff.fetch_arena(os.getpid(), desc.session)
+        took = time.monotonic() - start
+        os.close(fd)
+    finally:
+        partial.close()
+    assert took < 1.0, f"the hand-off waited {took:.2f} s behind a partial request"
+    del buffer
+
+
+def test_a_hold_released_after_its_arena_is_collected_unlocks_nothing(monkeypatch):
+    """A collection of a cycle holding an import and its arena may finalize the arena first:
+    the hold's release must then unlock no fd number (it may be another file's by now)."""
+    arena = attach.AttachedArena.local(current_arena())
+    buffer, desc = _published(4096, seed=73)
+    arena.hold(desc.offset)
+    hold = attach.Hold(arena, desc.offset)
+    unlocked = []
+    monkeypatch.setattr(attach.memory, "unlock", lambda fd, offset: unlocked.append(fd))
+    arena.__del__()
+    assert arena.fd == -1
+    hold.release()
+    assert unlocked == []
+    del buffer

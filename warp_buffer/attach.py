@@ -73,7 +73,9 @@ class AttachedArena:
         self.owner_pid = owner_pid
         self.session = session
         self.geometry = geometry
-        self.fd = fd  # our own open file description: our locks
+        self.fd = fd  # our own open file description: our locks (-1 once closed)
+        # A forked child shares the description, and so its locks: only this process unlocks
+        self._pid = os.getpid()
         self.base = base
         # ``owned``: the mappings are ours to unmap (False for our own arena, imported here)
         self._head = (base, geometry.data_offset) if owned else None
@@ -176,7 +178,9 @@ class AttachedArena:
         count = self._holds.get(offset, 0)
         if count <= 1:
             self._holds.pop(offset, None)
-            if count == 1:
+            # Not in a forked child (the lock is its parent's too), nor on a closed description
+            # (its locks went with it; the number may be another file's now).
+            if count == 1 and self.fd >= 0 and self._pid == os.getpid():
                 memory.unlock(self.fd, offset)
         else:
             self._holds[offset] = count - 1
@@ -189,10 +193,12 @@ class AttachedArena:
 
     def __del__(self) -> None:
         head, self._head = self._head, None
+        fd, self.fd = getattr(self, "fd", -1), -1  # first: a hold dropped later must not unlock it
         try:
             if head is not None:
                 memory.unmap(*head)
-            os.close(self.fd)
+            if fd >= 0:
+                os.close(fd)
         except Exception:  # pragma: no cover - interpreter shutdown
             pass
 

@@ -92,11 +92,18 @@ def _recv_exact(sock: socket.socket, nbytes: int) -> bytes:
     return data
 
 
-def _readable(sock: socket.socket, timeout_s: float) -> bool:
-    """Is there something to read on ``sock`` within ``timeout_s`` (poll: any fd number)?"""
+def _request_ready(sock: socket.socket, timeout_s: float) -> bool:
+    """Has a whole request arrived on ``sock`` within ``timeout_s`` (poll: any fd number; a
+    peer that sent part of one is as slow as one that sent nothing)?"""
     poller = select.poll()
     poller.register(sock, select.POLLIN)
-    return bool(poller.poll(timeout_s * 1000))
+    if not poller.poll(timeout_s * 1000):
+        return False
+    try:
+        data = sock.recv(REQUEST.size, socket.MSG_PEEK | socket.MSG_DONTWAIT)
+    except OSError:
+        return True  # failed: answering it fails at once, on this thread
+    return len(data) >= REQUEST.size or not data  # whole, or closed (fails at once too)
 
 
 def _closed(sock: socket.socket) -> bool:
@@ -138,7 +145,7 @@ class Server:
             except OSError:
                 return  # closed
             self._sweep()
-            if _readable(conn, PROMPT_REQUEST_S):
+            if _request_ready(conn, PROMPT_REQUEST_S):
                 self._handle(conn)  # the usual case: the request came with the connection
                 continue
             with self._cond:
@@ -148,8 +155,14 @@ class Server:
                 _log.debug("hand-off: too many peers slow to ask, one refused")
                 conn.close()
                 continue
-            threading.Thread(target=self._handle, args=(conn, True), daemon=True,
-                             name="warp_buffer-handoff-peer").start()
+            try:
+                threading.Thread(target=self._handle, args=(conn, True), daemon=True,
+                                 name="warp_buffer-handoff-peer").start()
+            except RuntimeError as exc:  # no thread to spare: refuse this one, serve the next
+                _log.debug("hand-off: cannot wait for a slow peer: %s", exc)
+                with self._cond:
+                    self._stragglers -= 1
+                conn.close()
 
     def _handle(self, conn: socket.socket, straggler: bool = False) -> None:
         """Answer ``conn`` and keep it or close it."""
@@ -232,10 +245,11 @@ class Server:
 
     def abandon(self) -> None:
         """In a forked child: close this process's copies of the sockets, without the shutdown
-        that would end the parent's (which keeps serving)."""
-        with self._cond:
-            self._closed = True
-            peers, self._peers = self._peers, []
+        that would end the parent's (which keeps serving). No lock: a thread of the parent may
+        have held it at the fork, and the child has that thread no more."""
+        self._cond = threading.Condition()
+        self._closed = True
+        peers, self._peers = self._peers, []
         self._sock.close()
         for conn in peers:
             conn.close()
