@@ -39,7 +39,6 @@ def _build(token: wire.EndpointToken) -> EndpointInfo:
         process_id=token.locality.process_id,
         user_id=token.locality.user_id,
         supported_backends=token.backends,
-        history_depth=wire.qos_depth(token.qos),
     )
 
 

@@ -19,7 +19,8 @@ import time
 
 from . import fast_lane, wire
 
-__all__ = ["DeadPeerSweeper", "open_reader", "open_writer", "serves", "split_frame"]
+__all__ = ["DeadPeerSweeper", "open_reader", "open_writer", "queue_depth", "serves",
+           "split_frame"]
 
 _log = logging.getLogger(__name__)
 
@@ -38,6 +39,13 @@ def serves(local: wire.Locality, peer: wire.EndpointToken, *, individual: bool, 
     return (individual and served and not keep_all and peer.buffer_aware
             and theirs.host_id == local.host_id and theirs.user_id == local.user_id
             and theirs.process_id != local.process_id)
+
+
+def queue_depth(peer: wire.EndpointToken) -> int:
+    """How many frames the lane to subscription ``peer`` holds before it overwrites the oldest:
+    the reader made its iceoryx2 queue as deep as its keep-last depth (see
+    :meth:`Subscription.__init__`, at most :data:`fast_lane.MAX_DEPTH`)."""
+    return min(max(1, wire.qos_depth(peer.qos)), fast_lane.MAX_DEPTH)
 
 
 def open_writer(base_key: str, subscriber_gid: bytes) -> fast_lane.LaneWriter | None:

@@ -17,6 +17,7 @@ Per publish:
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import threading
@@ -104,9 +105,19 @@ class _Peer:
     # Served on its own channel: it advertises a backend besides CPU (see wire). Judged once
     # from its token (which never changes), not per publish.
     individual: bool = field(init=False)
+    # What backends are told when descriptors are made for it: its info, plus the depth of
+    # the lane's keep-last queue while the lane carries them (EndpointInfo.delivery_queue_depth).
+    route_info: EndpointInfo = field(init=False)
 
     def __post_init__(self) -> None:
         self.individual = wire.accepts_backends(self.token.backends)
+        self.route_info = self.info
+
+    def use_lane(self, lane: fast_lane.LaneWriter | None) -> None:
+        """Route to it by ``lane`` (None: by Zenoh); call with ``self.lock`` held."""
+        self.lane = lane
+        self.route_info = self.info if lane is None else dataclasses.replace(
+            self.info, delivery_queue_depth=_lane_routes.queue_depth(self.token))
 
     def close(self) -> None:
         with self.lock:
@@ -229,7 +240,8 @@ class Publisher:
             return
         with peer.lock:
             if not peer.gone:
-                peer.lane, writer = writer, None
+                peer.use_lane(writer)
+                writer = None
         if writer is not None:  # it vanished meanwhile
             writer.close()
 
@@ -388,7 +400,7 @@ class Publisher:
             if name not in peer.served:
                 return None
             descriptor = backends[name].create_descriptor_with_endpoint(
-                buffer.get_impl(), peer.info)
+                buffer.get_impl(), peer.route_info)
             return None if descriptor is None else (name, descriptor)
 
         return serialize_message(msg, route=route)
@@ -403,7 +415,7 @@ class Publisher:
                     if lane.write(attachment, payload):
                         return  # one route per message: the lane reached it
                 except fast_lane.LaneError as exc:  # Zenoh carries this one; logged once
-                    peer.lane = None
+                    peer.use_lane(None)
                     lane.close()
                     _log.warning("lane to %s failed, Zenoh carries it: %s",
                                  peer.token.gid.hex(), exc)

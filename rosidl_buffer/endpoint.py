@@ -42,9 +42,11 @@ class EndpointInfo:
     process_id: int
     user_id: int
     supported_backends: Mapping[str, str] = field(default_factory=dict, hash=False, compare=False)
-    #: A keep-last endpoint's history depth (its QoS profile, as rmw's endpoint info carries);
-    #: 0 for keep-all, or when unknown.
-    history_depth: int = field(default=0, hash=False, compare=False)
+    #: Set by the transport when what it sends this endpoint travels through a keep-last queue
+    #: of this many entries that overwrites its oldest (a same-host lane): only that many recent
+    #: descriptors can still reach the endpoint, so a backend need not keep older ones' memory.
+    #: 0: nothing bounds what is in flight (a network transport's buffers), or unknown.
+    delivery_queue_depth: int = field(default=0, hash=False, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.gid, (bytes, bytearray)) or len(self.gid) != GID_SIZE:

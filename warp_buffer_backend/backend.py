@@ -47,8 +47,9 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
-#: Descriptors a keep-last peer may hold beyond its depth: taken off its queue, not yet imported.
-IN_HAND = 2
+#: Descriptors a peer may hold beyond its delivery queue: taken off it, not yet imported (a
+#: reader descheduled in between loses the oldest of them if more than this are sent meanwhile).
+IN_HAND = 16
 
 DESCRIPTOR_TYPE = _desc.DESCRIPTOR_TYPE
 METADATA_VERSION = 2
@@ -277,16 +278,20 @@ class WarpBufferBackend(BufferBackend):
         peer = self._peers.get(endpoint_info.gid) or self._peer(endpoint_info)
         if not peer.decision.accepted or not impl.is_exportable:
             return None
+        # Through a keep-last queue that overwrites (the transport says so, per route), a peer
+        # can import only its latest descriptors: the queue's, and a few taken off it but not
+        # imported yet; older ones pin no block (see warp_buffer.arena.PeerSlot.window).
+        depth = endpoint_info.delivery_queue_depth
+        window = depth + IN_HAND if depth > 0 else 0
         slot = peer.slot
         if slot is None:
-            # A keep-last peer can import only its latest descriptors (its depth, and one or
-            # two in hand): older ones pin no block (see warp_buffer.arena.PeerSlot.window).
-            window = endpoint_info.history_depth + IN_HAND if endpoint_info.history_depth else 0
             slot = peer.slot = peer_slot(endpoint_info.gid, endpoint_info.process_id, window)
             if slot is None:
                 _log.warning("every delivery slot of this process is taken: peer %s is served "
                              "by CPU", endpoint_info.gid.hex())
                 return None
+        elif slot.window != window:  # the route changed (its lane failed: Zenoh carries it)
+            slot.window = window
         try:
             return export_buffer(impl, peer=slot,
                                  peer_device_uuids=peer.decision.cuda_uuids)
