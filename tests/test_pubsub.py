@@ -23,6 +23,7 @@ from tests._pubsub_helpers import (
     pick_backend,
     use_fake_backend,
 )
+from tests._reliability_helpers import wait_until
 
 pytestmark = pytest.mark.multiprocess
 
@@ -425,15 +426,6 @@ def _raw_session():
         'scouting:{multicast:{enabled:true,interface:"lo"}}}'))
 
 
-def _wait(predicate, timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
-
-
 def test_a_twin_token_with_the_same_gid_never_replaces_or_removes_the_endpoint(
         domain, topic, backends):
     """A foreign token repeating a subscription's 13 stock segments (same gid, no extra
@@ -449,7 +441,7 @@ def test_a_twin_token_with_the_same_gid_never_replaces_or_removes_the_endpoint(
         twin_key = "/".join(real_key.split("/")[:wire.STOCK_ENDPOINT_SEGMENTS])
         assert twin_key != real_key and wire.parse_token(twin_key).gid == real.gid
         real_token = raw.liveliness().declare_token(real_key)
-        assert _wait(lambda: real.gid in pub._peers)
+        assert wait_until(lambda: real.gid in pub._peers)
         twin_token = raw.liveliness().declare_token(twin_key)
         time.sleep(0.5)
         assert node._graph[real.gid].buffer_aware  # still the real one
@@ -457,7 +449,7 @@ def test_a_twin_token_with_the_same_gid_never_replaces_or_removes_the_endpoint(
         time.sleep(0.5)
         assert real.gid in pub._peers and pub.get_subscription_count() == 1
         real_token.undeclare()
-        assert _wait(lambda: pub.get_subscription_count() == 0 and not pub._peers)
+        assert wait_until(lambda: pub.get_subscription_count() == 0 and not pub._peers)
 
 
 def test_tokens_with_impossible_type_names_are_ignored(domain, topic, backends, caplog):
