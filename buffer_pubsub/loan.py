@@ -25,7 +25,7 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from rosidl_buffer import Buffer
+from rosidl_buffer import Buffer, BufferImplBase
 from rosidl_buffer.messages import Message, iter_buffers
 from rosidl_buffer.messages._schema import FieldKind
 
@@ -94,6 +94,13 @@ def _refs(obj: Any) -> int:
 _SLOT_REFS = 2  # _Slot.msg and the caller's argument of _refs (slot.msg evaluated once)
 
 
+def _rearmable(msg: Message) -> bool:
+    """Can every buffer of ``msg`` be re-armed for a later loan (its impl has a ``reclaim``)?
+    A pool of messages whose storage never can would only pin them (a plain warp buffer)."""
+    return all(type(buffer.get_impl()).reclaim is not BufferImplBase.reclaim
+               for buffer in iter_buffers(msg))
+
+
 class LoanPool:
     """The pooled messages of one publisher, by factory key (see the module docstring)."""
 
@@ -105,8 +112,15 @@ class LoanPool:
         self.reused = 0  # loans served by a pooled message
         self.unpooled = 0  # loans past max_loans (fresh messages, not kept)
 
-    def take(self, factory: Callable[[], Message]) -> tuple[Message, _Slot | None]:
+    def take(self, factory: Callable[[], Message],
+             max_loans: int | None = None) -> tuple[Message, _Slot | None]:
+        """A pooled message of ``factory``'s key that nobody holds (handed to ``factory.reloan``
+        if it has one, so a loan starts as the factory made it), else a new one, pooled while
+        the key has fewer than ``max_loans`` (default: the pool's) and its buffers can be
+        re-armed at all."""
         key = getattr(factory, "loan_key", factory)
+        limit = self.max_loans if max_loans is None else max_loans
+        reused = None
         with self._lock:
             slots = self._slots.setdefault(key, [])
             for index, slot in enumerate(slots):
@@ -116,13 +130,19 @@ class LoanPool:
                     # Least recently loaned first next time: the one just published is the
                     # likeliest to be still held (probing it costs a reclaim that fails).
                     slots.append(slots.pop(index))
-                    return slot.msg, slot
-            full = len(slots) >= self.max_loans
+                    reused = slot
+                    break
+            full = len(slots) >= limit
+        if reused is not None:
+            reloan = getattr(factory, "reloan", None)
+            if reloan is not None:
+                reloan(reused.msg)
+            return reused.msg, reused
         msg = factory()
         if not isinstance(msg, Message):
             raise LoanError(f"the loan factory {factory!r} returned {type(msg).__name__}, "
                             "not a message")
-        if full:
+        if full or not _rearmable(msg):
             with self._lock:
                 self.unpooled += 1
             return msg, None
@@ -163,18 +183,20 @@ class Loan:
     reused while any subscriber still references it.
     """
 
-    __slots__ = ("_publisher", "_factory", "_msg", "_slot")
+    __slots__ = ("_publisher", "_factory", "_max_loans", "_msg", "_slot")
 
-    def __init__(self, publisher: Publisher, factory: Callable[[], Message]) -> None:
+    def __init__(self, publisher: Publisher, factory: Callable[[], Message],
+                 max_loans: int | None = None) -> None:
         self._publisher = publisher
         self._factory = factory
+        self._max_loans = max_loans
         self._msg: Message | None = None
         self._slot: _Slot | None = None
 
     def __enter__(self) -> Message:
         if self._msg is not None:
             raise LoanError("a Loan is entered once; call publisher.loan(...) for the next one")
-        self._msg, self._slot = self._publisher._loans.take(self._factory)
+        self._msg, self._slot = self._publisher._loans.take(self._factory, self._max_loans)
         return self._msg
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:

@@ -291,9 +291,7 @@ class Publisher:
             raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
         if not callable(factory):
             raise LoanError(f"a loan needs a factory that makes a message, got {factory!r}")
-        if max_loans is not None:
-            self._loans.max_loans = max(1, int(max_loans))
-        return Loan(self, factory)
+        return Loan(self, factory, None if max_loans is None else max(1, int(max_loans)))
 
     def loan_stats(self) -> dict[str, int]:
         """Pooled messages ``created``, loans ``reused``, ``unpooled`` loans, ``pooled`` now."""

@@ -119,9 +119,12 @@ def allocate_tensor_msg(adapter: Adapter[Any], shape: Sequence[int] | int, dtype
 
 def output_native(adapter: Adapter[T], msg: Any, layout: TensorLayout) -> T:
     """A writable native view of ``layout`` over ``msg.data`` (tensor and image functions)."""
-    loaned = loan_state(msg, layout)
-    if loaned is not None:  # a loan: the view cached for this block (built once)
-        return loaned.native(adapter)
+    loaned = loan_state(msg)
+    if loaned is not None:  # a loan: the view cached for this block, or one over its memory
+        if layout == loaned.layout:
+            return loaned.native(adapter)
+        adapter.check_dtype(layout.dtype)
+        return adapter.from_view(loaned.view_for(layout))
     adapter.check_dtype(layout.dtype)
     device = storage_device(msg.data)
     adapter.check_view_device(device)
@@ -218,9 +221,9 @@ def write_value(adapter: Adapter[Any], msg: Any, layout: TensorLayout, value: An
     if layout.numel == 0:
         return
     data = msg.data
-    loaned = loan_state(msg, layout)
-    if loaned is not None:
-        adapter.copy_into(loaned.view, value)
+    loaned = loan_state(msg)
+    if loaned is not None:  # into the loan's own memory (no write handle: the loan has none)
+        adapter.copy_into(loaned.view_for(layout), value)
         return
     if backend_of(data) == "cpu":
         adapter.copy_into(view_of(msg, layout, writable=True), value)

@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from .dlpack import TensorView, _host_bytes, warp_dtype
-from .errors import UnsupportedBackendError
-from .metadata import TensorLayout, contiguous_strides, normalize_shape
+from .errors import TensorConversionError, UnsupportedBackendError
+from .metadata import TensorLayout, contiguous_strides, normalize_shape, write_metadata
 
 __all__ = ["LoanState", "TensorLoanSpec", "loan_tensor_msg"]
 
@@ -49,15 +49,41 @@ class LoanState:
         dt = layout.dtype
         self.fields = (dt.code, dt.bits, dt.lanes, layout.byte_offset, list(layout.shape),
                        [] if layout.is_contiguous else list(layout.strides))
-        if impl._host is not None:  # host memory: a NumPy carrier that keeps the impl alive
-            storage = _host_bytes(impl._ptr, impl._size, owner=impl)
-        else:
-            storage = impl.array
-        self.view = TensorView(storage, layout, writable=True)
+        self.view = TensorView(self._storage(), layout, writable=True)
         self.natives: dict[str, Any] = {}
 
-    def matches(self, msg: Any, layout: TensorLayout) -> bool:
-        return layout == self.layout and msg.data.get_impl() is self.impl
+    def _storage(self) -> Any:
+        impl = self.impl
+        if impl._host is not None:  # host memory: a NumPy carrier that keeps the impl alive
+            return _host_bytes(impl._ptr, impl._size, owner=impl)
+        return impl.array
+
+    def holds(self, msg: Any) -> bool:
+        """``msg`` still stores the loan's buffer (its views can be built over that memory)."""
+        return msg.data.get_impl() is self.impl
+
+    def view_for(self, layout: TensorLayout) -> TensorView:
+        """A writable view of ``layout`` (checked to fit the loan's bytes) over the loan's own
+        memory: the cached one for the spec's layout, else a new one (a reshape in the loan).
+        Refused once published: the loan ended."""
+        self._check_open()
+        if layout == self.layout:
+            return self.view
+        return TensorView(self._storage(), layout, writable=True)
+
+    def _check_open(self) -> None:
+        if self.impl.is_published:
+            raise TensorConversionError(
+                "this loaned message was published: its loan ended, so it is no longer "
+                "writable (take the next loan from the publisher)")
+
+    def restore(self, msg: Any) -> None:
+        """The next loan starts from the spec: its metadata and this state (a loan may have
+        reshaped the message)."""
+        if not self.untouched(msg):
+            write_metadata(msg, self.layout)
+        if getattr(msg, "_native", None) is not self:
+            object.__setattr__(msg, "_native", self)
 
     def untouched(self, msg: Any) -> bool:
         """``msg`` still holds the spec's metadata and storage (so :meth:`matches` holds for its
@@ -71,6 +97,7 @@ class LoanState:
                 and msg.data.get_impl() is self.impl)
 
     def native(self, adapter: Any) -> Any:
+        self._check_open()
         view = self.view
         if view.device != "cpu":  # CUDA: publish records completion on the framework's stream
             stream = adapter.stream(view.device)
@@ -97,17 +124,19 @@ def loaned_native(adapter: Any, msg: Any) -> Any:
     return None
 
 
-def loan_state(msg: Any, layout: TensorLayout) -> LoanState | None:
-    """The loan state of ``msg`` if it is a loaned message still of ``layout``."""
+def loan_state(msg: Any) -> LoanState | None:
+    """The loan state of ``msg`` if it is a loaned message still holding its loan's buffer
+    (whatever layout its metadata says now: views of it are built over the loan's memory)."""
     state = getattr(msg, "_native", None)
-    if type(state) is LoanState and state.matches(msg, layout):
+    if type(state) is LoanState and state.holds(msg):
         return state
     return None
 
 
 class TensorLoanSpec:
     """The factory ``Publisher.loan`` takes for loaned ExperimentalTensor messages; specs with
-    equal values share one pool (``loan_key``)."""
+    equal values share one pool (``loan_key``). ``reloan(msg)``: the pool hands a pooled message
+    out again (its metadata back to the spec's)."""
 
     __slots__ = ("layout", "device", "loan_key")
 
@@ -138,6 +167,11 @@ class TensorLoanSpec:
         object.__setattr__(msg, "_native", LoanState(layout, data.get_impl()))
         return msg
 
+    def reloan(self, msg: Any) -> None:
+        state = getattr(msg, "_native", None)
+        if type(state) is LoanState:
+            state.restore(msg)
+
 
 _SPECS: dict[tuple[Any, ...], TensorLoanSpec] = {}
 
@@ -145,8 +179,8 @@ _SPECS: dict[tuple[Any, ...], TensorLoanSpec] = {}
 def loan_tensor_msg(adapter: Any, publisher: Any, shape: Sequence[int] | int, dtype: Any,
                     backend: str = "warp", device: Any = None) -> Any:
     """``publisher.loan(spec)`` for a tensor of ``shape``/``dtype`` (specs memoised by value)."""
-    key = (adapter.name, shape if isinstance(shape, int) else tuple(shape), dtype, backend,
-           device)
+    key = (adapter.name, shape if isinstance(shape, (int, np.integer)) else tuple(shape), dtype,
+           backend, device)
     try:
         spec = _SPECS.get(key)
     except TypeError:  # an unhashable dtype or device: no memo

@@ -54,9 +54,12 @@ def normalize_shape(shape: Sequence[int] | int) -> tuple[int, ...]:
         shape = (int(shape),)
     try:
         dims = tuple(int(d) for d in shape)
+        # 2.5 is no dimension (int() would truncate it); 4.0 or a NumPy int is
+        exact = all(d == i for d, i in zip(shape, dims))
     except (TypeError, ValueError):
-        raise InvalidTensorMetadataError(
-            f"shape must be a sequence of ints, got {shape!r}") from None
+        exact = False
+    if not exact or any(isinstance(d, (bool, str, bytes)) for d in shape):
+        raise InvalidTensorMetadataError(f"shape must be a sequence of ints, got {shape!r}")
     if any(d < 0 for d in dims):
         raise InvalidTensorMetadataError(f"shape {dims} has a negative dimension")
     return dims

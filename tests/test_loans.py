@@ -457,3 +457,115 @@ def test_cuda_loans_deliver_and_reuse_the_block_in_process(domain, topic, backen
         assert [float(t[0]) for t in received] == [float(i) for i in range(6)]
         assert all(bool(torch.all(t == t[0])) for t in received)
         assert len(pointers) <= 2 and pub.loan_stats()["reused"] >= 4
+
+
+def test_a_re_loan_starts_from_the_specs_layout(domain, topic, backends):
+    """A loan may reshape or retype its message; the next loan of the block starts as the spec
+    made it (it came back float16 [2048] after one loan set those)."""
+    with Node("reloan_meta", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+            msg.dtype_bits, msg.dtype_code, msg.shape = 16, 2, [2 * N]
+            first = id(msg)
+        del msg  # a reference of ours would be a hold
+        with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+            assert id(msg) == first  # the pooled one
+            view = tc.from_output_tensor_msg(msg)
+            assert tuple(view.shape) == (N,) and view.dtype == torch.float32
+            del view
+        assert pub.loan_stats()["created"] == 1
+
+
+@pytest.mark.parametrize("how", ["reshape", "to_tensor_msg"])
+def test_reshaping_inside_loans_keeps_reusing_the_block(domain, topic, backends, how):
+    got = []
+    with Node("reloan_shape", domain_id=domain, backends=backends) as node:
+        _intra(node, topic, lambda m: got.append(tn.from_input_tensor_msg(m).copy()))
+        pub = node.create_publisher(TENSOR, topic)
+        for index in range(12):
+            with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+                if how == "reshape":
+                    msg.shape = [N // 4, 4]
+                    out = tc.from_output_tensor_msg(msg)
+                    assert tuple(out.shape) == (N // 4, 4)
+                    out.fill_(float(index))
+                    del out
+                else:
+                    tc.to_tensor_msg(msg, torch.full((N // 4, 4), float(index)))
+            assert _wait(lambda: len(got) == index + 1)
+            del msg
+        stats = pub.loan_stats()
+    assert stats["created"] <= 2 and stats["unpooled"] == 0, stats  # reused, not pinned
+    assert [float(g.reshape(-1)[0]) for g in got] == [float(i) for i in range(12)]
+    assert all(g.shape == (N // 4, 4) for g in got)
+
+
+def test_a_subscriber_gets_no_writable_view_of_a_published_loan(domain, topic, backends):
+    from tensor_conversions.errors import TensorConversionError
+
+    errors = []
+
+    def on_msg(msg):
+        try:
+            tc.from_output_tensor_msg(msg)  # the publisher's cached view, once: now refused
+        except TensorConversionError as exc:
+            errors.append(exc)
+
+    with Node("loan_subwrite", domain_id=domain, backends=backends) as node:
+        _intra(node, topic, on_msg)
+        pub = node.create_publisher(TENSOR, topic)
+        with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+            tc.from_output_tensor_msg(msg).fill_(1.0)
+        del msg
+        assert _wait(lambda: errors)
+    assert "published" in str(errors[0])
+
+
+def test_max_loans_bounds_its_own_factory_key_only(domain, topic, backends):
+    with Node("loan_max", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        held = [pub.loan(_cpu_factory, max_loans=1) for _ in range(3)]
+        for loan in held:
+            loan.__enter__()
+        assert pub.loan_stats()["unpooled"] == 2  # one pooled under max_loans=1
+
+        def other():
+            return _cpu_factory()
+
+        others = [pub.loan(other) for _ in range(3)]  # the default (16) for this key
+        for loan in others:
+            loan.__enter__()
+        assert pub.loan_stats()["unpooled"] == 2 and pub.loan_stats()["pooled"] == 4
+        for loan in held + others:
+            loan.__exit__(RuntimeError, RuntimeError("abandon"), None)
+
+
+def test_a_factory_whose_storage_cannot_be_re_armed_is_not_pooled(domain, topic, backends):
+    """A plain warp buffer has no reclaim: pooling its messages would only pin 16 of them."""
+    import warp_buffer
+
+    def warp_factory():
+        tensor = get_message_type(TENSOR)
+        return tensor(dtype_code=1, dtype_bits=8, dtype_lanes=1, shape=np.array([N]),
+                      data=warp_buffer.allocate_buffer(N, "cpu"))
+
+    with Node("loan_plain_warp", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        for _ in range(5):
+            with pub.loan(warp_factory):
+                pass
+        stats = pub.loan_stats()
+    assert stats["pooled"] == 0 and stats["unpooled"] == 5, stats
+
+
+def test_loan_and_allocate_shapes_take_numpy_ints_and_refuse_fractions(domain, topic, backends):
+    from tensor_conversions.errors import InvalidTensorMetadataError
+
+    with Node("loan_shapes", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        with tc.loan_tensor_msg(pub, np.int64(8), torch.float32, device="cpu") as msg:
+            assert list(msg.shape) == [8]
+        del msg
+    with pytest.raises(InvalidTensorMetadataError, match="ints"):
+        tc.allocate_tensor_msg((2.5, 4), torch.float32)  # was truncated to (2, 4)
+    assert list(tc.allocate_tensor_msg((2.0, 4), torch.float32).shape) == [2, 4]
