@@ -569,3 +569,32 @@ def test_loan_and_allocate_shapes_take_numpy_ints_and_refuse_fractions(domain, t
     with pytest.raises(InvalidTensorMetadataError, match="ints"):
         tc.allocate_tensor_msg((2.5, 4), torch.float32)  # was truncated to (2, 4)
     assert list(tc.allocate_tensor_msg((2.0, 4), torch.float32).shape) == [2, 4]
+
+
+@pytest.mark.parametrize("keep", ["warp_buffer_view", "impl_array"])
+def test_an_in_process_reader_keeping_a_warp_array_of_the_block_is_a_hold(
+        domain, topic, backends, keep):
+    """A warp_buffer handle's view, or impl.array, holds neither the message nor its Buffer:
+    the block is still not re-loaned while it is kept (every kept one read the last frame)."""
+    import warp as wp
+    import warp_buffer
+
+    held = []
+
+    def on_msg(msg):
+        if keep == "warp_buffer_view":
+            held.append(warp_buffer.from_input_buffer(msg.data).view(wp.float32))
+        else:
+            held.append(msg.data.get_impl().array)
+
+    with Node("loan_wp_hold", domain_id=domain, backends=backends) as node:
+        _intra(node, topic, on_msg)
+        pub = node.create_publisher(TENSOR, topic)
+        for index in range(6):
+            with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+                tc.from_output_tensor_msg(msg).fill_(float(index))
+            del msg
+            assert _wait(lambda: len(held) == index + 1)
+        values = [float(np.frombuffer(h.numpy()[:4].tobytes(), np.float32)[0]) for h in held]
+        held.clear()
+    assert values == [float(i) for i in range(6)]

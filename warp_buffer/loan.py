@@ -33,6 +33,7 @@ from __future__ import annotations
 import ctypes
 import mmap
 import os
+import sys
 from typing import Any
 
 from rosidl_buffer import Buffer
@@ -45,6 +46,7 @@ from .buffer_impl import WarpBufferImpl
 __all__ = ["LoanedBufferImpl", "loan_buffer", "protection_enabled"]
 
 _PAGE = mmap.PAGESIZE
+_OWN_ARRAY_REFS = 3  # self._arr, the local name in _array_in_use, getrefcount's argument
 _libc = ctypes.CDLL(None, use_errno=True)
 _libc.mprotect.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
 
@@ -152,7 +154,7 @@ class LoanedBufferImpl(WarpBufferImpl):
         """Re-arm for the next loan if no reader holds the block (see the module docstring):
         writable again, one write handle allowed, not published. False while held."""
         with self._lock:
-            if self._released or not self._block.try_reclaim():
+            if self._released or self._array_in_use() or not self._block.try_reclaim():
                 return False
             if self._protected:
                 pages = self._pages
@@ -161,6 +163,14 @@ class LoanedBufferImpl(WarpBufferImpl):
             self._writer = self._event = self._write_stream = None
             self._write_opened = self._published = self._read = False
             return True
+
+    def _array_in_use(self) -> bool:
+        """Host memory: is the impl's own ``wp.array`` referenced beyond the impl (a view of a
+        ``warp_buffer`` handle, ``impl.array`` kept by an in-process reader)? Those views hold
+        neither the message nor its ``Buffer``, whose references the loan pool counts."""
+        array = self._arr
+        return (array is not None and self._host is not None
+                and sys.getrefcount(array) > _OWN_ARRAY_REFS)
 
     def write_on(self, stream: Any) -> None:
         """CUDA: this loan's views write on ``stream`` (a ``wp.Stream``); publish records the
