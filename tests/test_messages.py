@@ -293,3 +293,18 @@ def test_backend_form_needs_the_publisher_endpoint():
     wire = serialize_message(fake_image(), route=fake_route(backend))
     with pytest.raises(DeserializationError, match="endpoint"):
         deserialize_message(wire, IMAGE, backends={FAKE_BACKEND: backend})
+
+
+def test_messages_pickle_by_type_name_with_buffers_as_cpu_bytes():
+    import pickle
+
+    from tensor_conversions import numpy as tn
+
+    tensor = tn.allocate_tensor_msg((4,), np.float32, backend="warp", device="cpu")
+    tn.from_output_tensor_msg(tensor)[:] = [1, 2, 3, 4]
+    copy = pickle.loads(pickle.dumps(tensor))  # the class lives in no importable module
+    assert type(copy) is type(tensor) and copy.data.get_backend_type() == "cpu"
+    np.testing.assert_array_equal(tn.from_input_tensor_msg(copy), [1, 2, 3, 4])
+    image = get_message_type("sensor_msgs/msg/Image")(height=2, width=3, encoding="mono8",
+                                                      step=3, data=bytes(range(6)))
+    assert pickle.loads(pickle.dumps(image)) == image

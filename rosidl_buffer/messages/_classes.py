@@ -76,10 +76,25 @@ class Message:
         body = ", ".join(f"{name}={_short_repr(getattr(self, name))}" for name in self.__slots__)
         return f"{self.__msgtype__.replace('/', '.')}({body})"
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled by type name and field values (generated classes live in no importable
+        module): buffers travel as their CPU bytes, as ``Buffer`` pickles; ``_native`` is not
+        kept (a copy is not loaned, and holds no handle)."""
+        return (_restore, (self.__msgtype__,
+                           tuple(getattr(self, spec.name) for spec in self._schema.fields)))
+
     @classmethod
     def get_fields_and_field_types(cls) -> dict[str, str]:
         """Field name -> ROS type string, as rclpy's generated classes offer."""
         return {spec.name: _type_string(spec) for spec in cls._schema.fields}
+
+
+def _restore(type_name: str, values: tuple[Any, ...]) -> Message:
+    """Unpickle a message (see :meth:`Message.__reduce__`)."""
+    from . import get_message_type
+
+    cls = get_message_type(type_name)
+    return cls(**{spec.name: value for spec, value in zip(cls._schema.fields, values)})
 
 
 def _unknown_field(msg: Message, name: str) -> UnknownFieldError:
