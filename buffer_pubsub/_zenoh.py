@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -42,16 +43,31 @@ def run_bounded(work: Callable[[], None], timeout: float, what: str) -> bool:
     background. Errors of ``work`` are logged, never raised: teardown must not replace an
     exception already on its way out. True when ``work`` finished in time.
     """
+    done = threading.Event()  # not Thread.join: an interrupted join may report it finished
+
     def run() -> None:
         try:
             work()
         except Exception as exc:  # logged: nobody is left to handle it
             _log.warning("%s failed: %s", what, exc)
+        finally:
+            done.set()
 
     thread = threading.Thread(target=run, name=f"buffer_pubsub:{what}", daemon=True)
     thread.start()
-    thread.join(timeout)
-    if thread.is_alive():
+    deadline = time.monotonic() + timeout
+    interrupted: BaseException | None = None
+    while not done.is_set():  # Ctrl-C waits for the bounded teardown, then goes on its way:
+        left = deadline - time.monotonic()  # an interpreter exiting while the helper is still
+        if left <= 0:  # inside Zenoh aborted the process (a second Ctrl-C here did)
+            break
+        try:
+            done.wait(left)
+        except KeyboardInterrupt as exc:
+            interrupted = exc
+    if interrupted is not None:
+        raise interrupted
+    if not done.is_set():
         _log.warning("%s did not finish within %.1f s; left to finish in the background",
                      what, timeout)
         return False

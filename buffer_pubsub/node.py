@@ -192,11 +192,24 @@ class Node:
                 endpoint._undeclare()
             undeclare_quietly(self._graph_subscriber, self._node_token)
 
-        run_bounded(undeclare, left(), f"undeclaring node {self.name}")
+        # Ctrl-C during a step lets the (bounded) steps finish, then propagates: a session left
+        # open keeps Zenoh's callback threads, and the interpreter cannot exit past them.
+        interrupted: KeyboardInterrupt | None = None
+        for step in (lambda: run_bounded(undeclare, left(), f"undeclaring node {self.name}"),
+                     self._join_executor_thread,
+                     self._close_lane,
+                     lambda: run_bounded(self.session.close, left(),
+                                         f"closing node {self.name}'s session")):
+            try:
+                step()
+            except KeyboardInterrupt as exc:
+                interrupted = exc
+        if interrupted is not None:
+            raise interrupted
+
+    def _join_executor_thread(self) -> None:
         if self._thread is not None and threading.current_thread() is not self._thread:
-            self._thread.join(timeout=left())
-        self._close_lane()
-        run_bounded(self.session.close, left(), f"closing node {self.name}'s session")
+            self._thread.join(timeout=CLOSE_TIMEOUT_S)
 
     def _close_lane(self) -> None:
         # After the executor stopped: the waker closes the readers detached from it.

@@ -654,3 +654,28 @@ def test_the_keep_last_depth_is_read_from_a_qos_segment(segment, depth):
     assert wire.qos_depth(segment) == depth
 
 
+
+
+def test_ctrl_c_during_a_bounded_teardown_step_lets_it_finish_then_propagates():
+    """A second Ctrl-C while Node.close() waits on Zenoh must not leave the interpreter exiting
+    with the step still inside Zenoh (the process aborted): the step finishes (within its
+    bound), then KeyboardInterrupt goes on its way."""
+    import signal as signals
+
+    from buffer_pubsub._zenoh import run_bounded
+
+    finished = []
+
+    def slow_step():
+        time.sleep(0.4)
+        finished.append(True)
+
+    main = threading.get_ident()
+    timer = threading.Timer(0.1, signals.pthread_kill, (main, signals.SIGINT))
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run_bounded(slow_step, 5.0, "a test step")
+    finally:
+        timer.cancel()
+    assert finished == [True]  # it was waited for before the interrupt surfaced
