@@ -173,12 +173,15 @@ def make_router_config(listen: list[str] | None = None, connect: list[str] | Non
 
 def resolve_domain_id(domain_id: int | None) -> int:
     """``domain_id``, else env ``ROS_DOMAIN_ID``, else 0; must be a non-negative integer."""
+    where = ""
     if domain_id is None:
         text = os.environ.get(DOMAIN_ENV, "").strip()
+        where = f" ({DOMAIN_ENV}={text!r})"
         try:
             domain_id = int(text) if text else 0
         except ValueError:
             raise TransportConfigError(f"{DOMAIN_ENV}={text!r} is not an integer") from None
     if isinstance(domain_id, bool) or not isinstance(domain_id, int) or domain_id < 0:
-        raise TransportConfigError(f"domain id must be a non-negative int, got {domain_id!r}")
+        raise TransportConfigError(f"domain id{where} must be a non-negative int, got "
+                                   f"{domain_id!r}")
     return domain_id

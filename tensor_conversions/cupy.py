@@ -11,7 +11,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-import cupy
+try:
+    import cupy
+except ImportError as _error:  # an optional extra: say which
+    raise ImportError(f"tensor_conversions.cupy needs CuPy: "
+                      f"pip install 'warp-buffer[cupy]' ({_error})") from _error
 
 from . import _api
 from .dlpack import TensorView, external_stream

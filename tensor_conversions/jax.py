@@ -12,8 +12,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-import jax
-import jax.dlpack
+try:
+    import jax
+    import jax.dlpack
+except ImportError as _error:  # an optional extra: say which
+    raise ImportError(f"tensor_conversions.jax needs JAX: "
+                      f"pip install 'warp-buffer[jax]' ({_error})") from _error
 
 from . import _api
 from .errors import UnsupportedBackendError

@@ -14,7 +14,12 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-import onnxruntime as ort
+
+try:
+    import onnxruntime as ort
+except ImportError as _error:  # an optional extra: say which
+    raise ImportError(f"tensor_conversions.onnx needs ONNX Runtime: "
+                      f"pip install 'warp-buffer[onnx]' ({_error})") from _error
 
 from . import _api
 from .dtypes import DType, dtype_from_name

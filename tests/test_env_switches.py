@@ -23,7 +23,8 @@ def test_env_flag_unset_is_the_default(monkeypatch):
     assert env_flag("WARP_BUFFER_TEST_SWITCH", False) is False
 
 
-@pytest.mark.parametrize("value,expected", [("2.5", 2.5), ("x", 7.0), ("", 7.0)])
+@pytest.mark.parametrize("value,expected", [("2.5", 2.5), ("x", 7.0), ("", 7.0), ("nan", 7.0),
+                                            ("inf", 7.0), ("-inf", 7.0)])
 def test_env_float(monkeypatch, value, expected):
     monkeypatch.setenv("WARP_BUFFER_TEST_NUMBER", value)
     assert env_float("WARP_BUFFER_TEST_NUMBER", 7.0) == expected

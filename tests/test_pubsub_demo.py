@@ -74,7 +74,9 @@ def test_demo_defaults_to_warps_preferred_device():
 
 
 @pytest.mark.parametrize("argv", [["--frames", "0"], ["--frames", "x"], ["--width", "-3"],
-                                  ["--rate", "-1"], ["--timeout", "0"], ["--domain", "-1"]])
+                                  ["--rate", "-1"], ["--timeout", "0"], ["--domain", "-1"],
+                                  ["--timeout", "inf"], ["--timeout", "1e300"],
+                                  ["--rate", "1e-300"], ["--domain", "99999999999999999999"]])
 def test_demo_rejects_bad_arguments_with_a_usage_error(argv, capsys):
     with pytest.raises(SystemExit) as exit_info:
         _parse(argv)
@@ -88,3 +90,29 @@ def test_demo_help_shows_the_defaults():
     text = parser.format_help()
     assert "frames to publish (default: 50)" in text
     assert "(default: None)" not in text and "preferred device" in text
+
+
+def test_sigterm_ends_the_demo_and_reaps_its_children():
+    import signal
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "warp_buffer_cli.main", "demo", "--frames", "3000", "--height",
+         "32", "--width", "48", "--timeout", "30", "--device", "cpu",
+         "--domain", str(210 + os.getpid() % 20)],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    children: list[str] = []
+    try:
+        deadline = time.monotonic() + 60
+        while len(children) < 3 and time.monotonic() < deadline:  # all three started
+            time.sleep(0.2)
+            children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True,
+                                      text=True).stdout.split()
+        assert len(children) == 3
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.communicate()
+    assert not [pid for pid in children if pathlib.Path(f"/proc/{pid}").exists()]

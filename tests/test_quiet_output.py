@@ -82,7 +82,15 @@ def test_verbose_hands_warp_its_own_output_back() -> None:
     """The silence is ours, not an accident of this machine: asked for, Warp speaks."""
     done = _run([sys.executable, "-c", "import warp_buffer"], env={"WARP_BUFFER_VERBOSE": "1"})
     assert done.returncode == 0, done.stderr[-3000:]
-    assert "Warp 1." in done.stdout + done.stderr
+    assert "Warp 1." in done.stderr and "Warp 1." not in done.stdout  # stdout is the app's
+
+
+def test_verbose_info_json_stays_json() -> None:
+    import json
+
+    done = _run([sys.executable, "-m", "warp_buffer_cli.main", "--verbose", "info", "--json"])
+    assert done.returncode == 0, done.stderr[-3000:]
+    json.loads(done.stdout)
 
 
 def test_info_prints_only_its_report() -> None:

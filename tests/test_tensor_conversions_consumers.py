@@ -140,3 +140,15 @@ def test_cupy_round_trip_on_cuda():
     np.testing.assert_array_equal(tc_numpy.from_input_tensor_msg(out_msg), cupy.asnumpy(value) * 2)
     with pytest.raises(tc.UnsupportedBackendError, match="host memory"):
         tc_cupy.from_input_tensor_msg(_msg(np.zeros(2, np.float32)), clone=False)
+
+
+@pytest.mark.parametrize("module, package", [("jax", "jax"), ("onnx", "onnxruntime"),
+                                             ("cupy", "cupy")])
+def test_a_missing_optional_framework_names_the_extra_to_install(module, package):
+    import importlib
+    import importlib.util
+
+    if importlib.util.find_spec(package) is not None:
+        pytest.skip(f"{package} is installed here")
+    with pytest.raises(ImportError, match=rf"warp-buffer\[{module}\]"):
+        importlib.import_module(f"tensor_conversions.{module}")

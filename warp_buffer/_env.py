@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 
 __all__ = ["env_flag", "env_float"]
@@ -22,8 +23,9 @@ def env_flag(name: str, default: bool) -> bool:
 
 
 def env_float(name: str, default: float) -> float:
-    """``name`` as a number; unset or not a number: ``default``."""
+    """``name`` as a finite number; unset, not a number, NaN or infinite: ``default``."""
     try:
-        return float(os.environ.get(name, default))
+        value = float(os.environ.get(name, default))
     except ValueError:
         return default
+    return value if math.isfinite(value) else default

@@ -8,7 +8,8 @@ initialises the runtime with fd 2 captured, logging the CUDA-driver line at INFO
 (logger ``"warp_buffer"``) and writing anything else it caught back to stderr.
 
 Set ``WARP_BUFFER_VERBOSE=1`` (the ``warp-buffer --verbose`` flag sets it) to leave Warp's own
-output alone. A logger the application installed with ``wp.set_logger`` is never replaced.
+output unfiltered (its start-up banner then goes to stderr, never to stdout). A logger the
+application installed with ``wp.set_logger`` is never replaced.
 """
 
 from __future__ import annotations
@@ -73,7 +74,10 @@ def init_warp() -> Any:
         if _done:
             return wp
         if verbose_requested():
-            wp.init()
+            # Warp's own output, unfiltered, but on stderr: stdout is the application's (a
+            # `warp-buffer --verbose info --json` stays JSON)
+            with contextlib.redirect_stdout(sys.stderr):
+                wp.init()
         else:
             if type(wp.get_logger()).__name__ == "LoggerBasic":  # Warp's default: stdout
                 wp.set_logger(_LoggingWarpLogger())

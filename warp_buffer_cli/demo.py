@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -29,16 +31,22 @@ TENSOR = "tensor_msgs/msg/ExperimentalTensor"
 _CHILD = "from warp_buffer_cli.demo import child_main; child_main()"
 
 
-def _number(kind: type, low: float, inclusive: bool = True) -> Any:
-    """An argparse type: a ``kind`` number >= ``low`` (> ``low`` unless ``inclusive``)."""
+def _number(kind: type, low: float, inclusive: bool = True, high: float = math.inf,
+            zero: bool = False) -> Any:
+    """An argparse type: a ``kind`` number >= ``low`` (> ``low`` unless ``inclusive``) and
+    <= ``high``; ``zero``: 0 is allowed too (a special value)."""
     def parse(text: str) -> Any:
         try:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not a{'n integer' if kind is int else ' number'}") from None
-        if not (value >= low if inclusive else value > low) or value != value:
+        if zero and value == 0:
+            return value
+        if not (value >= low if inclusive else value > low) or value != value or value > high:
+            above = f"{'>=' if inclusive else '>'} {low:g}"
             raise argparse.ArgumentTypeError(
-                f"{text} is out of range: must be {'>=' if inclusive else '>'} {low:g}")
+                f"{text} is out of range: must be {above}" +
+                (f" and <= {high:g}" if high != math.inf else "") + (" (or 0)" if zero else ""))
         return value
 
     return parse
@@ -56,14 +64,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=_number(int, 1), default=50, help="frames to publish")
     parser.add_argument("--height", type=_number(int, 1), default=240, help="frame height")
     parser.add_argument("--width", type=_number(int, 1), default=320, help="frame width")
-    parser.add_argument("--rate", type=_number(float, 0), default=50.0,
+    parser.add_argument("--rate", type=_number(float, 0.01, zero=True), default=50.0,
                         help="frames per second (0: as fast as possible)")
     parser.add_argument("--device", default=None,
                         help="Warp device of the frames, e.g. cpu or cuda:0 (default: Warp's "
                              "preferred device, cuda:0 where a GPU is usable, else cpu)")
-    parser.add_argument("--domain", type=_number(int, 0), default=None,
+    parser.add_argument("--domain", type=_number(int, 0, high=2**31 - 1), default=None,
                         help="domain id (default: a private one derived from the process id)")
-    parser.add_argument("--timeout", type=_number(float, 0, inclusive=False), default=60.0,
+    parser.add_argument("--timeout", type=_number(float, 0, inclusive=False, high=86_400.0),
+                        default=60.0,
                         help="seconds before the demo gives up")
 
 
@@ -285,6 +294,10 @@ def _check_device(args: argparse.Namespace) -> str | None:
     return None
 
 
+def _terminated(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the demo; 0 only if both subscribers got every frame by the expected path, intact."""
     error = _check_device(args)
@@ -293,10 +306,11 @@ def run(args: argparse.Namespace) -> int:
         return 1
     if args.domain is None:
         args.domain = 150 + os.getpid() % 80
-    os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.getcwd(), ".warp_cache"))
     print(f"warp-buffer demo: {args.frames} frames of {args.height}x{args.width} float32 on "
           f"Warp device {args.device!r}, domain {args.domain}, topic {TOPIC}")
     children: dict[str, _Child] = {}
+    # SIGTERM ends the demo as Ctrl-C does: through the finally below, which reaps the children
+    previous = signal.signal(signal.SIGTERM, _terminated)
     try:
         for role in ("warp", "cpu", "publisher"):
             children[role] = _Child(role, args)
@@ -316,6 +330,7 @@ def run(args: argparse.Namespace) -> int:
             if child.proc.poll() is None:
                 child.proc.kill()
             child.proc.wait()
+        signal.signal(signal.SIGTERM, previous)
     ok = bool(published and published.get("ok"))
     if ok:
         print(f"publisher: published {published['published']} frames "
@@ -324,6 +339,11 @@ def run(args: argparse.Namespace) -> int:
         reason = (published or {}).get("error") or "no result"
         print(f"publisher: FAILED: {reason}")
     expected_path = {"warp": "warp", "cpu": "cpu"}
+    from warp_buffer.pool import ipc_disabled
+
+    if ipc_disabled():  # the documented fallback: the warp subscriber gets CPU bytes
+        print("warp subscriber: IPC is disabled here (WARP_BUFFER_DISABLE_IPC): CPU bytes expected")
+        expected_path["warp"] = "cpu"
     for role, stats in subs.items():
         if stats is None:
             print(f"{role} subscriber: FAILED (no result)")
