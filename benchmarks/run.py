@@ -48,10 +48,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default=default_out_dir(),
                         help="directory for bench.json and latency.png, created if missing "
                              "(default: %(default)s, i.e. $XDG_STATE_HOME/warp-buffer/bench)")
-    parser.add_argument("--sizes", default=None,
+    parser.add_argument("--sizes", default=None, type=_sizes_option,
                         help=f"comma-separated payload sizes, e.g. 4K,1M,16M (default: "
                              f"{DEFAULT_SIZES}; quick: {QUICK_SIZES})")
-    parser.add_argument("--paths", default=",".join(PATH_MODULES),
+    parser.add_argument("--paths", default=",".join(PATH_MODULES), type=_paths_option,
                         help="comma-separated paths to run (default: all): %(default)s")
     parser.add_argument("--no-copy-bandwidth", action="store_true",
                         help="skip the copy-kernel bandwidth measurement")
@@ -61,6 +61,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skip the loaned-messages section (benchmarks.loans)")
     parser.add_argument("--no-ipc-core", action="store_true",
                         help="skip the IPC core section (benchmarks.ipc_core)")
+
+
+def _sizes_option(text: str) -> str:
+    """``--sizes``: checked at parse time (a usage error, not a traceback after measuring)."""
+    try:
+        sizes = [parse_size(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: use comma-separated positive sizes like 4K,1M,16M") from None
+    if not sizes:
+        raise argparse.ArgumentTypeError("no size given")
+    return text
+
+
+def _paths_option(text: str) -> str:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in PATH_MODULES]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(
+            f"{'unknown path ' + repr(unknown[0]) if unknown else 'no path given'}; "
+            f"known: {', '.join(PATH_MODULES)}")
+    return text
+
+
+def prepare_out_dir(path: str) -> None:
+    """Create ``--out`` (and check it takes files) before anything is measured: a run must not
+    end by losing its results to a directory it cannot write."""
+    try:
+        os.makedirs(path, exist_ok=True)
+        probe = os.path.join(path, f".write_test_{os.getpid()}")
+        with open(probe, "w", encoding="utf-8"):
+            pass
+        os.remove(probe)
+    except OSError as exc:
+        raise SystemExit(f"warp-buffer bench: --out {path!r} is not a writable directory: "
+                         f"{exc.strerror or exc}") from None
 
 
 def default_out_dir() -> str:
@@ -171,8 +207,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     """Measure, print the table, write ``bench.json`` and ``latency.png`` into ``--out``."""
+    prepare_out_dir(args.out)
     report = measure(args)
-    os.makedirs(args.out, exist_ok=True)
     json_path = os.path.join(args.out, "bench.json")
     png_path = os.path.join(args.out, "latency.png")
     report["outputs"] = {"json": json_path, "png": png_path}

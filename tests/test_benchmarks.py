@@ -9,6 +9,7 @@ import os
 import pathlib
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -157,3 +158,26 @@ def test_lane_stages_reports_every_stage(options: list[str]) -> None:
     total = rows["one-way total (loan -> readable view)"]
     assert 0 < total[0] <= total[1]
     assert any(name.startswith("lane alone") for name in rows)
+
+
+@pytest.mark.parametrize("argv", [["--sizes", "0,abc"], ["--sizes", ","], ["--paths", "nosuch"],
+                                  ["--paths", ","]])
+def test_bad_bench_options_are_usage_errors(argv: list[str], capsys: pytest.CaptureFixture[str]
+                                             ) -> None:
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    with pytest.raises(SystemExit) as exit_info:
+        parser.parse_args(argv)
+    assert exit_info.value.code == 2 and argv[0] in capsys.readouterr().err
+
+
+def test_an_unwritable_out_dir_is_refused_before_anything_is_measured(tmp_path) -> None:
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    started = time.monotonic()
+    process = subprocess.run(
+        [sys.executable, "-m", "benchmarks.run", "--quick", "--sizes", "4K", "--paths",
+         "zenoh_copy", "--no-copy-bandwidth", "--no-conversions", "--no-loans", "--no-ipc-core",
+         "--out", str(blocker / "out")], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert process.returncode != 0 and "not a writable directory" in process.stderr
+    assert time.monotonic() - started < 30  # refused up front
