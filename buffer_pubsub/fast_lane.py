@@ -58,6 +58,8 @@ MAX_WRITERS = 32
 #: MAX_PAYLOAD bytes a slot, in /dev/shm), so deeper ones stay on Zenoh, which does not.
 MAX_DEPTH = 1024
 _OFF = {"0", "false", "off", "no"}
+_ON = {"", "1", "true", "on", "yes"}
+_warned_values: dict[str, bool] = {}
 _string_at = ctypes.string_at
 _SERVICE_ROOT = "warp_buffer"
 
@@ -84,7 +86,12 @@ def enabled(option: bool | None = None) -> bool:
     environment (:data:`ENV_SWITCH`, on unless ``0``/``false``/``off``/``no``)."""
     if option is not None:
         return bool(option)
-    return os.environ.get(ENV_SWITCH, "1").strip().lower() not in _OFF
+    value = os.environ.get(ENV_SWITCH, "1").strip().lower()
+    if value not in _OFF and value not in _ON and not _warned_values.get(value):
+        _warned_values[value] = True  # once per value: it is read at every node
+        _log.warning("%s=%r is neither on (1/true/yes/on) nor off (0/false/no/off): the lane "
+                     "stays on", ENV_SWITCH, value)
+    return value not in _OFF
 
 
 _status_lock = threading.Lock()

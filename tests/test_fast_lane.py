@@ -585,3 +585,13 @@ def test_the_lanes_files_are_readable_by_their_owner_only() -> None:
 
 def test_the_default_lane_domain_is_the_users_own() -> None:
     assert _iox2.DEFAULT_DOMAIN == f"u{os.getuid()}"
+
+
+def test_an_unknown_lane_switch_value_warns_once_and_leaves_the_lane_on(monkeypatch, caplog):
+    monkeypatch.setenv(fast_lane.ENV_SWITCH, "maybe")
+    monkeypatch.setattr(fast_lane, "_warned_values", {})
+    with caplog.at_level("WARNING", logger="buffer_pubsub.fast_lane"):
+        assert fast_lane.enabled() and fast_lane.enabled()
+    assert caplog.text.count("neither on") == 1
+    monkeypatch.setenv(fast_lane.ENV_SWITCH, "Off")
+    assert not fast_lane.enabled()
