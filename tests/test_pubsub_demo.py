@@ -64,6 +64,15 @@ def test_demo_fails_fast_with_the_typed_error_on_a_missing_device(capsys):
     assert "DeviceUnavailableError" in err and "cuda:7" in err
 
 
+def test_demo_fails_fast_with_the_typed_error_on_a_bad_transport_config(monkeypatch, capsys):
+    monkeypatch.setenv("ZENOH_SESSION_CONFIG_URI", "/nonexistent/zenoh.json5")
+    started = time.monotonic()
+    assert demo.run(_parse(["--device", "cpu", "--domain", "3"])) == 1
+    assert time.monotonic() - started < 5  # before any child starts
+    err = capsys.readouterr().err
+    assert "TransportConfigError" in err and "ZENOH_SESSION_CONFIG_URI" in err
+
+
 def test_demo_defaults_to_warps_preferred_device():
     import warp_buffer
 

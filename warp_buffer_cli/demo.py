@@ -289,6 +289,13 @@ def _check_device(args: argparse.Namespace) -> str | None:
         if args.device is None:
             args.device = str(warp_buffer.init_warp().get_preferred_device().alias)
         warp_buffer.allocate_buffer(1, device=args.device)
+        # The transport's configuration too (files, router endpoint, timeouts, the domain from
+        # ROS_DOMAIN_ID): its typed error here, not a traceback in each child.
+        from buffer_pubsub.config import connect_timeout_s, make_config, resolve_domain_id
+
+        make_config()
+        connect_timeout_s()
+        resolve_domain_id(args.domain)
     except RosidlBufferError as exc:
         return f"{type(exc).__name__}: {exc}"
     return None
