@@ -135,14 +135,24 @@ def _publish(args: argparse.Namespace) -> int:
             _emit("RESULT", {"ok": False, "error": "subscribers not found"})
             return 1
         period = 1.0 / args.rate if args.rate > 0 else 0.0
+        deadline = time.monotonic() + args.timeout  # the subscribers stop waiting then too
+        published = 0
         for index in range(args.frames):
+            if time.monotonic() > deadline:
+                break
             msg = tcw.allocate_tensor_msg((args.height, args.width), wp.float32,
                                           backend="warp", device=args.device)
             _fill(tcw.from_output_tensor_msg(msg), index)
             _release_output(msg)
             pub.publish(msg)
+            published += 1
             time.sleep(period)
         sys.stdin.readline()  # keep the buffers alive until the subscribers are done
+    if published < args.frames:
+        _emit("RESULT", {"ok": False, "published": published,
+                         "error": f"--timeout {args.timeout:g} s passed after {published} of "
+                                  f"{args.frames} frames"})
+        return 1
     _emit("RESULT", {"ok": True, "published": args.frames,
                      "backend": msg.data.get_backend_type()})
     return 0
