@@ -199,7 +199,8 @@ def from_input_image_msg(adapter: _api.Adapter[Any], msg: Any, clone: bool = Tru
     temp = image_msg_type()(height=msg.height, width=msg.width, encoding=msg.encoding,
                             is_bigendian=_NATIVE_BIGENDIAN, step=copy.strides[0],
                             data=copy.reshape(-1).view(np.uint8))
-    return _api.input_native(adapter, temp, image_layout(temp)[0], clone=False)
+    # The copy is the caller's (clone=True): a writable view of it, as every clone is
+    return _api.output_native(adapter, temp, image_layout(temp)[0])
 
 
 def to_image_msg(adapter: _api.Adapter[Any], value: Any, encoding: str, *,

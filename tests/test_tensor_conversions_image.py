@@ -127,6 +127,9 @@ def test_foreign_byte_order_is_converted_only_by_a_copy():
         np.testing.assert_array_equal(to_raw(module.from_input_image_msg(msg)), to_raw(values))
         with pytest.raises(tc.InvalidTensorMetadataError, match="byte order"):
             module.from_input_image_msg(msg, clone=False)
+    converted = tc_numpy.from_input_image_msg(msg)  # a clone is the caller's: writable
+    converted[0, 0] = 7
+    assert converted[0, 0] == 7 and foreign[0, 0] != foreign.dtype.type(7)
     # 8-bit pixels have no byte order: the flag does not matter
     msg8 = IMAGE(height=1, width=2, encoding="mono8", step=2, is_bigendian=1, data=[1, 2])
     assert tc_numpy.from_input_image_msg(msg8, clone=False).tolist() == [[1, 2]]
