@@ -168,14 +168,17 @@ def qos_segment(depth: int, history: str = KEEP_LAST) -> str:
     return f"::{_HISTORY_ENUM[history]},{'' if depth == 42 else depth}:,:,:,,"
 
 
+def _history_fields(segment: str) -> list[str]:
+    """The history part of a QoS segment (``::<history>,<depth>:...``), split at its comma."""
+    parts = segment.split(":")
+    return parts[2].split(",") if len(parts) > 2 else []
+
+
 def qos_depth(segment: str) -> int:
     """The keep-last depth of a QoS segment (42 where it is left out); 0 for keep-all or a
     segment that names none."""
-    if qos_history(segment) == KEEP_ALL:
-        return 0
-    parts = segment.split(":")
-    fields = parts[2].split(",") if len(parts) > 2 else []
-    if len(fields) < 2:
+    fields = _history_fields(segment)
+    if fields[:1] == ["2"] or len(fields) < 2:  # keep-all, or no depth given
         return 0
     if fields[1] == "":
         return 42
@@ -184,8 +187,7 @@ def qos_depth(segment: str) -> int:
 
 def qos_history(segment: str) -> str:
     """The history policy of a QoS segment (keep-last unless it names keep-all, 2)."""
-    parts = segment.split(":")
-    return KEEP_ALL if len(parts) > 2 and parts[2].split(",")[0] == "2" else KEEP_LAST
+    return KEEP_ALL if _history_fields(segment)[:1] == ["2"] else KEEP_LAST
 
 
 def liveliness_domain_selector(domain_id: int) -> str:

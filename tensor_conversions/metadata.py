@@ -53,12 +53,11 @@ def normalize_shape(shape: Sequence[int] | int) -> tuple[int, ...]:
     if isinstance(shape, (int, np.integer)):
         shape = (int(shape),)
     try:
-        dims = tuple(int(d) for d in shape)
-        # 2.5 is no dimension (int() would truncate it); 4.0 or a NumPy int is
-        exact = all(d == i for d, i in zip(shape, dims))
-    except (TypeError, ValueError):
-        exact = False
-    if not exact or any(isinstance(d, (bool, str, bytes)) for d in shape):
+        items = list(shape)
+    except TypeError:
+        items = None
+    dims = None if items is None else _exact_ints(items)
+    if dims is None or any(isinstance(d, (bool, str, bytes)) for d in items):
         raise InvalidTensorMetadataError(f"shape must be a sequence of ints, got {shape!r}")
     if any(d < 0 for d in dims):
         raise InvalidTensorMetadataError(f"shape {dims} has a negative dimension")
@@ -157,16 +156,24 @@ class TensorLayout:
             )
 
 
+def _exact_ints(items: Sequence[Any]) -> tuple[int, ...] | None:
+    """``items`` as ints, or None if one is not an integer value: int() would truncate 2.5 to
+    2, and a fractional dimension is an error, not a smaller tensor (4.0 or a NumPy int is)."""
+    try:
+        ints = tuple(int(v) for v in items)
+    except (TypeError, ValueError, OverflowError):
+        return None
+    return ints if all(i == v for i, v in zip(ints, items)) else None
+
+
 def _ints(value: Any, field: str) -> tuple[int, ...]:
     if type(value) is np.ndarray and value.dtype.kind in "iu":
         return tuple(value.reshape(-1).tolist())  # one C call for the usual int64 field
     try:
-        items = np.asarray(value).reshape(-1).tolist()
-        ints = tuple(int(v) for v in items)
-    except (TypeError, ValueError, OverflowError):
+        ints = _exact_ints(np.asarray(value).reshape(-1).tolist())
+    except (TypeError, ValueError):
         ints = None
-    # int() would truncate 2.5 to 2: a fractional dimension is an error, not a smaller tensor
-    if ints is None or any(i != v for i, v in zip(ints, items)):
+    if ints is None:
         raise InvalidTensorMetadataError(f"{field} must be a sequence of ints, got {value!r}")
     return ints
 
