@@ -196,7 +196,7 @@ class Node:
         # open keeps Zenoh's callback threads, and the interpreter cannot exit past them.
         interrupted: KeyboardInterrupt | None = None
         for step in (lambda: run_bounded(undeclare, left(), f"undeclaring node {self.name}"),
-                     self._join_executor_thread,
+                     lambda: self._join_executor_thread(left()),
                      self._close_lane,
                      lambda: run_bounded(self.session.close, left(),
                                          f"closing node {self.name}'s session")):
@@ -207,9 +207,9 @@ class Node:
         if interrupted is not None:
             raise interrupted
 
-    def _join_executor_thread(self) -> None:
+    def _join_executor_thread(self, timeout: float) -> None:
         if self._thread is not None and threading.current_thread() is not self._thread:
-            self._thread.join(timeout=CLOSE_TIMEOUT_S)
+            self._thread.join(timeout=timeout)
 
     def _close_lane(self) -> None:
         # After the executor stopped: the waker closes the readers detached from it.

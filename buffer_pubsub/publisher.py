@@ -309,8 +309,9 @@ class Publisher:
         validate_message(msg)
         backends, nbytes, impls = seal_and_list_backends(msg, self._flat_buffers)  # write ends
         try:
-            # perf: no lock here. A flag and a tuple read are atomic, and a destroy() racing
-            # this publish is no different from one that comes right after the check.
+            # perf: the flag and the peer tuple are read without the publisher's lock (each read
+            # is atomic, and a destroy() racing this publish is no different from one that comes
+            # right after the check).
             if self._closed:
                 raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
             remote = self._remote

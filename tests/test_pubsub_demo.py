@@ -78,7 +78,7 @@ def test_demo_defaults_to_warps_preferred_device():
 
     args = _parse([])
     assert args.device is None
-    assert demo._check_device(args) is None
+    assert demo._check_setup(args) is None
     assert args.device == str(warp_buffer.init_warp().get_preferred_device().alias)
 
 

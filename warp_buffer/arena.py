@@ -163,8 +163,8 @@ class PeerSlot:
     epoch: int
     pid: int
     issued: int = 0  # the last sequence number handed out
-    # How many of the latest descriptors the peer can still import (its keep-last queue, and
-    # one or two in hand); older ones it can never read: they pin nothing. 0: no limit.
+    # How many of the latest descriptors the peer can still import (its delivery queue, and a
+    # few in hand); older ones it can never read: they pin nothing. 0: no limit.
     window: int = 0
     numbers: Any = dataclasses.field(default_factory=lambda: itertools.count(1))
 

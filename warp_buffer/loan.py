@@ -15,14 +15,14 @@ kept past publish must not be written (documented on ``loan``).
 
 The pages turn read-only at :meth:`LoanedBufferImpl.end_publish`, which the publisher calls once
 every route has sent the message (still inside ``publish()``), so the call is not on the path a
-reader waits on. The protection costs two ``mprotect`` calls per loan, on the pages the buffer's bytes cover
-(not the whole block). They act on the loan's own mapping of its block (a *window*: one more
-``mmap`` of the arena's memfd at the block's offset, made once per pooled buffer, unmapped when
-the buffer and its arrays are gone): every view, the impl's own arrays included, is built over
-it, so mprotect neither splits nor merges the arena's large mapping: 1.7 us a call instead of
-3.4 in a hot loop here. In a publisher that sleeps between frames, making the pages writable
-again at the next loan still costs 6-10 us, whatever the mapping: the kernel's work after the
-thread slept, not ours. Readers in other processes map the arena themselves and never see the
+reader waits on. The protection costs two ``mprotect`` calls per loan, on the pages the buffer's
+bytes cover (not the whole block). They act on the loan's own mapping of its block (a *window*:
+one more ``mmap`` of the arena's memfd at the block's offset, made once per pooled buffer,
+unmapped when the buffer and its arrays are gone): every view, the impl's own arrays included,
+is built over it, so mprotect neither splits nor merges the arena's large mapping: 1.7 us a
+call instead of 3.4 in a hot loop here. In a publisher that sleeps between frames, making the
+pages writable again at the next loan still costs 6-10 us, whatever the mapping: the kernel's
+work after the thread slept, not ours. Readers in other processes map the arena themselves and never see the
 window.
 ``WARP_BUFFER_LOAN_PROTECT=0`` turns it off for buffers allocated afterwards (no window then); a
 write through a stale view then changes what zero-copy readers see, as with any shared memory.

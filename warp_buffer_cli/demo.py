@@ -286,9 +286,10 @@ def _percentiles(values: list[float]) -> str:
     return f"p50 {p50:.2f} ms  p90 {p90:.2f} ms  p99 {p99:.2f} ms"
 
 
-def _check_device(args: argparse.Namespace) -> str | None:
-    """Resolve ``--device`` (default: Warp's preferred one) and try it at once: the typed error's
-    message, or None. A bad device must fail here in a second, not in a child after a timeout."""
+def _check_setup(args: argparse.Namespace) -> str | None:
+    """Resolve ``--device`` (default: Warp's preferred one) and try it, and the transport's
+    configuration, at once: the typed error's message, or None. A bad device or configuration
+    must fail here in a second, not in a child after a timeout."""
     from rosidl_buffer import RosidlBufferError
     from rosidl_buffer.registry import create_backend_instance
 
@@ -317,7 +318,7 @@ def _terminated(signum: int, frame: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the demo; 0 only if both subscribers got every frame by the expected path, intact."""
-    error = _check_device(args)
+    error = _check_setup(args)
     if error is not None:
         print(f"warp-buffer demo: FAILED: {error}", file=sys.stderr)
         return 1
@@ -359,7 +360,8 @@ def run(args: argparse.Namespace) -> int:
     from warp_buffer.pool import ipc_disabled
 
     if ipc_disabled():  # the documented fallback: the warp subscriber gets CPU bytes
-        print("warp subscriber: IPC is disabled here (WARP_BUFFER_DISABLE_IPC): CPU bytes expected")
+        print("warp subscriber: IPC is disabled here (WARP_BUFFER_DISABLE_IPC): "
+              "CPU bytes expected")
         expected_path["warp"] = "cpu"
     for role, stats in subs.items():
         if stats is None:
