@@ -22,11 +22,18 @@ from benchmarks.machine import describe, machine_info
 from benchmarks.paths import PATH_MODULES, PathSettings, load_path
 from benchmarks.processes import free_tcp_port, run_path
 from benchmarks.protocol import METHOD, progress
-from benchmarks.report import format_table, path_entry, ratios, transport_ratios
+from benchmarks.report import (
+    format_table,
+    merge_rounds,
+    path_entry,
+    ratios,
+    transport_ratios,
+)
 from benchmarks.stats import format_size, parse_size
 
 DEFAULT_SIZES = "4K,64K,1M,16M,64M,256M"
 QUICK_SIZES = "4K,1M,16M,64M"
+MAX_ROUNDS = 20
 
 # mode -> measurement plan (sizes come from --sizes or the mode's default)
 PLANS: dict[str, dict[str, Any]] = {
@@ -53,6 +60,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"{DEFAULT_SIZES}; quick: {QUICK_SIZES})")
     parser.add_argument("--paths", default=",".join(PATH_MODULES), type=_paths_option,
                         help="comma-separated paths to run (default: all): %(default)s")
+    parser.add_argument("--rounds", default=1, type=_rounds_option,
+                        help="run the paths this many times in turn and report each figure's "
+                             "median over the rounds: ratios of paths measured seconds apart "
+                             "drift with the machine's load, rounds spread every path over the "
+                             "whole run (default: %(default)s)")
     parser.add_argument("--no-copy-bandwidth", action="store_true",
                         help="skip the copy-kernel bandwidth measurement")
     parser.add_argument("--no-conversions", action="store_true",
@@ -73,6 +85,17 @@ def _sizes_option(text: str) -> str:
     if not sizes:
         raise argparse.ArgumentTypeError("no size given")
     return text
+
+
+def _rounds_option(text: str) -> int:
+    """argparse type of ``--rounds``: a count from 1 to MAX_ROUNDS."""
+    try:
+        rounds = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if not 1 <= rounds <= MAX_ROUNDS:
+        raise argparse.ArgumentTypeError(f"must be 1 to {MAX_ROUNDS}, got {rounds}")
+    return rounds
 
 
 def _paths_option(text: str) -> str:
@@ -176,17 +199,25 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     started = time.monotonic()
     progress(f"warp-buffer bench ({report['mode']}): {len(names)} paths x "
              f"{', '.join(format_size(s) for s in plan['sizes'])} on {report['machine_line']}")
-    for index, name in enumerate(names, 1):
-        module = load_path(name)
-        progress(f"[{index}/{len(names)}] {module.LABEL} ({name})")
-        settings = PathSettings(name=name, run_id=f"{run_id}_{index}",
-                                max_nbytes=max(plan["sizes"]), port=free_tcp_port(),
-                                domain_id=100 + int(run_id[:4], 16) % 100)
-        raw = run_path(settings, plan, plan["path_timeout_s"])
-        entry = path_entry(name, module, raw)
-        report["paths"][name] = entry
-        if entry["status"] in ("unavailable", "error"):
-            progress(f"  [{name}] {entry['status']}: {entry['reason']}")
+    rounds: dict[str, list[dict[str, Any]]] = {name: [] for name in names}
+    for round_index in range(args.rounds):
+        if args.rounds > 1:
+            progress(f"round {round_index + 1}/{args.rounds}")
+        for index, name in enumerate(names, 1):
+            if rounds[name] and rounds[name][-1]["status"] in ("unavailable", "error"):
+                continue  # it will not run in a later round either
+            module = load_path(name)
+            progress(f"[{index}/{len(names)}] {module.LABEL} ({name})")
+            settings = PathSettings(name=name, run_id=f"{run_id}_{round_index}_{index}",
+                                    max_nbytes=max(plan["sizes"]), port=free_tcp_port(),
+                                    domain_id=100 + int(run_id[:4], 16) % 100)
+            raw = run_path(settings, plan, plan["path_timeout_s"])
+            entry = path_entry(name, module, raw)
+            rounds[name].append(entry)
+            if entry["status"] in ("unavailable", "error"):
+                progress(f"  [{name}] {entry['status']}: {entry['reason']}")
+    report["plan"]["rounds"] = args.rounds
+    report["paths"] = {name: merge_rounds(entries) for name, entries in rounds.items()}
     if not args.no_copy_bandwidth:
         report["copy_bandwidth"] = _section("copy_bandwidth", "copy bandwidth", args.quick,
                                             60.0 if args.quick else 180.0)

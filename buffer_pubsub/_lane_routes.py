@@ -14,13 +14,15 @@ Small pure pieces the publisher, subscription and node call (see /tmp/notes/issu
 from __future__ import annotations
 
 import logging
+import os
+import resource
 import threading
 import time
 
 from . import fast_lane, wire
 
-__all__ = ["DeadPeerSweeper", "open_reader", "open_writer", "queue_depth", "serves",
-           "split_frame"]
+__all__ = ["DeadPeerSweeper", "fd_headroom", "open_reader", "open_writer", "queue_depth",
+           "serves", "split_frame"]
 
 _log = logging.getLogger(__name__)
 
@@ -48,9 +50,40 @@ def queue_depth(peer: wire.EndpointToken) -> int:
     return min(max(1, wire.qos_depth(peer.qos)), fast_lane.MAX_DEPTH)
 
 
+#: File descriptors one lane end costs (iceoryx2's node, service and port files, ~8-10).
+LANE_FDS = 12
+#: Descriptors left free for what cannot do without them (an import's hand-off socket and the
+#: arena it receives, Zenoh's connections): the lane is an optimization and gives way first.
+FD_RESERVE = 64
+
+
+def fd_headroom() -> int | None:
+    """How many more descriptors this process may open (None: no limit)."""
+    soft, _hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY:
+        return None
+    try:
+        in_use = len(os.listdir("/proc/self/fd"))
+    except OSError:  # no /proc, or no descriptor even for the listing
+        return 0
+    return soft - in_use
+
+
+def _room_for_a_lane(what: str) -> bool:
+    headroom = fd_headroom()
+    if headroom is None or headroom >= LANE_FDS + FD_RESERVE:
+        return True
+    _log.info("no fast lane for %s: %d file descriptors left (RLIMIT_NOFILE); Zenoh carries it",
+              what, headroom)
+    return False
+
+
 def open_writer(base_key: str, subscriber_gid: bytes) -> fast_lane.LaneWriter | None:
     """The lane to ``subscriber_gid``'s reader, or None when it has none (lane off there, an
-    older peer, another lane domain): the Zenoh channel serves it then."""
+    older peer, another lane domain) or this process is short of file descriptors: the Zenoh
+    channel serves it then."""
+    if not _room_for_a_lane(f"subscription {subscriber_gid.hex()}"):
+        return None
     try:
         return fast_lane.LaneWriter(fast_lane.service_name(base_key, subscriber_gid))
     except fast_lane.LaneUnavailableError as error:
@@ -60,6 +93,8 @@ def open_writer(base_key: str, subscriber_gid: bytes) -> fast_lane.LaneWriter | 
 
 def open_reader(base_key: str, gid: bytes, depth: int) -> fast_lane.LaneReader | None:
     """A reader for this subscription's route, or None (the reason is logged)."""
+    if not _room_for_a_lane(f"subscription {gid.hex()}"):
+        return None
     try:
         return fast_lane.LaneReader(fast_lane.service_name(base_key, gid), depth=depth)
     except fast_lane.LaneUnavailableError as error:

@@ -142,15 +142,17 @@ class LoanPool:
         if not isinstance(msg, Message):
             raise LoanError(f"the loan factory {factory!r} returned {type(msg).__name__}, "
                             "not a message")
-        if full or not _rearmable(msg):
+        if not full and _rearmable(msg):
+            slot = _Slot(msg)
             with self._lock:
-                self.unpooled += 1
-            return msg, None
-        slot = _Slot(msg)
+                # Checked again: other threads may have pooled theirs while the factory ran.
+                if len(slots) < limit:
+                    slots.append(slot)
+                    self.created += 1
+                    return msg, slot
         with self._lock:
-            slots.append(slot)
-            self.created += 1
-        return msg, slot
+            self.unpooled += 1
+        return msg, None
 
     def give_back(self, slot: _Slot) -> None:
         """The loan ended (published or abandoned); a slot whose buffers were replaced is

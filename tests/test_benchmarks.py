@@ -15,7 +15,7 @@ import pytest
 
 from benchmarks import run as bench
 from benchmarks.paths import PATH_MODULES
-from benchmarks.report import ratios
+from benchmarks.report import merge_rounds, ratios
 from benchmarks.stats import format_size, parse_size, summarize_latency
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
@@ -161,7 +161,8 @@ def test_lane_stages_reports_every_stage(options: list[str]) -> None:
 
 
 @pytest.mark.parametrize("argv", [["--sizes", "0,abc"], ["--sizes", ","], ["--paths", "nosuch"],
-                                  ["--paths", ","]])
+                                  ["--paths", ","], ["--rounds", "0"], ["--rounds", "two"],
+                                  ["--rounds", str(bench.MAX_ROUNDS + 1)]])
 def test_bad_bench_options_are_usage_errors(argv: list[str], capsys: pytest.CaptureFixture[str]
                                              ) -> None:
     parser = argparse.ArgumentParser()
@@ -181,3 +182,64 @@ def test_an_unwritable_out_dir_is_refused_before_anything_is_measured(tmp_path) 
          "--out", str(blocker / "out")], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert process.returncode != 0 and "not a writable directory" in process.stderr
     assert time.monotonic() - started < 30  # refused up front
+
+
+def _round(p50_us: float, rate: float, status: str = "ok") -> dict:
+    return {"label": "x", "status": status, "errors": [] if status == "ok" else ["1 MiB: late"],
+            "wall_s": 1.0, "shm_removed": [], "rate": {"nbytes": 4096, "msgs_per_s": rate},
+            "latency_us": {"4096": {"p50_us": p50_us, "p99_us": 2 * p50_us, "samples": 200}}}
+
+
+def test_rounds_merge_to_the_median_of_each_figure() -> None:
+    merged = merge_rounds([_round(10.0, 300.0), _round(30.0, 100.0, "partial"),
+                           _round(20.0, 200.0)])
+    assert merged["latency_us"]["4096"]["p50_us"] == 20.0
+    assert merged["latency_us"]["4096"]["p99_us"] == 40.0
+    assert merged["latency_us"]["4096"]["samples"] == 600
+    assert merged["rounds_p50_us"] == {"4096": [10.0, 30.0, 20.0]}
+    assert merged["rate"]["msgs_per_s"] == 200.0
+    assert merged["status"] == "partial" and merged["errors"] == ["1 MiB: late"]
+    assert merged["wall_s"] == 3.0
+    single = _round(10.0, 300.0)
+    assert merge_rounds([single]) is single  # one round: the entry as measured
+    unavailable = {"label": "x", "status": "unavailable", "reason": "no iceoryx2"}
+    assert merge_rounds([unavailable]) is unavailable
+
+
+@pytest.mark.multiprocess
+def test_rounds_run_each_path_in_turn(tmp_path) -> None:
+    process = subprocess.run(
+        [sys.executable, "-m", "benchmarks.run", "--quick", "--sizes", "4K", "--paths",
+         "zenoh_copy,cpu_codec_floor", "--rounds", "2", "--no-copy-bandwidth",
+         "--no-conversions", "--no-loans", "--no-ipc-core", "--out", str(tmp_path)],
+        cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert process.returncode == 0, process.stderr[-3000:]
+    report = json.loads((tmp_path / "bench.json").read_text())
+    assert report["plan"]["rounds"] == 2 and "Rounds: 2" in process.stdout
+    for name in ("zenoh_copy", "cpu_codec_floor"):
+        per_round = report["paths"][name]["rounds_p50_us"]["4096"]
+        assert len(per_round) == 2 and all(_positive_finite(v) for v in per_round)
+    floor = report["ratios"]["cpu_codec_floor_over_zenoh_4KiB"]
+    assert floor["verdict"] == "INFO" and _positive_finite(floor["value"])
+    # the progress lines show both rounds, the paths in turn within each
+    order = [line for line in process.stderr.splitlines() if line.startswith(("round", "["))]
+    assert [line.split()[0] for line in order if line.startswith("round")] == ["round", "round"]
+
+
+@pytest.mark.multiprocess
+def test_intra_stages_reports_every_stage_in_both_modes() -> None:
+    from benchmarks.intra_stages import BARE_LABEL, STAGES
+
+    process = subprocess.run(
+        [sys.executable, "-m", "benchmarks.intra_stages", "--count", "30", "--pause-us", "200",
+         "--json"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert process.returncode == 0, process.stderr[-3000:]
+    report = json.loads(process.stdout.strip().splitlines()[-1])
+    assert set(report["modes"]) == {"hot", "after a pause"}
+    for figures in report["modes"].values():
+        for label, _start, _end in STAGES:
+            assert math.isfinite(figures[label]) and figures[label] >= 0, (label, figures)
+        total = figures["one-way total (publish -> callback)"]
+        assert total > 0 and _positive_finite(figures[BARE_LABEL])
+        # the stages before the notify are parts of the total
+        assert figures["publish: validate fields"] + figures["publish: seal + backends"] < total

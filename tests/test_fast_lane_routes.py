@@ -86,3 +86,74 @@ def test_sweeper_cleans_a_sigkilled_peer_once_per_burst() -> None:
         sweeper.close()
     _iox2.close_node()
     assert lane_files() == before
+
+
+def test_no_lane_end_opens_when_file_descriptors_run_short(monkeypatch) -> None:
+    """The lane is an optimization: short of descriptors, its ends are not opened (Zenoh
+    carries those routes) and the descriptors left go to what needs them (imports)."""
+    assert _lane_routes.fd_headroom() is None or _lane_routes.fd_headroom() > 0
+    monkeypatch.setattr(_lane_routes, "fd_headroom",
+                        lambda: _lane_routes.LANE_FDS + _lane_routes.FD_RESERVE - 1)
+    gid = os.urandom(16)
+    assert _lane_routes.open_reader(f"routes_test/{gid.hex()}", gid, depth=4) is None
+    assert _lane_routes.open_writer(f"routes_test/{gid.hex()}", gid) is None
+
+
+_IDLE_SUBSCRIPTIONS_CHILD = r"""
+import json, os, resource, sys
+resource.setrlimit(resource.RLIMIT_NOFILE, (256, 256))
+from buffer_pubsub import Node
+domain, topic = int(sys.argv[1]), sys.argv[2]
+tensor = "tensor_msgs/msg/ExperimentalTensor"
+got = []
+with Node("idle_subscriptions", domain_id=domain) as node:
+    # each would hold a lane reader of ~8 descriptors: together more than the 256 there are
+    idle = [node.create_subscription(tensor, f"{topic}/idle{i}", lambda m: None, depth=4,
+                                     acceptable_buffer_backends="warp") for i in range(40)]
+    live = node.create_subscription(tensor, topic, lambda m: got.append(m.data.get_backend_type()),
+                                    depth=10, acceptable_buffer_backends="warp")
+    print("READY", len(os.listdir("/proc/self/fd")), flush=True)
+    sys.stdin.readline()
+    print("RESULT", json.dumps({"got": got, "errors": live.counters.errors}), flush=True)
+"""
+
+
+@requires_iceoryx2
+def test_idle_warp_subscriptions_under_a_low_fd_limit_leave_room_for_imports(domain, topic):
+    """41 warp subscriptions in a process limited to 256 descriptors: the live one still gets
+    every zero-copy frame (lane readers of idle ones took every descriptor, and each import
+    then failed with EMFILE)."""
+    import json
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    import tensor_conversions.numpy as tc
+    from buffer_pubsub import Node
+    from tests._pubsub_helpers import ROOT, child_env
+
+    child = subprocess.Popen([sys.executable, "-c", _IDLE_SUBSCRIPTIONS_CHILD, str(domain), topic],
+                             cwd=ROOT, env=child_env(), stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().startswith("READY")
+        with Node("idle_subscriptions_pub", domain_id=domain) as node:
+            pub = node.create_publisher("tensor_msgs/msg/ExperimentalTensor", topic, depth=10)
+            assert pub.wait_for_subscriptions(1, timeout=15)
+            time.sleep(0.3)  # the subscription's own discovery of this publisher
+            for i in range(5):
+                msg = tc.allocate_tensor_msg((5000,), np.uint8, backend="warp")
+                tc.from_output_tensor_msg(msg)[:] = i
+                pub.publish(msg)
+                time.sleep(0.05)
+            time.sleep(1.0)
+            child.stdin.write("done\n")
+            child.stdin.flush()
+            line = child.stdout.readline()
+        result = json.loads(line.split(" ", 1)[1])
+        assert result == {"got": ["warp"] * 5, "errors": 0}, result
+    finally:
+        if child.poll() is None:
+            child.kill()
+        child.wait(timeout=20)

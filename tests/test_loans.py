@@ -540,6 +540,38 @@ def test_max_loans_bounds_its_own_factory_key_only(domain, topic, backends):
             loan.__exit__(RuntimeError, RuntimeError("abandon"), None)
 
 
+def test_max_loans_holds_when_loans_are_taken_from_several_threads(domain, topic, backends):
+    """Loans taken at once, each factory call slow: the pool is checked again when a new
+    message joins it (8 pooled under max_loans=2 before)."""
+    import threading
+
+    threads = 6
+    barrier = threading.Barrier(threads)
+
+    def slow_factory():
+        msg = _cpu_factory()
+        time.sleep(0.05)  # every thread finds the pool not yet full
+        return msg
+
+    slow_factory.loan_key = "slow"
+    with Node("loan_max_threads", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+
+        def worker():
+            barrier.wait()
+            with pub.loan(slow_factory, max_loans=2):
+                pass
+
+        workers = [threading.Thread(target=worker) for _ in range(threads)]
+        for thread in workers:
+            thread.start()
+        for thread in workers:
+            thread.join(10)
+        stats = pub.loan_stats()
+        assert stats["pooled"] == 2 and stats["created"] == 2, stats
+        assert stats["unpooled"] == threads - 2, stats
+
+
 def test_a_factory_whose_storage_cannot_be_re_armed_is_not_pooled(domain, topic, backends):
     """A plain warp buffer has no reclaim: pooling its messages would only pin 16 of them."""
     import warp_buffer

@@ -58,6 +58,12 @@ def test_transport_ratios_pass_miss_and_missing() -> None:
     assert result["intra_over_thread_handoff_4KiB"]["value"] == pytest.approx(1.8)
     assert result["cpu_fallback_over_zenoh_16MiB"]["verdict"] == "PASS"
     assert result["cpu_fallback_over_zenoh_4KiB"]["verdict"] == "PASS"
+    assert result["cpu_codec_floor_over_zenoh_4KiB"]["value"] is None  # floor not run
+    paths["cpu_codec_floor"] = _path({4096: 110.0})
+    result = transport_ratios(paths)
+    assert result["cpu_codec_floor_over_zenoh_4KiB"]["value"] == pytest.approx(1.1)
+    assert result["cpu_fallback_over_codec_floor_4KiB"]["value"] == pytest.approx(120 / 110)
+    assert result["cpu_codec_floor_over_zenoh_4KiB"]["verdict"] == "INFO"
     del paths["thread_handoff"]
     assert transport_ratios(paths)["intra_over_thread_handoff_4KiB"]["verdict"] == "N/A"
 

@@ -27,6 +27,7 @@ from rosidl_buffer import Buffer
 from tests._warp_helpers import Child, checksum, expected_pattern, fill_pattern
 from warp_buffer import (
     DescriptorError,
+    ExportError,
     ExportBoundsError,
     HandleReleasedError,
     StaleBufferError,
@@ -564,6 +565,97 @@ def test_a_forked_child_releasing_an_inherited_import_keeps_the_parents_hold():
     assert block.try_reclaim()
 
 
+def test_a_forked_child_keeps_its_own_hold_on_an_inherited_import():
+    """The child's copy of a view can still be read: when the parent releases, the child's own
+    lock keeps the block from being recycled (the parent's unlock ended it for both, and the
+    child read a later frame); once the child lets its copy go, the block is free again."""
+    buffer, desc = _published(4096, seed=74)
+    impl = ipc.import_buffer(desc)
+    view = impl.array.numpy()
+    block = buffer.get_impl()._block
+    parent_done, child_done = os.pipe(), os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        code = 1
+        try:
+            os.read(parent_done[0], 1)  # the parent has released its hold
+            before = bytes(view[:64])
+            os.write(child_done[1], b"r")  # (the parent now checks the block is still held)
+            os.read(parent_done[0], 1)
+            code = 0 if bytes(view[:64]) == before else 3
+            del view
+            impl.release()  # the child's own hold ends here
+            os.write(child_done[1], b"d")
+            os.read(parent_done[0], 1)
+        finally:
+            os._exit(code)
+    try:
+        del view
+        impl.release()
+        os.write(parent_done[1], b"1")
+        assert os.read(child_done[0], 1) == b"r"
+        assert not block.try_reclaim(), "the child's inherited view lost its hold"
+        os.write(parent_done[1], b"2")
+        assert os.read(child_done[0], 1) == b"d"
+        assert block.try_reclaim(), "the child released its hold, the block stays pinned"
+        os.write(parent_done[1], b"3")
+    finally:
+        status = _reap(pid)
+        for fd in (*parent_done, *child_done):
+            os.close(fd)
+    assert status == 0, f"the child's view changed under it (status {status})"
+    del buffer, block
+
+
+@pytest.mark.parametrize("parent_served", [True, False], ids=["served", "never-served"])
+def test_a_forked_child_exports_an_inherited_buffer_from_its_own_arena(parent_served):
+    """A child's descriptor of a buffer made before the fork names the child's own session (the
+    parent's was refused by every peer), and the child never binds the parent's socket name
+    (which blocked the parent's own exports with EADDRINUSE while the child lived)."""
+    buffer = allocate_buffer(4096, "cpu")
+    with from_output_buffer(buffer) as out:
+        fill_pattern(out.array, 75)
+    parent = current_arena()
+    if parent_served:
+        ipc.export_buffer(buffer)
+    report, done = os.pipe(), os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        code = 1
+        try:
+            desc = ipc.export_buffer(buffer)
+            mine = desc.owner_pid == os.getpid() and desc.session != parent.session
+            imported = ipc.import_buffer(desc)
+            same = (checksum(imported.array.numpy())
+                    == checksum(buffer.get_impl().array.numpy()))
+            imported.release()
+            code = 0 if mine and same else 2
+            os.write(report[1], b"x")
+            os.read(done[0], 1)  # alive while the parent looks at its socket name
+        finally:
+            os._exit(code)
+    try:
+        assert os.read(report[0], 1) == b"x"
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:  # the parent's name is bound by the parent alone, or by nobody
+            probe.connect(handoff.socket_name(os.getuid(), os.getpid(), parent.session))
+            bound = True
+        except (ConnectionRefusedError, FileNotFoundError):
+            bound = False
+        finally:
+            probe.close()
+        assert bound == (parent.server is not None)
+        if not parent_served:
+            ipc.export_buffer(buffer)  # the parent's own first export still binds its name
+    finally:
+        os.write(done[1], b"x")
+        status = _reap(pid)
+        for fd in (*report, *done):
+            os.close(fd)
+    assert status == 0, f"the child described the parent's session (status {status})"
+    del buffer
+
+
 def test_a_fork_while_a_thread_holds_the_servers_lock_does_not_hang_the_child():
     buffer, _desc = _published(4096, seed=71)
     server = current_arena().server
@@ -620,3 +712,14 @@ def test_a_hold_released_after_its_arena_is_collected_unlocks_nothing(monkeypatc
     hold.release()
     assert unlocked == []
     del buffer
+
+
+def test_out_of_file_descriptors_at_connect_is_a_typed_export_error(monkeypatch):
+    """A process out of fds cannot make the socket to a publisher's hand-off: ExportError (it
+    was a bare OSError, raised before the error handling around the connect)."""
+    def no_socket(*args, **kwargs):
+        raise OSError(errno.EMFILE, "Too many open files")
+
+    monkeypatch.setattr(handoff.socket, "socket", no_socket)
+    with pytest.raises(ExportError, match="no socket"):
+        handoff._connect(os.getpid(), 1, "session 1 of this process")

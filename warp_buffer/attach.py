@@ -191,6 +191,28 @@ class AttachedArena:
             self._flush_deferred()
             return len(self._holds)
 
+    def take_own_locks(self) -> None:
+        """In a forked child: move this process's holds onto a description of its own. The
+        inherited one is shared with the parent, so each side's unlock would end the other's
+        hold (the publisher could recycle a block a view here still reads), and it would keep
+        a dead parent's locks alive for as long as the child lives. No lock is taken: another
+        thread may have held ``_lock`` at the fork (the child has a new one)."""
+        self._lock = threading.Lock()
+        inherited = self.fd
+        if inherited < 0 or self._pid == os.getpid():
+            return
+        try:
+            fd = memory.reopen(inherited)
+        except OSError:
+            return  # out of fds: the shared description stays (the parent's locks cover us)
+        for offset in list(self._holds):
+            try:
+                memory.try_lock(fd, offset, exclusive=False)
+            except OSError:  # pragma: no cover - a read lock beside the parent's never conflicts
+                pass
+        self.fd, self._pid = fd, os.getpid()
+        os.close(inherited)  # the parent's locks now live on its copy alone
+
     def __del__(self) -> None:
         head, self._head = self._head, None
         fd, self.fd = getattr(self, "fd", -1), -1  # first: a hold dropped later must not unlock it
@@ -270,8 +292,12 @@ def attached_sessions() -> list[AttachedArena]:
 
 
 def _after_fork_in_child() -> None:
-    # Inherited descriptions are shared with the parent (so are their locks): start afresh.
+    # Inherited descriptions are shared with the parent (so are their locks): the holds of
+    # views inherited here move onto descriptions of the child's own, and later imports attach
+    # afresh.
     global _sessions_lock
+    for arena in list(_sessions.values()):
+        arena.take_own_locks()
     _sessions.clear()
     _sessions_lock = threading.Lock()
 

@@ -273,7 +273,10 @@ class Server:
 def _connect(owner_pid: int, session: int, where: str) -> socket.socket:
     """A connection to session ``(owner_pid, session)``'s socket, its server's credentials
     checked. A refused connection means the session is gone: :data:`session_gone_hooks` run."""
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
+    try:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
+    except OSError as exc:  # out of file descriptors, typically
+        raise ExportError(f"cannot reach {where}: no socket for it: {exc}") from None
     try:
         sock.settimeout(CONNECT_TIMEOUT_S)
         try:

@@ -134,13 +134,22 @@ def export_buffer(buffer: Buffer | WarpBufferImpl, kind: int | None = None, *,
     impl = _impl_of(buffer)
     with impl._lock:
         impl._mark_published()
-        if impl._import is not None:
+        if impl._import is not None or _inherited(impl):
             if impl._reexport is None:
                 copy = impl._clone_pooled()  # exportable as it is (a plain clone may not be)
                 copy._mark_published()
                 impl._reexport = copy
             impl = impl._reexport
         return _export_local(impl, kind, frozenset(peer_device_uuids), peer)
+
+
+def _inherited(impl: WarpBufferImpl) -> bool:
+    """Whether ``impl`` lives in an arena this process inherited at a fork: that memory is its
+    parent's session, which only the parent may describe (a descriptor naming it from here is
+    refused by the peer, and serving it would bind the parent's socket name), so it is
+    re-exported from a copy in this process's own arena, as an import is."""
+    arena = getattr(impl._block, "arena", None)
+    return arena is not None and arena.pid != os.getpid()
 
 
 def _export_local(impl: WarpBufferImpl, kind: int | None, peer_uuids: frozenset[str],
@@ -227,6 +236,9 @@ def _describe(kind: int, impl: WarpBufferImpl, block: Any, peer: PeerSlot | None
     except OSError as exc:
         raise ExportUnavailableError(f"cannot export this block: {exc}") from None
     arena = block.arena
+    if arena.pid != os.getpid():  # see _inherited: never describe or serve another's session
+        raise ExportUnavailableError(f"this block is in the memory of process {arena.pid}, "
+                                     "which this process was forked from")
     if arena.server is None:
         with _server_lock:
             try:

@@ -27,6 +27,7 @@ PATH_MODULES: dict[str, str] = {
     "lane": "benchmarks.paths.lane",
     "lane_busy": "benchmarks.paths.lane_busy",
     "zenoh_copy": "benchmarks.paths.zenoh_copy",
+    "cpu_codec_floor": "benchmarks.paths.cpu_codec_floor",
     "zenoh_shm": "benchmarks.paths.zenoh_shm",
     "iceoryx2": "benchmarks.paths.iceoryx2_pubsub",
     "iceoryx2_listener": "benchmarks.paths.iceoryx2_listener",
