@@ -35,6 +35,7 @@ from .dtypes import (
 )
 from .errors import (
     InvalidTensorMetadataError,
+    StorageNotWritableError,
     TensorConversionError,
     TensorSizeError,
     UnsupportedBackendError,
@@ -59,6 +60,7 @@ __all__ = [
     "DLDataTypeCode",
     "DType",
     "InvalidTensorMetadataError",
+    "StorageNotWritableError",
     "TensorConversionError",
     "TensorLayout",
     "TensorSizeError",

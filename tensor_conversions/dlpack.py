@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from .dtypes import DLDataTypeCode, DType
+from .dtypes import DLDataTypeCode, DType, dtype_from_name
 from .errors import InvalidTensorMetadataError, UnsupportedDTypeError
 from .metadata import TensorLayout, layout_of
 from .storage import backend_of, host_bytes, open_read, open_write
@@ -34,6 +34,9 @@ __all__ = ["TensorView", "external_stream", "host_alias", "import_warp", "input_
 
 
 _WARP: Any = None  # the initialised warp module, so the hot path skips import + wp.init()
+MAX_WARP_DIMS = 4  # wp.array's limits: dimensions, and elements per dimension (int32)
+MAX_WARP_DIM = 2**31 - 1
+_UINT8 = dtype_from_name("uint8")
 
 
 def import_warp() -> Any:
@@ -109,6 +112,14 @@ class TensorView:
         storage = self._storage  # host memory (device memory has its Warp carrier already)
         base = storage.ctypes.data if storage.size else 0
         return _warp_carrier(base, storage.size, "cpu", self.layout, owner=storage)
+
+    def byte_view(self) -> TensorView:
+        """The whole storage as a 1-D uint8 view (same memory, handle and writability), for a
+        consumer that lays the tensor over the bytes itself: Warp's arrays, the carrier of
+        device memory and of bfloat16, have at most 4 dimensions."""
+        storage = self._storage
+        return TensorView(storage, TensorLayout.contiguous(_UINT8, (storage.size,)),
+                          writable=self.writable, handle=self.handle)
 
     @property
     def dtype(self) -> DType:
@@ -222,6 +233,14 @@ def _warp_carrier(base_ptr: int, nbytes: int, device: str, layout: TensorLayout,
     shape, strides = layout.shape, layout.byte_strides
     if not shape:  # Warp has no 0-d arrays
         shape, strides = (1,), (itemsize,)
+    if any(d > MAX_WARP_DIM for d in shape):
+        raise InvalidTensorMetadataError(
+            f"shape {list(layout.shape)}: Warp arrays have dimensions of at most {MAX_WARP_DIM} "
+            "elements")
+    if len(shape) > MAX_WARP_DIMS:
+        raise InvalidTensorMetadataError(
+            f"a {len(shape)}-D tensor: Warp arrays have at most {MAX_WARP_DIMS} dimensions "
+            f"({layout.dtype.name}{list(layout.shape)}); read it with torch or NumPy")
     carrier = wp.array(ptr=ptr if layout.numel else None, dtype=warp_dtype(layout.dtype),
                        shape=shape, strides=strides, device=device, copy=False)
     carrier._tensor_conversions_owner = owner  # keeps the memory / handle alive with the carrier

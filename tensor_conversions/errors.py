@@ -13,6 +13,7 @@ __all__ = [
     "UnsupportedValueError",
     "WrongMessageTypeError",
     "UnsupportedEncodingError",
+    "StorageNotWritableError",
 ]
 
 
@@ -47,3 +48,8 @@ class WrongMessageTypeError(TensorConversionError, TypeError):
 
 class UnsupportedEncodingError(TensorConversionError, ValueError):
     """An image encoding this package cannot view (compressed, YUV, 16-bit Bayer, ...)."""
+
+
+class StorageNotWritableError(TensorConversionError, RuntimeError):
+    """A writable view of storage whose write is over: a warp buffer takes one write in its life
+    (it was written, read or published), and a loaned message's loan ended at publish."""

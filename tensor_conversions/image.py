@@ -33,7 +33,7 @@ from .errors import (
     UnsupportedEncodingError,
     WrongMessageTypeError,
 )
-from .metadata import TensorLayout, contiguous_strides
+from .metadata import TensorLayout, contiguous_strides, normalize_shape
 from .storage import allocate_data, backend_of, host_bytes
 
 __all__ = [
@@ -158,17 +158,26 @@ def _validate(height: int, width: int, encoding: str, is_bigendian: int, step: i
     return TensorLayout(fmt.dtype, fmt.shape(height, width), strides, 0), native
 
 
+def _sizes(**sizes: Any) -> tuple[int, ...]:
+    """The image sizes given, as non-negative whole numbers (2.9 is refused, not truncated)."""
+    try:
+        return normalize_shape(tuple(sizes.values()))
+    except InvalidTensorMetadataError:
+        given = ", ".join(f"{name}={value!r}" for name, value in sizes.items())
+        raise InvalidTensorMetadataError(
+            f"image sizes must be non-negative whole numbers, got {given}") from None
+
+
 def allocate_image_msg(adapter: _api.Adapter[Any], height: int, width: int, encoding: str,
                        backend: str = "cpu", device: Any = None, step: int | None = None) -> Any:
     fmt = image_format(encoding)
     adapter.check_dtype(fmt.dtype)
-    if int(height) < 0 or int(width) < 0:
-        raise InvalidTensorMetadataError(f"image size {height}x{width} is negative")
-    step = width * fmt.pixel_bytes if step is None else int(step)
-    _row_stride(fmt, int(width), step)
-    return image_msg_type()(height=int(height), width=int(width), encoding=encoding,
+    height, width = _sizes(height=height, width=width)
+    step = width * fmt.pixel_bytes if step is None else _sizes(step=step)[0]
+    _row_stride(fmt, width, step)
+    return image_msg_type()(height=height, width=width, encoding=encoding,
                             is_bigendian=_NATIVE_BIGENDIAN, step=step,
-                            data=allocate_data(step * int(height), backend, device))
+                            data=allocate_data(step * height, backend, device))
 
 
 def from_output_image_msg(adapter: _api.Adapter[Any], msg: Any) -> Any:
@@ -196,8 +205,10 @@ def from_input_image_msg(adapter: _api.Adapter[Any], msg: Any, clone: bool = Tru
     foreign = np.ndarray(layout.shape, dtype=layout.dtype.numpy_dtype().newbyteorder(),
                          buffer=raw, strides=layout.byte_strides)
     copy = np.ascontiguousarray(foreign.astype(layout.dtype.numpy_dtype()))
+    # An empty image's copy has 0 strides: its row is still width pixels long
+    row = msg.width * image_format(msg.encoding).pixel_bytes
     temp = image_msg_type()(height=msg.height, width=msg.width, encoding=msg.encoding,
-                            is_bigendian=_NATIVE_BIGENDIAN, step=copy.strides[0],
+                            is_bigendian=_NATIVE_BIGENDIAN, step=row,
                             data=copy.reshape(-1).view(np.uint8))
     # The copy is the caller's (clone=True): a writable view of it, as every clone is
     return _api.output_native(adapter, temp, image_layout(temp)[0])

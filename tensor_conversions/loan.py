@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from .dlpack import TensorView, _host_bytes, warp_dtype
-from .errors import TensorConversionError, UnsupportedBackendError
+from .errors import StorageNotWritableError, UnsupportedBackendError
 from .metadata import TensorLayout, contiguous_strides, normalize_shape, write_metadata
 
 __all__ = ["LoanState", "TensorLoanSpec", "loan_tensor_msg"]
@@ -73,7 +73,7 @@ class LoanState:
 
     def _check_open(self) -> None:
         if self.impl.is_published:
-            raise TensorConversionError(
+            raise StorageNotWritableError(
                 "this loaned message was published: its loan ended, so it is no longer "
                 "writable (take the next loan from the publisher)")
 

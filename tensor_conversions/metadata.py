@@ -198,6 +198,10 @@ _INT64 = np.dtype(np.int64)
 _MAX_LAYOUTS = 256
 
 
+#: The largest logical size (elements x item size) a tensor may have: what NumPy indexes.
+MAX_LOGICAL_BYTES = 2**62
+
+
 def layout_of(msg: Any) -> TensorLayout:
     """The validated layout of an ExperimentalTensor ``msg``, checked against its ``data`` size.
 
@@ -242,6 +246,15 @@ def _validate(code: Any, bits: Any, lanes: Any, shape: tuple[int, ...], strides:
     byte_offset = int(byte_offset)
     if byte_offset < 0:
         raise InvalidTensorMetadataError(f"byte_offset {byte_offset} is negative")
+    # What the frameworks can index: NumPy refuses an array whose dimensions (the non-zero
+    # ones, even when another is 0) multiply past its index type, with a raw ValueError.
+    extent = dtype.itemsize
+    for d in shape:
+        extent *= max(d, 1)
+    if extent > MAX_LOGICAL_BYTES:
+        raise InvalidTensorMetadataError(
+            f"shape {list(shape)} of {dtype.name} spans {extent} bytes, more than any tensor "
+            f"can ({MAX_LOGICAL_BYTES})")
     layout = TensorLayout(dtype, shape, strides, byte_offset)
     layout.check_fits(nbytes)
     return layout

@@ -25,7 +25,7 @@ import numpy as np
 
 from rosidl_buffer import Buffer, CpuBufferImpl
 
-from .errors import TensorConversionError, UnsupportedBackendError
+from .errors import StorageNotWritableError, UnsupportedBackendError
 
 __all__ = [
     "BACKENDS",
@@ -178,7 +178,7 @@ def open_write(msg: Any, stream: Any = None, *, replace_if_spent: bool = False) 
             handle = wb.from_output_buffer(buffer, stream)
         except wb.errors.WriteHandleError as exc:
             if not replace_if_spent:
-                raise TensorConversionError(
+                raise StorageNotWritableError(
                     f"cannot write this warp-backed message: {exc}. A warp buffer takes one write "
                     "in its life; use to_tensor_msg (which gives the message a fresh buffer) or "
                     "allocate a new message") from exc

@@ -6,7 +6,10 @@ device's torch counterpart (``cuda:N``, or CPU for Warp's ``cpu`` device). Every
 only in CPU storage: Warp has no complex type).
 
 PyTorch tensors cannot be read-only: a ``clone=False`` input view aliases the message storage and
-must be treated as read-only by convention.
+must be treated as read-only by convention. One exception to the alias: torch needs complex
+elements aligned to their size (complex128: 16 bytes), which CDR's 4-byte alignment of received
+bytes often breaks; such a tensor comes back as one aligned copy (and a writable view over
+misaligned complex storage is refused with :class:`InvalidTensorMetadataError`).
 """
 
 from __future__ import annotations
@@ -21,10 +24,15 @@ from . import _api
 from . import loan as _loan
 from . import image as _image
 from . import pointcloud as _pointcloud
-from .dlpack import TensorView, external_stream
-from .dtypes import DType, dtype_from_name
+from .dlpack import MAX_WARP_DIMS, TensorView, external_stream
+from .dtypes import DLDataTypeCode, DType, dtype_from_name
+from .errors import (
+    InvalidTensorMetadataError,
+    UnsupportedBackendError,
+    UnsupportedDTypeError,
+    UnsupportedValueError,
+)
 from .metadata import TensorLayout
-from .errors import UnsupportedBackendError, UnsupportedDTypeError, UnsupportedValueError
 
 __all__ = [
     "allocate_image_msg",
@@ -65,6 +73,70 @@ def dtype_to_torch(dtype: DType) -> torch.dtype:
     return found
 
 
+# c10::complex<T> is alignas(2 * sizeof(T)) and torch's kernels rely on it (a clone of a complex128
+# tensor 8 bytes off a 16-byte boundary crashes the process). CDR aligns a buffer field's bytes to
+# 4 only, so a received complex tensor is often misaligned: such host memory is read through an
+# aligned copy and never aliased. Every other dtype works at any address.
+_ALIGNMENT = {torch.complex128: 16, torch.complex64: 8}
+
+
+def _misaligned(view: TensorView) -> bool:
+    """Whether torch would get complex elements off their alignment from host ``view``."""
+    need = _ALIGNMENT.get(dtype_to_torch(view.dtype))
+    if need is None or view.device != "cpu" or not view.layout.numel:
+        return False
+    carrier = view.carrier
+    return carrier.ctypes.data % need != 0 or any(s % need for s in carrier.strides)
+
+
+def _aligned_copy(view: TensorView) -> torch.Tensor:
+    """A contiguous torch copy of misaligned host ``view``, made by NumPy (which reads any
+    address) into memory aligned for the dtype."""
+    source = view.carrier
+    need = _ALIGNMENT[dtype_to_torch(view.dtype)]
+    raw = np.empty(source.nbytes + need, dtype=np.uint8)
+    start = -raw.ctypes.data % need
+    copy = np.ndarray(source.shape, source.dtype, buffer=raw, offset=start)
+    copy[...] = source
+    return torch.from_numpy(copy)
+
+
+def _refuse_misaligned(view: TensorView) -> None:
+    if _misaligned(view):
+        raise InvalidTensorMetadataError(
+            f"byte_offset {view.layout.byte_offset} and strides {list(view.layout.strides)} "
+            f"leave {view.dtype.name} elements off the {_ALIGNMENT[dtype_to_torch(view.dtype)]}"
+            "-byte alignment torch needs; a writable torch view cannot be made over them")
+
+
+def _over_bytes(view: TensorView) -> torch.Tensor:
+    """The tensor of ``view`` laid over its bytes by torch itself (``view`` dtype, then
+    ``as_strided``): for what Warp's arrays cannot carry (more than 4 dimensions; bfloat16 in
+    host memory, which NumPy cannot carry either). Same memory, ordering and lifetime as the
+    DLPack path: the bytes come through the view's own DLPack export."""
+    layout = view.layout
+    raw = torch.from_dlpack(view.byte_view())
+    dtype = dtype_to_torch(layout.dtype)
+    if not layout.numel:
+        return torch.empty(layout.shape, dtype=dtype, device=raw.device)
+    itemsize = layout.dtype.itemsize
+    start = layout.byte_offset
+    if start % itemsize:
+        raise InvalidTensorMetadataError(
+            f"byte_offset {start} is not a multiple of the {itemsize}-byte {layout.dtype.name} "
+            "element; torch cannot lay this tensor over the bytes")
+    span = layout.span_bytes
+    elements = raw[start:start + span + (-span % itemsize)].view(dtype)
+    return elements.as_strided(layout.shape, layout.strides)
+
+
+def _needs_bytes(view: TensorView) -> bool:
+    layout = view.layout
+    if view.device == "cpu":  # host memory is carried by NumPy, except bfloat16
+        return layout.dtype.code == DLDataTypeCode.BFLOAT
+    return len(layout.shape) > MAX_WARP_DIMS
+
+
 class _TorchAdapter(_api.Adapter[torch.Tensor]):
     name = "torch"
 
@@ -85,16 +157,23 @@ class _TorchAdapter(_api.Adapter[torch.Tensor]):
         # perf: torch.from_numpy over warp storage's host memory (~1 us against ~4 through
         # DLPack). Read-only bytes (a received CPU message) take DLPack, which carries the flag
         # (from_numpy would warn).
-        if not storage.flags.writeable:
-            return None
+        if not storage.flags.writeable or layout.dtype.code == DLDataTypeCode.COMPLEX:
+            return None  # complex: the general path checks the alignment
         return torch.from_numpy(layout.ndarray_over(storage))
 
     def from_view(self, view: TensorView) -> torch.Tensor:
+        if _misaligned(view):
+            if view.writable:
+                _refuse_misaligned(view)
+            return view.reshape_result(_aligned_copy(view))  # one copy, documented
+        if _needs_bytes(view):
+            return _over_bytes(view)
         return view.reshape_result(torch.from_dlpack(view))
 
     def clone(self, view: TensorView) -> torch.Tensor:
-        source = view.reshape_result(torch.from_dlpack(view))
-        return source.clone(memory_format=torch.contiguous_format)
+        if _misaligned(view):
+            return view.reshape_result(_aligned_copy(view))
+        return self.from_view(view).clone(memory_format=torch.contiguous_format)
 
     def describe(self, value: Any) -> tuple[tuple[int, ...], DType, str, str | None]:
         if not isinstance(value, torch.Tensor):
@@ -111,7 +190,8 @@ class _TorchAdapter(_api.Adapter[torch.Tensor]):
         return tuple(value.shape), torch_to_dtype(value.dtype), backend, wp_device
 
     def copy_into(self, view: TensorView, value: Any) -> None:
-        view.reshape_result(torch.from_dlpack(view)).copy_(value)
+        _refuse_misaligned(view)
+        self.from_view(view).copy_(value)
 
 
 _ADAPTER = _TorchAdapter()

@@ -519,6 +519,7 @@ def test_a_subscriber_gets_no_writable_view_of_a_published_loan(domain, topic, b
         del msg
         assert _wait(lambda: errors)
     assert "published" in str(errors[0])
+    assert isinstance(errors[0], RuntimeError)  # StorageNotWritableError: typed and a builtin
 
 
 def test_max_loans_bounds_its_own_factory_key_only(domain, topic, backends):

@@ -85,3 +85,33 @@ def test_buffer_numpy_is_zero_copy_or_copies_as_documented():
     writable = received.data.numpy()  # copy-on-write, as the docstring says
     assert writable.flags.writeable and writable.ctypes.data != before
     np.testing.assert_array_equal(writable, storage)
+
+
+@pytest.mark.parametrize("code, bits, shape, strides, nbytes", [
+    (5, 64, [2**63 - 1], [0], 8),  # complex64 broadcast past what NumPy indexes
+    (2, 32, [2**63 - 1, 0], [], 0),  # empty, but its other dimension overflows NumPy's size
+    (1, 8, [2**40, 2**40], [0, 0], 1),
+])
+def test_metadata_past_what_the_frameworks_index_is_a_typed_error(code, bits, shape, strides,
+                                                                   nbytes):
+    """Metadata whose data fits (zero strides) but that no framework can index gave NumPy's and
+    Warp's raw ValueError ("array is too big")."""
+    tensor = get_message_type("tensor_msgs/msg/ExperimentalTensor")
+    msg = tensor(dtype_code=code, dtype_bits=bits, dtype_lanes=1, byte_offset=0,
+                 shape=np.array(shape, np.int64), strides=np.array(strides, np.int64),
+                 data=np.zeros(nbytes, np.uint8))
+    for module in MODULES.values():
+        for clone in (False, True):
+            with pytest.raises(tc.InvalidTensorMetadataError):
+                module.from_input_tensor_msg(msg, clone=clone)
+
+
+def test_warp_dimensions_past_int32_are_a_typed_error():
+    from tensor_conversions import warp as tw
+
+    tensor = get_message_type("tensor_msgs/msg/ExperimentalTensor")
+    msg = tensor(dtype_code=1, dtype_bits=8, dtype_lanes=1, byte_offset=0,
+                 shape=np.array([2**32 + 2], np.int64), strides=np.array([0], np.int64),
+                 data=np.zeros(1, np.uint8))
+    with pytest.raises(tc.InvalidTensorMetadataError, match="at most 2147483647"):
+        tw.from_input_tensor_msg(msg, clone=False)

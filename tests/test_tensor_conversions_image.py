@@ -133,6 +133,11 @@ def test_foreign_byte_order_is_converted_only_by_a_copy():
     # 8-bit pixels have no byte order: the flag does not matter
     msg8 = IMAGE(height=1, width=2, encoding="mono8", step=2, is_bigendian=1, data=[1, 2])
     assert tc_numpy.from_input_image_msg(msg8, clone=False).tolist() == [[1, 2]]
+    # an empty image in the other byte order converts too (its copy's row stride was 0)
+    empty = IMAGE(height=0, width=3, encoding="mono16", step=6,
+                  is_bigendian=int(sys.byteorder != "big"), data=[])
+    for module in MODULES.values():
+        assert tuple(module.from_input_image_msg(empty).shape) == (0, 3)
 
 
 def test_image_errors_are_typed():
@@ -151,6 +156,11 @@ def test_image_errors_are_typed():
         tc_numpy.to_image_msg(np.zeros((2, 2, 3), np.float32), "rgb8")
     with pytest.raises(tc.InvalidTensorMetadataError, match="shape"):
         tc_numpy.to_image_msg(np.zeros((2, 2, 4), np.uint8), "rgb8")
+    for sizes in ({"height": 2.9, "width": 2}, {"height": 2, "width": 2.5},
+                  {"height": 2, "width": 2, "step": 7.9}, {"height": -1, "width": 2}):
+        with pytest.raises(tc.InvalidTensorMetadataError, match="whole numbers"):
+            tc_numpy.allocate_image_msg(encoding="rgb8", **sizes)  # was truncated: 2.9 -> 2
+    assert tc_numpy.allocate_image_msg(np.int64(2), np.int32(3), "rgb8").step == 9
     for error in (tc.UnsupportedEncodingError, tc.InvalidTensorMetadataError, tc.TensorSizeError):
         assert issubclass(error, ValueError) and issubclass(error, tc.TensorConversionError)
 

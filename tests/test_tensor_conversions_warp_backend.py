@@ -95,8 +95,10 @@ def test_write_after_release_rules():
     assert tc.release_output(msg) is True
     assert tc.release_output(msg) is False
     # The buffer has used its one write handle: a new in-place view is refused ...
-    with pytest.raises(tc.TensorConversionError, match="one write"):
+    with pytest.raises(tc.StorageNotWritableError, match="one write") as refused:
         module.from_output_tensor_msg(msg)
+    assert isinstance(refused.value, (tc.TensorConversionError, RuntimeError))
+    assert isinstance(refused.value, RuntimeError)  # the matching builtin, as every error here
     # ... while to_tensor_msg gives the message a fresh buffer of the same size and device.
     old = msg.data
     module.to_tensor_msg(msg, np.full(8, 2.0, np.float32))

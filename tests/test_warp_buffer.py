@@ -351,3 +351,30 @@ def test_a_strided_memoryview_is_copied_in():
     with from_output_buffer(buffer) as out:
         to_buffer(memoryview(source)[::2], out)
     assert buffer.to_numpy().tobytes() == source[::2]
+
+
+def test_handle_views_and_arguments_raise_typed_errors():
+    """Shapes and dtypes a view cannot take are warp_buffer errors that also subclass the
+    matching builtin (they were Warp's IndexError, plain ValueError and TypeError, and a
+    fractional shape was truncated: (2.9,) gave 2 elements)."""
+    import warp_buffer as wb
+
+    with from_output_buffer(allocate_buffer(16, "cpu")) as handle:
+        for shape, error in (((), wb.InvalidSizeError), ((-1, 2), wb.InvalidSizeError),
+                             ((1, 1, 1, 1, 1), wb.InvalidSizeError), ((2.9,), wb.SizeTypeError),
+                             ((True,), wb.SizeTypeError), ("ab", wb.SizeTypeError),
+                             (2.0, wb.SizeTypeError)):
+            with pytest.raises(error):
+                handle.view(wp.float32, shape)
+        assert issubclass(wb.InvalidSizeError, ValueError) and issubclass(wb.SizeTypeError,
+                                                                         TypeError)
+        with pytest.raises(wb.InvalidDTypeError) as refused:
+            handle.view("no such dtype")
+        assert isinstance(refused.value, TypeError)
+        assert handle.view(wp.float32, np.int64(2)).shape == (2,)
+        assert handle.view(np.uint8, [2, 8]).shape == (2, 8)
+    for not_a_buffer in (b"abc", np.zeros(4, np.uint8), None):
+        with pytest.raises(wb.UnsupportedSourceError, match="to_buffer"):
+            from_output_buffer(not_a_buffer)
+        with pytest.raises(TypeError):
+            from_input_buffer(not_a_buffer)

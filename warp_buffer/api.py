@@ -37,6 +37,8 @@ from .errors import (
     EmptyBufferError,
     HandleError,
     HandleReleasedError,
+    InvalidDTypeError,
+    InvalidSizeError,
     SizeMismatchError,
     SizeTypeError,
     UnsupportedSourceError,
@@ -87,7 +89,28 @@ def _warp_dtype(dtype: Any) -> Any:
     try:
         return wp.dtype_from_numpy(np.dtype(dtype))
     except Exception:
-        raise TypeError(f"{dtype!r} is neither a Warp nor a NumPy data type") from None
+        raise InvalidDTypeError(f"{dtype!r} is neither a Warp nor a NumPy data type") from None
+
+
+_MAX_VIEW_DIMS = 4  # wp.array's limit
+
+
+def _view_shape(shape: Any) -> tuple[int, ...]:
+    """A view's shape: 1 to 4 non-negative whole numbers (2.9 is refused, not truncated)."""
+    dims = (shape,) if isinstance(shape, (int, np.integer)) else shape
+    try:
+        dims = tuple(dims)
+    except TypeError:
+        raise SizeTypeError(f"shape must be an int or a sequence of ints, got {shape!r}") from None
+    if not all(isinstance(d, (int, np.integer)) and not isinstance(d, bool) for d in dims):
+        raise SizeTypeError(f"shape must hold whole numbers, got {shape!r}")
+    dims = tuple(int(d) for d in dims)
+    if any(d < 0 for d in dims):
+        raise InvalidSizeError(f"negative dimension in shape {dims}")
+    if not 1 <= len(dims) <= _MAX_VIEW_DIMS:
+        raise InvalidSizeError(f"a view has 1 to {_MAX_VIEW_DIMS} dimensions (Warp arrays), "
+                               f"got shape {dims}")
+    return dims
 
 
 def _check_stream(device: Any, stream: Any) -> Any:
@@ -144,12 +167,8 @@ class _Handle:
                     f"{nbytes} bytes are not a whole number of {itemsize}-byte elements"
                 )
             shape = (nbytes // itemsize,)
-        elif isinstance(shape, (int, np.integer)):
-            shape = (int(shape),)
         else:
-            shape = tuple(int(s) for s in shape)
-        if any(s < 0 for s in shape):
-            raise ValueError(f"negative dimension in shape {shape}")
+            shape = _view_shape(shape)
         need = math.prod(shape) * itemsize
         if need > nbytes:
             raise SizeMismatchError(
@@ -278,7 +297,8 @@ class ReadHandle(_Handle):
 
 def _require_buffer(buffer: Any) -> Buffer:
     if not isinstance(buffer, Buffer):
-        raise TypeError(f"expected a rosidl_buffer.Buffer, got {type(buffer).__name__}")
+        raise UnsupportedSourceError(
+            f"expected a rosidl_buffer.Buffer, got {type(buffer).__name__} (to_buffer makes one)")
     return buffer
 
 

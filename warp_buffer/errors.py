@@ -45,6 +45,7 @@ __all__ = [
     "EmptyBufferError",
     "SizeMismatchError",
     "UnsupportedSourceError",
+    "InvalidDTypeError",
     "HandleError",
     "WriteHandleError",
     "HandleReleasedError",
@@ -88,6 +89,10 @@ class SizeMismatchError(WarpBufferError, ValueError):
 
 class UnsupportedSourceError(WarpBufferError, TypeError):
     """``to_buffer`` was given something that is not array data (a list, a str, a handle)."""
+
+
+class InvalidDTypeError(WarpBufferError, TypeError):
+    """A handle's ``view`` was given something that is neither a Warp nor a NumPy data type."""
 
 
 class HandleError(WarpBufferError, RuntimeError):
