@@ -25,8 +25,9 @@ _log = logging.getLogger(__name__)
 
 
 class Runnable(Protocol):
-    def _run_one(self) -> None:
-        """Deliver the next waiting message (re-schedules itself while more wait)."""
+    def _run_one(self) -> bool:
+        """Deliver the next waiting message (re-schedules itself while more wait); whether a
+        callback ran."""
 
 
 class Executor:
@@ -103,13 +104,12 @@ class Executor:
                         ready.appendleft(item)
                         return ran
             try:
-                item._run_one()
+                ran += bool(item._run_one())  # a message that failed to decode ran nothing
             except Exception:
                 _log.exception("executor task failed")
             finally:
                 if gate is not None:
                     gate.release()
-            ran += 1
         now = time.monotonic()
         if now >= self._next_housekeeping:
             self._next_housekeeping = now + self.TICK_S

@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import collections
 import itertools
 import threading
 from typing import TYPE_CHECKING
@@ -24,6 +25,9 @@ _ids = itertools.count(0)
 _subscriptions: dict[str, list[Subscription]] = {}  # by domain-qualified base data key
 _subscription_gids: set[bytes] = set()
 _publisher_gids: set[bytes] = set()
+#: How many removed local publishers' gids are still recognized (see remove_publisher).
+RETIRED_PUBLISHERS = 4096
+_retired: collections.deque[bytes] = collections.deque()
 _backends: dict[str, BufferBackend] | None = None
 
 
@@ -72,8 +76,13 @@ def add_publisher(gid: bytes) -> None:
 
 
 def remove_publisher(gid: bytes) -> None:
+    """A local publisher is gone. Its gid stays known as local for the next
+    :data:`RETIRED_PUBLISHERS` removals: Zenoh copies of its last samples may still be on their
+    way to this process's subscriptions, which had them intra-process already."""
     with _lock:
-        _publisher_gids.discard(gid)
+        _retired.append(gid)
+        if len(_retired) > RETIRED_PUBLISHERS:
+            _publisher_gids.discard(_retired.popleft())
 
 
 def is_local_publisher(gid: bytes) -> bool:

@@ -12,13 +12,16 @@ from __future__ import annotations
 
 import keyword
 import numbers
+import struct
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
+from rosidl_buffer.buffer_impl import exact_array
 from rosidl_buffer.errors import SerializationError
 from rosidl_buffer.messages import FieldSpec, Message, get_message_type, get_schema
+from rosidl_buffer.messages._classes import numpy_dtype
 from rosidl_buffer.messages._schema import FieldKind
 
 __all__ = ["validate_message"]
@@ -31,6 +34,7 @@ _INT_RANGES = {
     "int16": (-2**15, 2**15 - 1), "uint16": (0, 2**16 - 1), "int32": (-2**31, 2**31 - 1),
     "uint32": (0, 2**32 - 1), "int64": (-2**63, 2**63 - 1), "uint64": (0, 2**64 - 1),
 }
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 # Array dtype kinds a numeric field accepts: b bool, i/u integers, f floats.
 _ARRAY_KINDS = {"bool": "b", "float32": "biuf", "float64": "biuf"}
 
@@ -74,20 +78,26 @@ def _quick_test(spec: FieldSpec, scope: dict[str, Any], i: int) -> str:
     if spec.is_collection:
         if spec.kind is not FieldKind.PRIMITIVE:
             return "False"
-        scope[f"k{i}"] = _ARRAY_KINDS.get(element, "biu")
-        test = f"type(v) is ndarray and v.ndim == 1 and v.dtype.kind in k{i}"
+        if element in _INT_RANGES:  # only the field's own dtype is in range without a look
+            scope[f"d{i}"] = numpy_dtype(element)
+            test = f"type(v) is ndarray and v.ndim == 1 and v.dtype is d{i}"
+        else:
+            scope[f"k{i}"] = _ARRAY_KINDS.get(element, "biu")
+            test = f"type(v) is ndarray and v.ndim == 1 and v.dtype.kind in k{i}"
         if spec.array_length:
             test += f" and v.shape[0] == {spec.array_length}"
         if spec.sequence_bound:
             test += f" and v.shape[0] <= {spec.sequence_bound}"
         return test
-    if spec.kind is FieldKind.STRING:
+    if spec.kind is FieldKind.STRING:  # ASCII (an O(1) flag) encodes; others are checked
         bound = spec.string_bound
-        return "type(v) is str" + (f" and len(v) * 4 <= {bound}" if bound else "")
+        return "type(v) is str and v.isascii()" + (f" and len(v) <= {bound}" if bound else "")
     if spec.kind is not FieldKind.PRIMITIVE:
         return "False"
     if element == "bool":
         return "v is True or v is False"
+    if element == "float32":  # beyond it (and NaN, which the full check accepts): a look
+        return f"type(v) is float and {-_FLOAT32_MAX!r} <= v <= {_FLOAT32_MAX!r}"
     if element.startswith("float"):
         return "type(v) is float"
     low, high = _INT_RANGES[element]
@@ -129,7 +139,11 @@ def _scalar_check(spec: FieldSpec) -> _Check:
         def check_string(value: Any) -> None:
             if type(value) is not str:
                 raise _fail(f"expected str, got {type(value).__name__}")
-            if bound and len(value) * 4 > bound and len(value.encode("utf-8")) > bound:
+            try:
+                encoded = value.encode("utf-8")
+            except UnicodeEncodeError as exc:  # a lone surrogate: no UTF-8 for it
+                raise _fail(f"string is not valid Unicode: {exc.reason} at {exc.start}") from None
+            if bound and len(encoded) > bound:
                 raise _fail(f"string longer than its bound {bound}")
         return check_string
     if element == "bool":
@@ -138,9 +152,15 @@ def _scalar_check(spec: FieldSpec) -> _Check:
                 raise _fail(f"expected bool, got {value!r}")
         return check_bool
     if element.startswith("float"):
+        packer = struct.Struct("<f" if element == "float32" else "<d")
+
         def check_float(value: Any) -> None:
             if not isinstance(value, numbers.Real) or isinstance(value, str):
                 raise _fail(f"expected a number for {element}, got {type(value).__name__}")
+            try:
+                packer.pack(value)  # exactly what the serializer will do with it
+            except (OverflowError, struct.error):
+                raise _fail(f"{value!r} is out of range for {element}") from None
         return check_float
     low, high = _INT_RANGES[element]
 
@@ -172,6 +192,12 @@ def _numeric_array_check(spec: FieldSpec) -> _Check:
         if array.ndim != 1:
             raise _fail(f"expected a 1-D sequence, got shape {array.shape}")
         _check_length(array.shape[0], spec)
+        if array.dtype.kind in "iu" and array.dtype != dtype:
+            try:  # the serializer's own rule: values must fit, never wrapped (300 -> 44)
+                exact_array(array, dtype)
+            except (ValueError, OverflowError) as exc:
+                raise _fail(f"{exc} (for {spec.element})") from None
+    dtype = numpy_dtype(spec.element)
     return check_array
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import logging
 import threading
@@ -24,6 +25,8 @@ def undeclare_quietly(*entities: Any) -> None:
             entity.undeclare()
         except zenoh.ZError:
             pass
+        except RuntimeError as exc:  # zenoh-python's "Already borrowed": in use on another thread
+            _log.debug("undeclaring %r: %s", entity, exc)
 
 
 @contextlib.contextmanager
@@ -35,6 +38,28 @@ def typed_zenoh_errors(what: str) -> Iterator[None]:
         raise TransportError(f"{what}: {exc}") from exc
 
 
+#: How long the interpreter's exit waits for teardown helpers still inside Zenoh (see
+#: :func:`run_bounded`): one that returns into Python while the interpreter finalizes aborts
+#: the process ("FATAL: exception not rethrown"), typically once a frozen peer resumes.
+EXIT_WAIT_S = 1.0
+_background: set[threading.Event] = set()  # the done flags of helpers still running
+_background_lock = threading.Lock()
+
+
+def _await_background() -> None:
+    deadline = time.monotonic() + EXIT_WAIT_S
+    with _background_lock:
+        running = list(_background)
+    for done in running:
+        done.wait(max(0.0, deadline - time.monotonic()))
+    if any(not done.is_set() for done in running):
+        _log.warning("exiting with %d Zenoh teardown call(s) still blocked (a frozen peer?)",
+                     sum(not done.is_set() for done in running))
+
+
+atexit.register(_await_background)
+
+
 def run_bounded(work: Callable[[], None], timeout: float, what: str) -> bool:
     """Run ``work`` on a helper thread and wait at most ``timeout`` seconds for it.
 
@@ -44,6 +69,8 @@ def run_bounded(work: Callable[[], None], timeout: float, what: str) -> bool:
     exception already on its way out. True when ``work`` finished in time.
     """
     done = threading.Event()  # not Thread.join: an interrupted join may report it finished
+    with _background_lock:
+        _background.add(done)
 
     def run() -> None:
         try:
@@ -52,6 +79,8 @@ def run_bounded(work: Callable[[], None], timeout: float, what: str) -> bool:
             _log.warning("%s failed: %s", what, exc)
         finally:
             done.set()
+            with _background_lock:
+                _background.discard(done)
 
     thread = threading.Thread(target=run, name=f"buffer_pubsub:{what}", daemon=True)
     thread.start()

@@ -124,8 +124,12 @@ class Node:
         self._sweeper = _lane_routes.DeadPeerSweeper(self.locality)
         self._thread: threading.Thread | None = None
 
-        config_obj = make_config(config, router)
-        self.session = open_session(config_obj)  # typed errors, unreachable-router warnings
+        try:
+            config_obj = make_config(config, router)
+            self.session = open_session(config_obj)  # typed errors, unreachable-router warnings
+        except BaseException:
+            self._close_lane()  # its eventfd and WaitSet: a retry loop would run out of fds
+            raise
         self.max_message_size = _max_message_size(config_obj)
         try:
             self.zid = str(self.session.zid())
@@ -189,7 +193,10 @@ class Node:
 
         def undeclare() -> None:
             for endpoint in endpoints:
-                endpoint._undeclare()
+                try:  # one endpoint's failure must not leave the others declared
+                    endpoint._undeclare()
+                except Exception:
+                    _log.exception("undeclaring %r of node %s failed", endpoint, self.name)
             undeclare_quietly(self._graph_subscriber, self._node_token)
 
         # Ctrl-C during a step lets the (bounded) steps finish, then propagates: a session left
@@ -315,8 +322,13 @@ class Node:
         with typed_zenoh_errors(f"cannot declare a publisher on {fq_topic}"):
             publisher = Publisher(self, cls, token, depth, history)
         with self._lock:
-            self._publishers.append(publisher)
-            peers = [t for t in self._graph.values() if publisher._matches(t)]
+            closed = self._closed  # close() ran meanwhile: it did not see this one
+            if not closed:
+                self._publishers.append(publisher)
+                peers = [t for t in self._graph.values() if publisher._matches(t)]
+        if closed:
+            publisher._undeclare()
+            self._check_open()
         for peer in peers:
             publisher._on_peer(peer, True)
         return publisher
@@ -362,7 +374,12 @@ class Node:
             subscription = Subscription(self, cls, token, callback, depth, accepted, with_info,
                                         history)
         with self._lock:
-            self._subscriptions.append(subscription)
+            closed = self._closed  # close() ran meanwhile: it did not see this one
+            if not closed:
+                self._subscriptions.append(subscription)
+        if closed:
+            subscription._undeclare()
+            self._check_open()
         return subscription
 
     def _forget(self, endpoint: Publisher | Subscription) -> None:

@@ -33,6 +33,7 @@ from rosidl_buffer.messages import Message, deserialize_message, iter_buffers, s
 
 from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info
+from ._snapshot import snapshot
 from .loan import Loan, LoanPool, flat_buffer_fields
 from ._validation import validate_message
 from ._zenoh import undeclare_quietly
@@ -50,6 +51,9 @@ if TYPE_CHECKING:
 __all__ = ["Publisher", "seal_and_list_backends"]
 
 _log = logging.getLogger(__name__)
+#: How long destroy() waits for a publish in flight on another thread before leaving the
+#: Zenoh publishers to that publish to undeclare.
+UNDECLARE_WAIT_S = 1.0
 
 _BUFFER_AWARE_ENCODING = zenoh.Encoding.APPLICATION_CDR.with_schema(wire.BUFFER_AWARE_SCHEMA)
 
@@ -161,6 +165,7 @@ class Publisher:
         # sequence numbers in the order they are sent.
         self._out: bytearray | None = None
         self._out_lock = threading.Lock()
+        self._undeclare_after_send = False  # see _undeclare
         self._flat_buffers = flat_buffer_fields(msg_type)
         self._loans = LoanPool()
         self._remote: tuple[_Peer, ...] = ()  # peers in other processes, rebuilt on change
@@ -323,7 +328,11 @@ class Publisher:
                 if not remote:
                     self._publish_intra(msg, backends, attachment)
                     return
-                self._publish_remote(msg, backends, nbytes, attachment, remote)
+                try:
+                    self._publish_remote(msg, backends, nbytes, attachment, remote)
+                finally:
+                    if self._undeclare_after_send:  # destroyed during this publish (see there)
+                        undeclare_quietly(self._base, self._cpu)
         finally:
             for impl in impls:  # after the sends: readers are on their way meanwhile
                 impl.end_publish()
@@ -385,11 +394,12 @@ class Publisher:
             if subscription.node.domain_id != domain_id:
                 continue
             if not backends or backends.issubset(subscription.accepted):
-                subscription._deliver_intra(msg, attachment)
+                # the values as published, in an object of its own (see _snapshot)
+                subscription._deliver_intra(snapshot(msg), attachment)
             else:
                 if copy is None:
                     copy = cpu_copy(msg)
-                subscription._deliver_intra(copy, attachment)
+                subscription._deliver_intra(snapshot(copy), attachment)
 
     def _serialize_for(self, peer: _Peer, msg: Message) -> bytearray:
         backends = self.node.backends
@@ -447,8 +457,18 @@ class Publisher:
             self._ready.notify_all()
         _process.remove_publisher(self.gid)
         self._loans.clear()
+        undeclare_quietly(self._liveliness)
         for peer in peers:
             peer.close()
             endpoint_gone(self._backends, peer.info)
-        undeclare_quietly(self._liveliness, self._base, self._cpu)
+        # After a publish in flight on another thread: zenoh-python cannot undeclare a publisher
+        # while a put uses it ("Already borrowed"). One that outlasts the wait (a keep-all put
+        # blocked by a frozen peer) undeclares them itself when its sends return.
+        if self._out_lock.acquire(timeout=UNDECLARE_WAIT_S):
+            try:
+                undeclare_quietly(self._base, self._cpu)
+            finally:
+                self._out_lock.release()
+        else:
+            self._undeclare_after_send = True
         endpoint_gone(self._backends, self.info)

@@ -343,13 +343,13 @@ class Subscription:
                     schedule = not self._scheduled
                     self._scheduled = True
         if run_now:
-            if lane:
-                self.node._executor.ran_inline()
             try:
-                self._run_item(item, inline=True)
+                ran = self._run_item(item, inline=True)
             finally:
                 if gate is not None:
                     gate.release()
+            if lane and ran:
+                self.node._executor.ran_inline()
             return
         if closed:
             evicted = item
@@ -407,20 +407,22 @@ class Subscription:
                 self._refuse(REFUSED_UNKNOWN_PUBLISHER, expired)
 
     # -- executor ------------------------------------------------------------------------------
-    def _run_one(self) -> None:
+    def _run_one(self) -> bool:
+        """Deliver the next queued message; whether its callback ran."""
         with self._lock:
             if self._closed or not self._queue:
                 self._scheduled = False
-                return
+                return False
             item = self._queue.popleft()
             again = bool(self._queue)
             self._scheduled = again
         if again:  # others wait: take turns with the node's other subscriptions
             self.node._executor.schedule(self)
-        self._run_item(item)
+        return self._run_item(item)
 
-    def _run_item(self, item: tuple[Any, ...], inline: bool = False) -> None:
-        """Deserialize a queued payload if it still is one, then run the callback."""
+    def _run_item(self, item: tuple[Any, ...], inline: bool = False) -> bool:
+        """Deserialize a queued payload if it still is one, then run the callback; whether it
+        ran (not for a message that failed to decode or arrived after close)."""
         payload, attachment, route, received_ns, owned = item
         if owned or route == ROUTE_INTRA:
             msg = payload
@@ -429,11 +431,11 @@ class Subscription:
                 msg = self._deserialize(payload, attachment, route)
             except Exception as exc:  # typed errors expected; a backend bug is counted too
                 self._count_error(exc, attachment)
-                return
+                return False
         if self._closed:
             if owned:
                 release_buffers(msg)  # imported for us alone, and nobody will read it
-            return
+            return False
         with self._lock:
             self.counters.received += 1
         start = time.perf_counter()
@@ -445,11 +447,22 @@ class Subscription:
             else:
                 self._callback(msg)
         except Exception as exc:
-            with self._lock:
-                self.counters.callback_errors += 1
-            self.last_error = exc
-            _log.exception("%r: callback raised", self)
+            self._callback_failed(exc)
+        except BaseException as exc:  # SystemExit, say: the user's own thread gets it (rclpy)
+            if self.node.executor_mode == "manual":
+                raise
+            # On the node's threads it would end the executor thread silently (and with it
+            # every later delivery) or unwind Zenoh's: counted and logged, delivery goes on.
+            self._callback_failed(exc)
         self._policy.ran(time.perf_counter() - start, inline)
+        return True
+
+    def _callback_failed(self, exc: BaseException) -> None:
+        with self._lock:
+            self.counters.callback_errors += 1
+        self.last_error = exc
+        _log.error("%r: callback raised %s", self, type(exc).__name__,
+                   exc_info=(type(exc), exc, exc.__traceback__))
 
     def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str,
                      publisher: wire.EndpointToken | None = None) -> Message:

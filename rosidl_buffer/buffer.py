@@ -15,12 +15,34 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from .buffer_impl import CPU_BACKEND, BufferImplBase, CpuBufferImpl
+from .buffer_impl import CPU_BACKEND, BufferImplBase, CpuBufferImpl, exact_array
 from .errors import CpuBackendRequiredError, InvalidBufferDataError
 
 __all__ = ["Buffer"]
 
 T = TypeVar("T", bound=np.generic)
+
+
+def _values(value: Any, dtype: np.dtype, ndim: int | None) -> np.ndarray:
+    """``value`` as ``ndim``-D (0: one value, 1: a sequence, None: any) ``dtype`` data for a
+    mutator, checked before the buffer changes: floats for an integer buffer and values out of
+    its range raise :class:`InvalidBufferDataError` (as ``Buffer(data)`` does), rather than being
+    stored truncated or wrapped."""
+    try:
+        array = exact_array(value, dtype, same_kind=True)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise _cannot_store(value, dtype, exc) from None
+    if ndim is not None and array.ndim != ndim:
+        raise InvalidBufferDataError(
+            f"expected {'one value' if ndim == 0 else 'a 1-D sequence'} for a {dtype} buffer, "
+            f"got shape {array.shape}")
+    return array
+
+
+def _cannot_store(data: Any, dtype: npt.DTypeLike, exc: Exception) -> InvalidBufferDataError:
+    kind = f"{type(data).__name__} {data.dtype}" if isinstance(data, np.ndarray) \
+        else type(data).__name__
+    return InvalidBufferDataError(f"cannot store {kind} data in a {np.dtype(dtype)} buffer: {exc}")
 
 
 class Buffer(Generic[T]):
@@ -55,10 +77,7 @@ class Buffer(Generic[T]):
                 self._impl = CpuBufferImpl(data, np.uint8 if dtype is None else dtype)
             except (TypeError, ValueError, OverflowError) as exc:
                 # float values for a uint8 buffer (never cast silently), 300 for a uint8, ...
-                raise InvalidBufferDataError(
-                    f"cannot store {type(data).__name__} "
-                    f"{getattr(data, 'dtype', '')} data in a "
-                    f"{np.dtype(np.uint8 if dtype is None else dtype)} buffer: {exc}") from None
+                raise _cannot_store(data, np.uint8 if dtype is None else dtype, exc) from None
 
     @classmethod
     def _of(cls, impl: BufferImplBase) -> Buffer[Any]:
@@ -191,6 +210,9 @@ class Buffer(Generic[T]):
     def __array__(self, dtype: npt.DTypeLike | None = None, copy: bool | None = None) -> np.ndarray:
         view = self._cpu("__array__").view()
         if dtype is not None and np.dtype(dtype) != view.dtype:
+            if copy is False:  # NumPy 2's protocol: refuse rather than hand back a copy
+                raise ValueError(f"a {view.dtype} buffer cannot be viewed as {np.dtype(dtype)} "
+                                 "without a copy (copy=False)")
             return view.astype(dtype)
         return view.copy() if copy else view
 
@@ -210,7 +232,8 @@ class Buffer(Generic[T]):
         return view[index]
 
     def __setitem__(self, index: int | slice, value: Any) -> None:
-        self._cpu("__setitem__").writable_view()[index] = value
+        impl = self._cpu("__setitem__")
+        impl.writable_view()[index] = _values(value, impl.dtype, None)
 
     def __iter__(self) -> Iterator[Any]:
         return iter(self._cpu("__iter__").view().tolist())
@@ -225,26 +248,27 @@ class Buffer(Generic[T]):
         self._cpu("reserve").reserve(capacity)
 
     def resize(self, size: int, value: int | float = 0) -> None:
-        self._cpu("resize").resize(size, value)
+        impl = self._cpu("resize")
+        impl.resize(size, _values(value, impl.dtype, 0))
 
     def clear(self) -> None:
         self._cpu("clear").resize(0)
 
     def append(self, value: int | float) -> None:
         impl = self._cpu("append")
-        n = impl.size()
-        impl.resize(n + 1, value)
+        impl.resize(impl.size() + 1, _values(value, impl.dtype, 0))
 
     push_back = append
 
     def extend(self, values: Iterable[Any] | np.ndarray | bytes) -> None:
         impl = self._cpu("extend")
         if isinstance(values, (bytes, bytearray, memoryview)):
-            array = np.frombuffer(values, dtype=np.uint8)
+            values = np.frombuffer(values, dtype=np.uint8)
         elif isinstance(values, Buffer):
-            array = values._host_view()
-        else:
-            array = np.asarray(list(values) if not hasattr(values, "__len__") else values)
+            values = values._host_view()
+        elif not hasattr(values, "__len__"):
+            values = list(values)
+        array = _values(values, impl.dtype, 1)  # checked before the buffer grows
         n = impl.size()
         impl.resize(n + array.shape[0])
         impl.writable_view()[n:] = array
@@ -255,10 +279,11 @@ class Buffer(Generic[T]):
         if index < 0:
             index = max(0, n + index)
         index = min(index, n)
+        item = _values(value, impl.dtype, 0)  # checked before the buffer grows
         impl.resize(n + 1)
         view = impl.writable_view()
         view[index + 1:] = view[index:n].copy()
-        view[index] = value
+        view[index] = item
 
     def pop(self, index: int = -1) -> Any:
         impl = self._cpu("pop")

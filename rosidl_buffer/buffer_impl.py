@@ -8,13 +8,86 @@ from __future__ import annotations
 
 import abc
 import sys
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["BufferImplBase", "CpuBufferImpl", "CPU_BACKEND"]
+__all__ = ["BufferImplBase", "CpuBufferImpl", "CPU_BACKEND", "exact_array"]
 
 CPU_BACKEND = "cpu"
+
+
+_RANGES: dict[tuple[np.dtype, np.dtype], tuple[int, int] | None] = {}
+
+
+def _range_to_check(source: np.dtype, target: np.dtype) -> tuple[int, int] | None:
+    """``(low, high)`` of integer (or bool) ``target`` when a ``source`` integer array may hold
+    values outside it, None when the cast is safe. Cached: NumPy's can_cast and iinfo cost
+    about a microsecond each."""
+    key = (source, target)
+    if key not in _RANGES:
+        if np.can_cast(source, target):
+            _RANGES[key] = None
+        elif target.kind == "b":
+            _RANGES[key] = (0, 1)
+        else:
+            info = np.iinfo(target)
+            _RANGES[key] = (int(info.min), int(info.max))
+    return _RANGES[key]
+
+
+def exact_array(value: Any, dtype: np.dtype, *, same_kind: bool = False) -> np.ndarray:
+    """``value`` as an array of ``dtype`` (any shape), never cast silently.
+
+    An ndarray already of ``dtype`` comes back as it is (no work: the common case). For an
+    integer or bool ``dtype`` only integer and bool values are taken, and only when every value
+    is in range (a min/max check, not per element): a float (1.9), 300 for a uint8 or -1 for a
+    uint16 raise ``ValueError`` (``OverflowError`` for such a Python int), as NumPy's own
+    conversion of a Python int list does for 300 but its casts do not (they wrap and truncate).
+    For a float ``dtype`` ints and floats are converted as NumPy does; an array of another kind
+    (complex, str, object) is refused. ``same_kind``: an ndarray must also cast ``same_kind``
+    (a buffer's rule: an int64 array is not narrowed into uint8 even when its values fit).
+    Callers check the shape and raise their typed error.
+    """
+    if value.__class__ is np.ndarray and value.dtype == dtype:
+        return value
+    is_array = isinstance(value, np.ndarray)
+    if is_array and same_kind and not np.can_cast(value.dtype, dtype, "same_kind"):
+        raise ValueError(f"{value.dtype} values are not {dtype} (never cast silently)")
+    target = dtype.kind
+    if target not in "biu":
+        if is_array and target in "fc" and value.dtype.kind not in ("biufc" if target == "c"
+                                                                    else "biuf"):
+            raise ValueError(f"{value.dtype} values are not {dtype}")
+        return np.asarray(value, dtype=dtype)
+    array = value if is_array else np.asarray(value)
+    kind = array.dtype.kind
+    if kind == "b":
+        return array.astype(dtype, copy=False)
+    if kind in "iu":
+        bounds = _range_to_check(array.dtype, dtype)
+        if bounds is not None and array.size:
+            low, high = bounds
+            if array.size <= 32:  # Python's min/max of a few ints beat two NumPy reductions
+                values = array.ravel().tolist()
+                smallest, largest = min(values), max(values)
+            else:
+                smallest, largest = int(array.min()), int(array.max())
+            if smallest < low or largest > high:
+                bad = smallest if smallest < low else largest
+                raise ValueError(f"{bad} is out of the range [{low}, {high}] of {dtype}")
+        return array.astype(dtype, copy=False)
+    if not is_array:
+        if array.size == 0:  # [] / (): NumPy infers float64, but there is no value to cast
+            return array.astype(dtype)
+        # Python ints beyond int64 (2**63 for a uint64) make NumPy infer float64 or object;
+        # the typed conversion takes them, and raises OverflowError for one out of range.
+        if target != "b" and (isinstance(value, (int, np.integer)) or (
+                isinstance(value, (list, tuple))
+                and all(isinstance(item, (int, np.integer)) for item in value))):
+            return np.asarray(value, dtype=dtype)
+    raise ValueError(f"{array.dtype} values are not {dtype} (never cast silently)")
 
 
 class BufferImplBase(abc.ABC):
@@ -89,16 +162,14 @@ class CpuBufferImpl(BufferImplBase):
             self._storage = np.empty(0, dtype=self.dtype)
         elif isinstance(data, (bytes, bytearray, memoryview)) and self.dtype == np.uint8:
             self._storage = np.frombuffer(data, dtype=np.uint8)
-        elif isinstance(data, np.ndarray):
-            array = data.reshape(-1)
-            if array.dtype != self.dtype:
-                array = array.astype(self.dtype, casting="same_kind")
-            # Contiguous storage: serialization and the buffer protocol need one flat block.
-            self._storage = np.ascontiguousarray(array)
         else:
-            # Python sequences: () / [1, 2, 3] take the buffer's dtype (NumPy would infer float64
-            # or int64, which a same_kind cast to uint8 refuses). Out-of-range ints raise.
-            self._storage = np.asarray(data, dtype=self.dtype).reshape(-1)
+            # Arrays and Python sequences alike: floats for an integer buffer, values out of its
+            # range raise (exact_array); an array of the buffer's dtype is not copied.
+            array = exact_array(data, self.dtype, same_kind=True)
+            if array.ndim == 0:
+                raise ValueError("a scalar is not a sequence")
+            # Contiguous storage: serialization and the buffer protocol need one flat block.
+            self._storage = np.ascontiguousarray(array.reshape(-1))
         self._size = self._storage.shape[0]
 
     @classmethod

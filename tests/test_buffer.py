@@ -76,6 +76,17 @@ def test_out_of_range_values_and_strings_are_rejected_typed():
         Buffer("abc")
 
 
+def test_float_values_are_refused_not_truncated():
+    # Buffer([0.7, 255.9]) stored [0, 255], an Image's data [1.5, 2.9] [1, 2].
+    for data in ([0.7, 255.9], [1, 2.0], np.array([1.5]), np.array([300], np.uint16), 5):
+        with pytest.raises(InvalidBufferDataError):
+            Buffer(data)
+    with pytest.raises(InvalidBufferDataError, match="Image.data.*float64"):
+        get_message_type("sensor_msgs/msg/Image")(data=[1.5, 2.9])
+    assert Buffer(np.array([255], np.uint16)) == [255]  # in range, same kind: fine
+    assert Buffer([1, 2.5], dtype=np.float32) == np.array([1, 2.5], np.float32)
+
+
 def test_impl_selects_its_backend():
     impl = FakeBufferImpl(CONTENT)
     buffer = Buffer(impl)
@@ -261,6 +272,32 @@ def test_cpu_operation_errors_leave_buffer_unchanged(operation, error):
     with pytest.raises(error):
         operation(buffer)
     assert buffer.to_numpy().tolist() == CONTENT
+
+
+@pytest.mark.parametrize("operation", [
+    lambda b: b.extend([300]), lambda b: b.extend([1.7]), lambda b: b.extend([-1]),
+    lambda b: b.extend(np.array([1, 2])), lambda b: b.extend(np.zeros((2, 2), np.uint8)),
+    lambda b: b.append(2.9), lambda b: b.append(300), lambda b: b.append(None),
+    lambda b: b.insert(0, 300), lambda b: b.insert(1, 0.5), lambda b: b.resize(9, 1.5),
+    lambda b: b.__setitem__(0, 300), lambda b: b.__setitem__(0, 2.9),
+    lambda b: b.__setitem__(slice(0, 2), np.array([300, 1], np.uint16)),
+], ids=["extend-300", "extend-float", "extend-negative", "extend-int64-array", "extend-2d",
+        "append-float", "append-300", "append-none", "insert-300", "insert-float",
+        "resize-float", "setitem-300", "setitem-float", "setitem-slice-out-of-range"])
+def test_mutators_refuse_values_that_do_not_fit_and_leave_the_buffer_unchanged(operation):
+    # They stored 300 as 44 and 2.9 as 2; insert(0, 300) raised OverflowError after growing.
+    buffer = cpu_buffer()
+    with pytest.raises(InvalidBufferDataError):  # also a ValueError and a TypeError
+        operation(buffer)
+    assert buffer.to_numpy().tolist() == CONTENT
+
+
+def test_array_protocol_copy_false_refuses_a_conversion():
+    buffer = cpu_buffer()
+    with pytest.raises(ValueError, match="copy"):
+        np.asarray(buffer, dtype=np.float32, copy=False)
+    assert np.shares_memory(np.asarray(buffer, copy=False), buffer.numpy())
+    assert np.asarray(buffer, dtype=np.float32).tolist() == CONTENT
 
 
 def test_many_appends_keep_every_value():

@@ -118,3 +118,19 @@ def test_fields_named_like_python_keywords_round_trip():
     setattr(msg, "lambda", np.array([5, 6], np.int64))
     setattr(msg, "import", 9)
     assert deserialize_message(serialize_message(msg), cls) == msg
+
+
+@pytest.mark.parametrize(("type_name", "fields", "name"), [
+    ("std_msgs/msg/Float32", {"data": 1e300}, "data"),  # a one-field primitive run
+    ("geometry_msgs/msg/Point32", {"y": -1e39}, "y"),  # the middle field of a run
+    ("std_msgs/msg/String", {"data": "\ud800"}, "data"),  # a lone surrogate: not UTF-8
+])
+def test_a_value_the_wire_type_cannot_hold_is_a_serialization_error_naming_its_field(
+        type_name, fields, name):
+    # struct's OverflowError and str.encode's UnicodeEncodeError are not raw exceptions out of
+    # serialize_message. (float32 inf and nan are fine: they are float32 values.)
+    with pytest.raises(SerializationError, match=f"'{name}'"):
+        serialize_message(get_message_type(type_name)(**fields))
+    point = get_message_type("geometry_msgs/msg/Point32")(x=float("inf"), y=float("nan"))
+    back = deserialize_message(serialize_message(point), type(point))
+    assert back.x == float("inf") and back.y != back.y

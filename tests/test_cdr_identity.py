@@ -172,3 +172,13 @@ def test_large_payload_is_byte_identical_to_rosbags(large_image):
     message, _ = large_image
     assert bytes(serialize_message(message)) == bytes(
         TYPESTORE.serialize_cdr(to_rosbags(message), message.__msgtype__))
+
+
+def test_a_string_with_an_embedded_nul_round_trips_like_rosbags():
+    # rosbags (and rmw's C++ typesupport) carry it: a relay republishes what it received.
+    wire = CDR_HEADER + (4).to_bytes(4, "little") + b"a\x00b\x00"
+    received = deserialize_message(wire, "std_msgs/msg/String")
+    assert received.data == TYPESTORE.deserialize_cdr(wire, "std_msgs/msg/String").data == "a\x00b"
+    assert bytes(serialize_message(received)) == wire
+    message = get_message_type(MIXED_TYPE)(name="\x00", names=["x\x00y"])
+    assert_identical_to_rosbags(message)

@@ -67,3 +67,33 @@ def test_an_empty_integer_array_is_accepted(empty):
     validate_message(tensor)
     ints = get_message_type("std_msgs/msg/Int32MultiArray")(data=empty)
     validate_message(ints)
+
+
+@pytest.mark.parametrize("type_name, fields, error", [
+    ("std_msgs/msg/Int8MultiArray", {"data": np.array([300, -200])}, "out of the range"),
+    ("std_msgs/msg/UInt16MultiArray", {"data": np.array([-1])}, "out of the range"),
+    ("std_msgs/msg/UInt64MultiArray", {"data": np.array([-1], np.int64)}, "out of the range"),
+    ("std_msgs/msg/Float32", {"data": 1e300}, "out of range for float32"),
+    ("geometry_msgs/msg/Point32", {"x": -1e39}, "out of range for float32"),
+    ("std_msgs/msg/String", {"data": "a\ud800b"}, "not valid Unicode"),
+])
+def test_values_the_wire_cannot_carry_are_refused_on_every_route(type_name, fields, error):
+    """The serializer wrapped these (300 -> 44 in int8) or raised a builtin error, and only
+    when a remote subscriber made the publisher serialize; in-process subscribers got them."""
+    msg = get_message_type(type_name)(**fields)
+    with pytest.raises(SerializationError, match=error):
+        validate_message(msg)
+
+
+@pytest.mark.parametrize("type_name, fields", [
+    ("std_msgs/msg/Int8MultiArray", {"data": np.array([127, -128])}),  # int64, in range
+    ("std_msgs/msg/Int8MultiArray", {"data": np.array([1, -1], np.int8)}),
+    ("std_msgs/msg/UInt8MultiArray", {"data": np.array([True, False])}),
+    ("std_msgs/msg/Float32", {"data": float(np.finfo(np.float32).max)}),
+    ("std_msgs/msg/Float32", {"data": float("inf")}),
+    ("std_msgs/msg/Float32", {"data": float("nan")}),
+    ("std_msgs/msg/Float64", {"data": 1e300}),
+    ("std_msgs/msg/String", {"data": "h\u00e9llo \U0001f600"}),  # non-ASCII, valid
+])
+def test_values_in_range_pass(type_name, fields):
+    validate_message(get_message_type(type_name)(**fields))

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..backend import MAX_BUFFER_DESCRIPTOR_SIZE, BufferBackend
 from ..buffer import Buffer
-from ..buffer_impl import BufferImplBase, CpuBufferImpl
+from ..buffer_impl import BufferImplBase, CpuBufferImpl, exact_array
 from ..endpoint import EndpointInfo
 from ..errors import (
     DeserializationError,
@@ -150,7 +150,7 @@ class _Primitive(_Field):
         pos = _pad(out, pos, self.width)
         try:
             self.struct.pack_into(out, pos, value)
-        except (struct.error, TypeError) as exc:
+        except (struct.error, TypeError, OverflowError) as exc:  # OverflowError: 1e39 in float32
             raise self._fail(f"{value!r} is not a valid {self.spec.element}: {exc}") from None
         return pos + self.width
 
@@ -163,11 +163,15 @@ class _Primitive(_Field):
 def _encode_string(value: Any, bound: int, name: str) -> bytes:
     if not isinstance(value, str):
         raise SerializationError(f"field {name!r}: expected str, got {type(value).__name__}")
-    encoded = value.encode("utf-8")
+    try:
+        encoded = value.encode("utf-8")
+    except UnicodeEncodeError as exc:  # a lone surrogate ("\ud800")
+        raise SerializationError(f"field {name!r}: not encodable as UTF-8: {exc}") from None
     if bound and len(encoded) > bound:
         raise SerializationError(f"field {name!r}: string longer than its bound {bound}")
-    if b"\x00" in encoded:
-        raise SerializationError(f"field {name!r}: string contains a NUL character")
+    # An embedded NUL is written as it is, before the terminating one: what _read_string accepts
+    # (a relay republishes what it received), byte for byte what rosbags writes and reads back,
+    # and what rmw's C++ typesupport (std::string, counted by the length) carries.
     return encoded
 
 
@@ -228,12 +232,15 @@ class _NumericArray(_Field):
         self.unchecked = _LITTLE_ENDIAN and not (spec.array_length or spec.sequence_bound)
 
     def _array(self, value: Any) -> np.ndarray:
+        # The shape is checked before the array is made contiguous: ascontiguousarray turns a
+        # scalar (None, 5) into a 1-element array. Values must fit exactly (see exact_array).
         try:
-            array = np.ascontiguousarray(value, dtype=self.dtype)
+            array = exact_array(value, self.dtype)
         except (TypeError, ValueError, OverflowError) as exc:
             raise self._fail(f"cannot convert to {self.spec.element}[]: {exc}") from None
         if array.ndim != 1:
             raise self._fail(f"expected a 1-D sequence, got shape {array.shape}")
+        array = np.ascontiguousarray(array)
         n = array.shape[0]
         if self.spec.array_length and n != self.spec.array_length:
             raise self._fail(f"expected exactly {self.spec.array_length} elements, got {n}")
@@ -242,7 +249,10 @@ class _NumericArray(_Field):
         return array
 
     def size(self, value: Any, pos: int, ctx: _SizeContext) -> int:
-        n = len(value) if hasattr(value, "__len__") else self._array(value).shape[0]
+        if (value.__class__ is np.ndarray and value.ndim == 1) or value.__class__ is list:
+            n = len(value)  # write checks the values
+        else:  # anything else (None, a scalar, a 0-d array, a tuple) is checked here
+            n = self._array(value).shape[0]
         if self.spec.is_sequence:
             pos += 4 + (-(pos - _ORIGIN) % 4)
         return pos + (-(pos - _ORIGIN) % self.width) + n * self.width if n else pos
@@ -337,6 +347,10 @@ class _ObjectArray(_Field):
     def read(self, ctx: _ReadContext, pos: int) -> tuple[Any, int]:
         if self.spec.is_sequence:
             n, pos = _read_count(ctx, pos, self.name)
+            if self.spec.sequence_bound and n > self.spec.sequence_bound:
+                raise DeserializationError(
+                    f"field {self.name!r}: {n} elements exceed the bound {self.spec.sequence_bound}"
+                )
             # Every element takes at least one byte: reject absurd counts before looping.
             _need(ctx, pos, n, self.name)
         else:
@@ -581,7 +595,7 @@ def _codec_source(steps: list[Any]) -> str:
             write += [f"    packer, length = L{i}[(pos - 4) & 7]",
                       "    try:",
                       f"        packer.pack_into(out, pos, {values})",
-                      "    except (struct_error, TypeError):",
+                      "    except (struct_error, TypeError, OverflowError):",
                       f"        pos = S{i}.write(m, out, pos, decisions)",
                       "    else:",
                       "        pos += length"]

@@ -1,0 +1,58 @@
+"""What an in-process subscription receives: the message as it was when it was published.
+
+A subscription in the publisher's process gets no serialized copy, but it must not get the
+publisher's object either: rclpy code reuses one message (``msg.data = ...; pub.publish(msg)``
+in a loop), and a subscriber still holding, or with queued, an earlier publish would then read
+values that were never published, or a value another subscriber wrote into it.
+
+:func:`snapshot` makes a new message object per subscription whose fields are the published
+values: nested messages and lists are snapshots of their own, everything immutable (numbers,
+strings) is shared, and so are the payloads: buffers (``uint8[]`` fields, zero-copy, their
+holds counted as ever) and numeric arrays. Writing *into* those after publish is seen by
+in-process subscribers, as a write into a loan's memory would be (see README, "Loans"). The
+copier is compiled once per message type from its schema (a line per field, no per-field
+dispatch), as the CDR codec and the validator are.
+"""
+
+from __future__ import annotations
+
+import keyword
+from collections.abc import Callable
+from typing import Any
+
+from rosidl_buffer.messages import Message, get_schema
+from rosidl_buffer.messages._schema import FieldKind
+
+__all__ = ["snapshot"]
+
+_copiers: dict[type, Callable[[Any], Any]] = {}
+
+
+def snapshot(msg: Message) -> Message:
+    """A new message of ``msg``'s type holding ``msg``'s values (see the module docstring)."""
+    copier = _copiers.get(type(msg))
+    if copier is None:
+        copier = _copiers[type(msg)] = _compile(type(msg))
+    return copier(msg)  # type: ignore[no-any-return]
+
+
+def _compile(cls: type) -> Callable[[Any], Any]:
+    scope: dict[str, Any] = {"cls": cls, "new": cls.__new__, "snapshot": snapshot}
+    lines = ["def copy(m):", "    n = new(cls)"]
+    for i, spec in enumerate(get_schema(cls.__msgtype__).fields):
+        name = spec.name
+        read = f"m.{name}" if name.isidentifier() and not keyword.iskeyword(name) \
+            else f"getattr(m, {name!r})"
+        scope[f"set{i}"] = cls.__dict__[name].__set__  # the slot itself: no __setattr__
+        if spec.kind is FieldKind.MESSAGE:  # (validated before: the values are messages)
+            if spec.is_collection:
+                lines.append(f"    set{i}(n, [snapshot(x) for x in {read}])")
+            else:
+                lines.append(f"    set{i}(n, snapshot({read}))")
+        elif spec.is_collection and spec.kind is FieldKind.STRING:
+            lines.append(f"    set{i}(n, list({read}))")
+        else:
+            lines.append(f"    set{i}(n, {read})")
+    lines.append("    return n")
+    exec("\n".join(lines) + "\n", scope)  # noqa: S102 - built from the schema's field names
+    return scope["copy"]  # type: ignore[no-any-return]

@@ -1,0 +1,82 @@
+"""The executor against callbacks and samples users meet: a callback that calls sys.exit(), a
+sample that fails to decode. Each case was a fault found by trying the library."""
+
+from __future__ import annotations
+
+import struct
+import sys
+import threading
+import time
+
+import pytest
+import zenoh
+
+from buffer_pubsub import Node, make_config
+
+STRING = "std_msgs/msg/String"
+
+
+def _wait(predicate, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
+
+
+@pytest.mark.parametrize("inline", [True, False], ids=["inline", "executor-thread"])
+def test_a_callback_calling_sys_exit_does_not_end_delivery(domain, topic, inline):
+    """SystemExit from a callback on the node's executor thread ended that thread silently:
+    nothing was delivered again, and nothing was counted or logged."""
+    calls: list[str] = []
+
+    def callback(msg) -> None:
+        calls.append(msg.data)
+        if msg.data == "3":
+            sys.exit("callback decided to stop")
+
+    with Node("executor_sysexit", domain_id=domain, inline_callbacks=inline) as node:
+        sub = node.create_subscription(STRING, topic, callback, depth=100)
+        pub = node.create_publisher(STRING, topic)
+        for i in range(20):
+            pub.publish(pub.msg_type(data=str(i)))
+            time.sleep(0.002)
+        assert _wait(lambda: len(calls) == 20), calls
+        assert sub.counters.callback_errors == 1
+        assert isinstance(sub.last_error, SystemExit)
+        assert node._thread.is_alive()
+
+
+def test_sys_exit_in_a_callback_reaches_the_spinning_thread(domain, topic):
+    """executor="manual": the user's own thread runs the callback, so it gets the exception
+    (as rclpy's spin does)."""
+    with Node("executor_sysexit_manual", domain_id=domain, executor="manual") as node:
+        node.create_subscription(STRING, topic, lambda m: sys.exit(3))
+        pub = node.create_publisher(STRING, topic)
+        pub.publish(pub.msg_type(data="x"))
+        with pytest.raises(SystemExit):
+            node.spin_once(5.0)
+
+
+def test_spin_once_waits_on_past_a_sample_that_fails_to_decode(domain, topic):
+    """A sample that failed to deserialize counted as a callback that ran: spin_once(3.0)
+    returned 1 after 0.2 s with no callback run."""
+    calls: list = []
+    with Node("executor_spin_garbage", domain_id=domain, executor="manual") as node:
+        sub = node.create_subscription(STRING, topic, calls.append)
+        raw = zenoh.open(make_config(None, None))
+        try:
+            time.sleep(0.5)  # discovery between the sessions
+            attachment = struct.pack("<qqB16s", 1, time.time_ns(), 0x10, b"\x07" * 16)
+            timer = threading.Timer(0.2, lambda: raw.put(sub.base_key, b"\x00\x01\x00\x00\xff\xff",
+                                                         attachment=attachment))
+            timer.start()
+            start = time.monotonic()
+            ran = node.spin_once(1.5)
+            waited = time.monotonic() - start
+            timer.join()
+        finally:
+            raw.close()
+        assert sub.counters.errors == 1  # the sample arrived, and was refused
+        assert ran == 0 and not calls and waited >= 1.4
