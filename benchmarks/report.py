@@ -33,13 +33,17 @@ def path_entry(name: str, module: Any, raw: dict[str, Any]) -> dict[str, Any]:
 
 
 def merge_rounds(entries: list[dict[str, Any]]) -> dict[str, Any]:
-    """One path's entry from its rounds (see ``--rounds``): every latency figure and the rate are
-    the median over the rounds that measured them; ``rounds_p50_us`` keeps each round's p50."""
+    """One path's entry from its rounds (see ``--rounds``): every latency percentile is the
+    median over the rounds that measured it (min and max: of all samples), the rate is the
+    median round's; ``rounds_p50_us`` keeps each round's p50, ``errors`` each failed round's
+    reason."""
     measured = [e for e in entries if e.get("latency_us") is not None]
     if len(entries) == 1 or not measured:
         return entries[-1]
     merged = dict(measured[0])
-    merged["errors"] = [error for e in entries for error in e.get("errors", [])]
+    merged["errors"] = [error for e in entries for error in e.get("errors", [])] + [
+        f"round {i}: {e['status']}: {e.get('reason')}" for i, e in enumerate(entries, 1)
+        if e.get("latency_us") is None]
     merged["status"] = "ok" if all(e["status"] == "ok" for e in entries) else "partial"
     merged["wall_s"] = sum(e.get("wall_s") or 0.0 for e in entries)
     merged["shm_removed"] = [path for e in entries for path in e.get("shm_removed", [])]
@@ -48,15 +52,18 @@ def merge_rounds(entries: list[dict[str, Any]]) -> dict[str, Any]:
     for size in sorted({s for e in measured for s in e["latency_us"]}, key=int):
         figures = [e["latency_us"][size] for e in measured if size in e["latency_us"]]
         latency[size] = {key: statistics.median(f[key] for f in figures)
-                         for key in figures[0] if key != "samples"}
+                         for key in figures[0] if key not in ("samples", "min_us", "max_us")}
+        for key, pick in (("min_us", min), ("max_us", max)):  # extremes of all the samples
+            if key in figures[0]:
+                latency[size][key] = pick(f[key] for f in figures)
         latency[size]["samples"] = sum(f["samples"] for f in figures)
         per_round[size] = [f["p50_us"] for f in figures]
     merged["latency_us"] = latency
     merged["rounds_p50_us"] = per_round
-    rates = [e["rate"] for e in measured if e.get("rate")]
-    if rates:
-        merged["rate"] = dict(rates[0], msgs_per_s=statistics.median(
-            r["msgs_per_s"] for r in rates))
+    rates = sorted((e["rate"] for e in measured if e.get("rate")),
+                   key=lambda r: r["msgs_per_s"])
+    if rates:  # the median round's own figures (its count and seconds go with its rate)
+        merged["rate"] = rates[(len(rates) - 1) // 2]
     return merged
 
 

@@ -204,8 +204,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
         if args.rounds > 1:
             progress(f"round {round_index + 1}/{args.rounds}")
         for index, name in enumerate(names, 1):
-            if rounds[name] and rounds[name][-1]["status"] in ("unavailable", "error"):
-                continue  # it will not run in a later round either
+            if rounds[name] and rounds[name][-1]["status"] == "unavailable":
+                continue  # it cannot run here (a missing package): not in a later round either
             module = load_path(name)
             progress(f"[{index}/{len(names)}] {module.LABEL} ({name})")
             settings = PathSettings(name=name, run_id=f"{run_id}_{round_index}_{index}",

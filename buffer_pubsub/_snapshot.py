@@ -8,7 +8,7 @@ values that were never published, or a value another subscriber wrote into it.
 :func:`snapshot` makes a new message object per subscription whose fields are the published
 values: nested messages and lists are snapshots of their own, everything immutable (numbers,
 strings) is shared, and so are the payloads: buffers (``uint8[]`` fields, zero-copy, their
-holds counted as ever) and numeric arrays. Writing *into* those after publish is seen by
+holds counted as ever) and NumPy arrays (a list of numbers is copied). Writing *into* those after publish is seen by
 in-process subscribers, as a write into a loan's memory would be (see README, "Loans"). The
 copier is compiled once per message type from its schema (a line per field, no per-field
 dispatch), as the CDR codec and the validator are.
@@ -36,6 +36,15 @@ def snapshot(msg: Message) -> Message:
     return copier(msg)  # type: ignore[no-any-return]
 
 
+def _slot(cls: type, name: str) -> Any:
+    """The slot descriptor of field ``name``: on the generated class, which a user's subclass
+    of it inherits."""
+    for klass in cls.__mro__:
+        if name in klass.__dict__:
+            return klass.__dict__[name]
+    raise AttributeError(f"{cls.__name__} has no field {name!r}")
+
+
 def _compile(cls: type) -> Callable[[Any], Any]:
     scope: dict[str, Any] = {"cls": cls, "new": cls.__new__, "snapshot": snapshot}
     lines = ["def copy(m):", "    n = new(cls)"]
@@ -43,7 +52,7 @@ def _compile(cls: type) -> Callable[[Any], Any]:
         name = spec.name
         read = f"m.{name}" if name.isidentifier() and not keyword.iskeyword(name) \
             else f"getattr(m, {name!r})"
-        scope[f"set{i}"] = cls.__dict__[name].__set__  # the slot itself: no __setattr__
+        scope[f"set{i}"] = _slot(cls, name).__set__  # the slot itself: no __setattr__
         if spec.kind is FieldKind.MESSAGE:  # (validated before: the values are messages)
             if spec.is_collection:
                 lines.append(f"    set{i}(n, [snapshot(x) for x in {read}])")
@@ -51,8 +60,12 @@ def _compile(cls: type) -> Callable[[Any], Any]:
                 lines.append(f"    set{i}(n, snapshot({read}))")
         elif spec.is_collection and spec.kind is FieldKind.STRING:
             lines.append(f"    set{i}(n, list({read}))")
+        elif spec.is_collection and not spec.is_buffer:  # a list of numbers is copied too
+            lines += [f"    v = {read}", f"    set{i}(n, list(v) if type(v) is list else v)"]
         else:
             lines.append(f"    set{i}(n, {read})")
+    if cls.__dictoffset__:  # a user's subclass with attributes of its own
+        lines.append("    n.__dict__.update(m.__dict__)")
     lines.append("    return n")
     exec("\n".join(lines) + "\n", scope)  # noqa: S102 - built from the schema's field names
     return scope["copy"]  # type: ignore[no-any-return]

@@ -81,6 +81,10 @@ def _quick_test(spec: FieldSpec, scope: dict[str, Any], i: int) -> str:
         if element in _INT_RANGES:  # only the field's own dtype is in range without a look
             scope[f"d{i}"] = numpy_dtype(element)
             test = f"type(v) is ndarray and v.ndim == 1 and v.dtype is d{i}"
+        elif element == "float32":  # float64 values may not fit: those get a look
+            scope[f"d{i}"] = numpy_dtype(element)
+            test = (f"type(v) is ndarray and v.ndim == 1 and "
+                    f"(v.dtype is d{i} or v.dtype.kind in 'biu')")
         else:
             scope[f"k{i}"] = _ARRAY_KINDS.get(element, "biu")
             test = f"type(v) is ndarray and v.ndim == 1 and v.dtype.kind in k{i}"
@@ -192,10 +196,10 @@ def _numeric_array_check(spec: FieldSpec) -> _Check:
         if array.ndim != 1:
             raise _fail(f"expected a 1-D sequence, got shape {array.shape}")
         _check_length(array.shape[0], spec)
-        if array.dtype.kind in "iu" and array.dtype != dtype:
+        if array.dtype != dtype and array.dtype.kind in "iuf":
             try:  # the serializer's own rule: values must fit, never wrapped (300 -> 44)
                 exact_array(array, dtype)
-            except (ValueError, OverflowError) as exc:
+            except (ValueError, OverflowError, TypeError) as exc:
                 raise _fail(f"{exc} (for {spec.element})") from None
     dtype = numpy_dtype(spec.element)
     return check_array

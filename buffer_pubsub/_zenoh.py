@@ -5,6 +5,7 @@ from __future__ import annotations
 import atexit
 import contextlib
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -58,6 +59,16 @@ def _await_background() -> None:
 
 
 atexit.register(_await_background)
+
+
+def _after_fork_in_child() -> None:
+    # The parent's helpers are not running here: nothing for this process's exit to wait for.
+    global _background_lock
+    _background.clear()
+    _background_lock = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def run_bounded(work: Callable[[], None], timeout: float, what: str) -> bool:

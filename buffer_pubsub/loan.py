@@ -8,8 +8,9 @@ messages and iceoryx2's ``loan`` do.
 ``factory`` makes a new message for the pool (called only when no pooled one is free). The
 pool key is ``factory.loan_key`` when it has one (so specs built per frame with equal values
 share a pool), else the factory itself. A pooled message is handed out again only when nobody
-else references it or its buffers (intra-process subscribers share the published object: a
-reader holding the message or a ``Buffer`` of it is a hold; counted by reference, CPython) and
+else references it or its buffers (intra-process subscribers get snapshots over its
+``Buffer`` objects: a reader holding the message, a snapshot or a ``Buffer`` of it is a hold;
+counted by reference, CPython; a message with no buffer is never pooled) and
 every buffer's backend re-armed it (:meth:`rosidl_buffer.BufferImplBase.reclaim`: no reader in
 this or another process holds its memory). Otherwise the pool grows, up to ``max_loans``
 messages per key; past that a loan is a fresh, unpooled message (correct, just not reused).
@@ -96,9 +97,12 @@ _SLOT_REFS = 2  # _Slot.msg and the caller's argument of _refs (slot.msg evaluat
 
 def _rearmable(msg: Message) -> bool:
     """Can every buffer of ``msg`` be re-armed for a later loan (its impl has a ``reclaim``)?
-    A pool of messages whose storage never can would only pin them (a plain warp buffer)."""
-    return all(type(buffer.get_impl()).reclaim is not BufferImplBase.reclaim
-               for buffer in iter_buffers(msg))
+    A pool of messages whose storage never can would only pin them (a plain warp buffer). A
+    message with no buffer is not pooled either: in-process readers hold snapshots of it (see
+    buffer_pubsub._snapshot) that share its arrays, and only buffers count their readers."""
+    buffers = list(iter_buffers(msg))
+    return bool(buffers) and all(type(buffer.get_impl()).reclaim is not BufferImplBase.reclaim
+                                 for buffer in buffers)
 
 
 class LoanPool:

@@ -323,6 +323,8 @@ class Publisher:
             # Numbered and sent under one lock: concurrent publish() calls leave in the order of
             # their sequence numbers (else subscribers count the overtaken ones as lost).
             with self._out_lock:
+                if self._closed:  # destroyed while this publish waited for the lock
+                    raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
                 self._sequence = sequence = next(self._sequences)
                 attachment = wire.Attachment(sequence, time.time_ns(), self.gid)
                 if not remote:
@@ -464,11 +466,10 @@ class Publisher:
         # After a publish in flight on another thread: zenoh-python cannot undeclare a publisher
         # while a put uses it ("Already borrowed"). One that outlasts the wait (a keep-all put
         # blocked by a frozen peer) undeclares them itself when its sends return.
+        self._undeclare_after_send = True  # before the wait: a publish ending meanwhile sees it
         if self._out_lock.acquire(timeout=UNDECLARE_WAIT_S):
             try:
-                undeclare_quietly(self._base, self._cpu)
+                undeclare_quietly(self._base, self._cpu)  # (a second undeclare is harmless)
             finally:
                 self._out_lock.release()
-        else:
-            self._undeclare_after_send = True
         endpoint_gone(self._backends, self.info)

@@ -60,7 +60,11 @@ def exact_array(value: Any, dtype: np.dtype, *, same_kind: bool = False) -> np.n
         if is_array and target in "fc" and value.dtype.kind not in ("biufc" if target == "c"
                                                                     else "biuf"):
             raise ValueError(f"{value.dtype} values are not {dtype}")
-        return np.asarray(value, dtype=dtype)
+        try:
+            with np.errstate(over="raise"):  # 1e300 into float32: inf is not the value given
+                return np.asarray(value, dtype=dtype)
+        except FloatingPointError:
+            raise ValueError(f"a value is out of the range of {dtype}") from None
     array = value if is_array else np.asarray(value)
     kind = array.dtype.kind
     if kind == "b":
@@ -86,7 +90,10 @@ def exact_array(value: Any, dtype: np.dtype, *, same_kind: bool = False) -> np.n
         if target != "b" and (isinstance(value, (int, np.integer)) or (
                 isinstance(value, (list, tuple))
                 and all(isinstance(item, (int, np.integer)) for item in value))):
-            return np.asarray(value, dtype=dtype)
+            # as Python ints: NumPy wraps a NumPy integer scalar out of range (np.int64(-1)
+            # into uint8 is 255), and raises OverflowError for a Python int
+            items = int(value) if isinstance(value, (int, np.integer)) else [int(v) for v in value]
+            return np.asarray(items, dtype=dtype)
     raise ValueError(f"{array.dtype} values are not {dtype} (never cast silently)")
 
 

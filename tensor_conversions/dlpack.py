@@ -90,8 +90,11 @@ class TensorView:
             self.device = "cpu"  # CPU storage, or warp storage on Warp's cpu device
         else:
             self.device = str(storage.device)
-            self._carrier = _warp_carrier(storage.ptr, storage.size, self.device, layout,
-                                          owner=(storage, handle))
+            if len(layout.shape) <= MAX_WARP_DIMS:
+                self._carrier = _warp_carrier(storage.ptr, storage.size, self.device, layout,
+                                              owner=(storage, handle))
+            else:  # no Warp array of it: a consumer may lay it over the bytes (byte_view)
+                layout.check_fits(storage.size)
 
     @property
     def carrier(self) -> Any:
@@ -100,7 +103,12 @@ class TensorView:
         carrier = self._carrier
         if carrier is None:
             storage = self._storage
-            carrier = self._carrier = _host_carrier(storage, self.layout, storage)
+            if type(storage) is np.ndarray:
+                carrier = _host_carrier(storage, self.layout, storage)
+            else:  # device memory of more than 4 dimensions: the typed refusal
+                carrier = _warp_carrier(storage.ptr, storage.size, self.device, self.layout,
+                                        owner=(storage, self.handle))
+            self._carrier = carrier
         return carrier
 
     def warp_array(self) -> Any:
@@ -109,9 +117,18 @@ class TensorView:
         carrier = self._carrier
         if carrier is not None and type(carrier) is not np.ndarray:
             return carrier
-        storage = self._storage  # host memory (device memory has its Warp carrier already)
+        storage = self._storage
+        if type(storage) is not np.ndarray:  # device memory Warp cannot carry: refused, typed
+            return self.carrier
         base = storage.ctypes.data if storage.size else 0
         return _warp_carrier(base, storage.size, "cpu", self.layout, owner=storage)
+
+    @property
+    def warp_carried(self) -> bool:
+        """Whether the carrier is a Warp array (at most 4 dimensions): device memory, and
+        bfloat16 in host memory (NumPy has no bfloat16)."""
+        return (type(self._storage) is not np.ndarray
+                or self.layout.dtype.code == DLDataTypeCode.BFLOAT)
 
     def byte_view(self) -> TensorView:
         """The whole storage as a 1-D uint8 view (same memory, handle and writability), for a

@@ -111,9 +111,9 @@ def _refuse_misaligned(view: TensorView) -> None:
 
 def _over_bytes(view: TensorView) -> torch.Tensor:
     """The tensor of ``view`` laid over its bytes by torch itself (``view`` dtype, then
-    ``as_strided``): for what Warp's arrays cannot carry (more than 4 dimensions; bfloat16 in
-    host memory, which NumPy cannot carry either). Same memory, ordering and lifetime as the
-    DLPack path: the bytes come through the view's own DLPack export."""
+    ``as_strided``): for what Warp's arrays cannot carry (more than 4 dimensions, see
+    :func:`_needs_bytes`). Same memory, ordering and lifetime as the DLPack path: the bytes come
+    through the view's own DLPack export."""
     layout = view.layout
     raw = torch.from_dlpack(view.byte_view())
     dtype = dtype_to_torch(layout.dtype)
@@ -131,10 +131,8 @@ def _over_bytes(view: TensorView) -> torch.Tensor:
 
 
 def _needs_bytes(view: TensorView) -> bool:
-    layout = view.layout
-    if view.device == "cpu":  # host memory is carried by NumPy, except bfloat16
-        return layout.dtype.code == DLDataTypeCode.BFLOAT
-    return len(layout.shape) > MAX_WARP_DIMS
+    """Past Warp's 4 dimensions, where a Warp array carries the tensor."""
+    return len(view.layout.shape) > MAX_WARP_DIMS and view.warp_carried
 
 
 class _TorchAdapter(_api.Adapter[torch.Tensor]):

@@ -187,7 +187,8 @@ def test_an_unwritable_out_dir_is_refused_before_anything_is_measured(tmp_path) 
 def _round(p50_us: float, rate: float, status: str = "ok") -> dict:
     return {"label": "x", "status": status, "errors": [] if status == "ok" else ["1 MiB: late"],
             "wall_s": 1.0, "shm_removed": [], "rate": {"nbytes": 4096, "msgs_per_s": rate},
-            "latency_us": {"4096": {"p50_us": p50_us, "p99_us": 2 * p50_us, "samples": 200}}}
+            "latency_us": {"4096": {"p50_us": p50_us, "p99_us": 2 * p50_us, "samples": 200,
+                                    "min_us": p50_us, "max_us": p50_us}}}
 
 
 def test_rounds_merge_to_the_median_of_each_figure() -> None:
@@ -198,12 +199,18 @@ def test_rounds_merge_to_the_median_of_each_figure() -> None:
     assert merged["latency_us"]["4096"]["samples"] == 600
     assert merged["rounds_p50_us"] == {"4096": [10.0, 30.0, 20.0]}
     assert merged["rate"]["msgs_per_s"] == 200.0
+    assert merged["latency_us"]["4096"]["min_us"] == 10.0  # extremes of all samples
+    assert merged["latency_us"]["4096"]["max_us"] == 30.0
     assert merged["status"] == "partial" and merged["errors"] == ["1 MiB: late"]
     assert merged["wall_s"] == 3.0
     single = _round(10.0, 300.0)
     assert merge_rounds([single]) is single  # one round: the entry as measured
     unavailable = {"label": "x", "status": "unavailable", "reason": "no iceoryx2"}
     assert merge_rounds([unavailable]) is unavailable
+    timed_out = {"label": "x", "status": "error", "reason": "timed out after 45 s"}
+    merged = merge_rounds([_round(10.0, 300.0), timed_out])
+    assert merged["status"] == "partial" and merged["latency_us"]["4096"]["p50_us"] == 10.0
+    assert merged["errors"] == ["round 2: error: timed out after 45 s"]
 
 
 @pytest.mark.multiprocess

@@ -83,6 +83,10 @@ def test_float_values_are_refused_not_truncated():
             Buffer(data)
     with pytest.raises(InvalidBufferDataError, match="Image.data.*float64"):
         get_message_type("sensor_msgs/msg/Image")(data=[1.5, 2.9])
+    for scalars in ([np.int64(-1), np.uint64(1)], [np.int16(300)]):  # NumPy scalars wrapped
+        with pytest.raises(InvalidBufferDataError):
+            Buffer(scalars)
+    assert Buffer([np.int64(255), np.uint64(1)]) == [255, 1]
     assert Buffer(np.array([255], np.uint16)) == [255]  # in range, same kind: fine
     assert Buffer([1, 2.5], dtype=np.float32) == np.array([1, 2.5], np.float32)
 

@@ -80,3 +80,32 @@ def test_spin_once_waits_on_past_a_sample_that_fails_to_decode(domain, topic):
             raw.close()
         assert sub.counters.errors == 1  # the sample arrived, and was refused
         assert ran == 0 and not calls and waited >= 1.4
+
+
+_FORK_AFTER_A_STUCK_TEARDOWN = r"""
+import os, sys, threading, time
+from buffer_pubsub._zenoh import run_bounded
+never = threading.Event()
+run_bounded(never.wait, 0.05, "a teardown stuck on a frozen peer")  # left running
+start = time.monotonic()
+pid = os.fork()
+if pid == 0:
+    sys.exit(0)  # a normal exit: the atexit handlers run
+os.waitpid(pid, 0)
+print("CHILD_EXIT", time.monotonic() - start, flush=True)
+never.set()
+"""
+
+
+def test_a_forked_child_does_not_wait_for_its_parents_teardown_at_exit():
+    """The exit wait (for teardown still inside Zenoh) was inherited at fork: a child's normal
+    exit waited its full second for a helper thread that only the parent had."""
+    import subprocess
+
+    from tests._pubsub_helpers import ROOT, child_env
+
+    process = subprocess.run([sys.executable, "-c", _FORK_AFTER_A_STUCK_TEARDOWN], cwd=ROOT,
+                             env=child_env(), capture_output=True, text=True, timeout=60)
+    assert process.returncode == 0, process.stderr[-2000:]
+    waited = float(process.stdout.split("CHILD_EXIT")[1])
+    assert waited < 0.5, f"the child waited {waited:.2f} s at exit"

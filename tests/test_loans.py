@@ -573,6 +573,28 @@ def test_max_loans_holds_when_loans_are_taken_from_several_threads(domain, topic
         assert stats["unpooled"] == threads - 2, stats
 
 
+def test_a_message_without_buffers_is_not_pooled(domain, topic, backends):
+    """In-process readers hold snapshots that share its arrays, which nothing counts: pooling
+    it let a later loan write into what a reader held ([2, 2] where [0, 0] was published)."""
+    numbers = "std_msgs/msg/Float64MultiArray"
+    held = []
+    with Node("loan_nobuf", domain_id=domain, backends=backends, executor="manual") as node:
+        node.create_subscription(numbers, topic, held.append, depth=10)
+        pub = node.create_publisher(numbers, topic)
+        cls = pub.msg_type
+
+        def factory():
+            return cls(data=np.zeros(2))
+
+        for i in range(3):
+            with pub.loan(factory) as msg:
+                msg.data[:] = i
+            while node.spin_once(0.2):
+                pass
+        assert [m.data.tolist() for m in held] == [[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]
+        assert pub.loan_stats()["pooled"] == 0 and pub.loan_stats()["unpooled"] == 3
+
+
 def test_a_factory_whose_storage_cannot_be_re_armed_is_not_pooled(domain, topic, backends):
     """A plain warp buffer has no reclaim: pooling its messages would only pin 16 of them."""
     import warp_buffer

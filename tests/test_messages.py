@@ -194,6 +194,9 @@ def test_a_numeric_sequence_set_to_none_or_a_scalar_is_refused(type_name, fields
     ("std_msgs/msg/UInt16MultiArray", np.array([70000]), "70000"),
     ("std_msgs/msg/UInt64MultiArray", [-1, 2**63], "-1"),
     ("std_msgs/msg/Int32MultiArray", np.array(["1"]), "not int32"),
+    ("std_msgs/msg/Float32MultiArray", np.array([1e300, 1.0]), "range of float32"),
+    ("std_msgs/msg/Float32MultiArray", [1.0, -1e39], "range of float32"),
+    ("std_msgs/msg/UInt16MultiArray", [np.int64(-1), np.uint64(1)], "out of bounds"),
 ])
 def test_integer_sequences_refuse_values_that_do_not_fit_instead_of_casting(
         type_name, value, match):

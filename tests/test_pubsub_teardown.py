@@ -218,6 +218,24 @@ def test_in_process_subscriptions_get_the_values_as_published(domain, topic):
             pass
         assert frames == ["map", "odom"]
 
+        class MyString(pub.msg_type):  # a user's subclass of a generated class (accepted)
+            pass
+
+        pub.publish(MyString(data="subclass"))  # its fields' slots live on the base class
+        numbers = "std_msgs/msg/Float64MultiArray"
+        lists: list[list[float]] = []
+        node.create_subscription(numbers, topic + "_list", lambda m: lists.append(m.data),
+                                 depth=10)
+        list_pub = node.create_publisher(numbers, topic + "_list")
+        values = list_pub.msg_type(data=[1.0, 2.0])
+        list_pub.publish(values)
+        if isinstance(values.data, list):  # a list stays a list: the snapshot copies it
+            values.data.append(3.0)
+        while node.spin_once(0.5):
+            pass
+        assert got["b"][-1] == "subclass"
+        assert [list(v) for v in lists] == [[1.0, 2.0]]
+
 
 _FROZEN_PEER_APP = r"""
 import os, signal, sys, threading, time

@@ -289,3 +289,35 @@ def test_the_warp_module_refuses_more_than_four_dimensions_with_a_typed_error():
     with pytest.raises(tc.InvalidTensorMetadataError, match="at most 4 dimensions"):
         tw.from_input_tensor_msg(msg)
     assert tn.from_input_tensor_msg(msg).shape == (1, 2, 2, 2, 3)  # NumPy carries any rank
+
+
+def test_more_than_four_dimensions_over_a_warp_array_reach_torch():
+    """Device memory is carried by a Warp array (at most 4 dimensions): torch lays a 5-D tensor
+    over the bytes instead, as for CUDA (a wp.array on Warp's cpu device takes that branch)."""
+    from tensor_conversions import torch as tt
+    from tensor_conversions.dlpack import TensorView
+    from tensor_conversions.dtypes import dtype_from_name
+    from tensor_conversions.metadata import TensorLayout
+
+    values = np.arange(2 * 3 * 2 * 2 * 5, dtype=np.float32)
+    storage = wp.array(values.view(np.uint8), dtype=wp.uint8, device="cpu")
+    layout = TensorLayout.contiguous(dtype_from_name("float32"), (2, 3, 2, 2, 5))
+    view = TensorView(storage, layout, writable=False)
+    assert view.warp_carried
+    out = tt._ADAPTER.from_view(view)
+    assert out.shape == (2, 3, 2, 2, 5) and torch.equal(out.flatten(), torch.from_numpy(values))
+    with pytest.raises(tc.InvalidTensorMetadataError, match="at most 4 dimensions"):
+        view.warp_array()
+
+
+def test_host_bfloat16_at_an_odd_byte_offset_still_converts():
+    from tensor_conversions import torch as tt
+
+    value = torch.tensor([1.0, -2.5], dtype=torch.bfloat16)
+    raw = np.zeros(5, np.uint8)
+    raw[1:] = value.view(torch.uint8).numpy()
+    msg = tt.to_tensor_msg(value)
+    msg.byte_offset = 1
+    msg.data = raw
+    assert torch.equal(tt.from_input_tensor_msg(msg, clone=False), value)
+    assert torch.equal(tt.from_input_tensor_msg(msg), value)

@@ -74,6 +74,7 @@ def test_an_empty_integer_array_is_accepted(empty):
     ("std_msgs/msg/UInt16MultiArray", {"data": np.array([-1])}, "out of the range"),
     ("std_msgs/msg/UInt64MultiArray", {"data": np.array([-1], np.int64)}, "out of the range"),
     ("std_msgs/msg/Float32", {"data": 1e300}, "out of range for float32"),
+    ("std_msgs/msg/Float32MultiArray", {"data": np.array([1e300, 1.0])}, "range of float32"),
     ("geometry_msgs/msg/Point32", {"x": -1e39}, "out of range for float32"),
     ("std_msgs/msg/String", {"data": "a\ud800b"}, "not valid Unicode"),
 ])
@@ -93,6 +94,8 @@ def test_values_the_wire_cannot_carry_are_refused_on_every_route(type_name, fiel
     ("std_msgs/msg/Float32", {"data": float("inf")}),
     ("std_msgs/msg/Float32", {"data": float("nan")}),
     ("std_msgs/msg/Float64", {"data": 1e300}),
+    ("std_msgs/msg/Float32MultiArray", {"data": np.array([1.5, np.inf, np.nan])}),
+    ("std_msgs/msg/Float32MultiArray", {"data": np.array([1, 2], np.int64)}),
     ("std_msgs/msg/String", {"data": "h\u00e9llo \U0001f600"}),  # non-ASCII, valid
 ])
 def test_values_in_range_pass(type_name, fields):
