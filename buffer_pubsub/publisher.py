@@ -124,10 +124,17 @@ class _Peer:
             self.info, delivery_queue_depth=_lane_routes.queue_depth(self.token))
 
     def close(self) -> None:
-        with self.lock:
+        if not self.lock.acquire(timeout=UNDECLARE_WAIT_S):
+            # A put to this peer is blocked (keep-all, the peer frozen): it closes the route
+            # itself when it returns (see Publisher._put_individual).
+            self.gone = True
+            return
+        try:
             self.gone = True
             channel, self.channel = self.channel, None
             lane, self.lane = self.lane, None
+        finally:
+            self.lock.release()
         if channel is not None:
             undeclare_quietly(channel)
         if lane is not None:
@@ -436,6 +443,12 @@ class Publisher:
                 peer.channel = self._declare_channel(
                     wire.buffer_channel_key(self.base_key, peer.token.gid))
             peer.channel.put(payload, attachment=attachment)
+            if peer.gone:  # closed while this put was blocked (see _Peer.close)
+                channel, peer.channel = peer.channel, None
+                lane, peer.lane = peer.lane, None
+                undeclare_quietly(channel)
+                if lane is not None:
+                    lane.close()
 
     def _declare_channel(self, key: str) -> zenoh.Publisher:
         # Zenoh's same-session delivery is skipped: local subscriptions are served in-process.

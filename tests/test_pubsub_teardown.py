@@ -296,3 +296,58 @@ def test_exit_after_closing_with_a_frozen_keep_all_peer_is_clean(domain, topic):
         os.kill(peer.pid, signal.SIGCONT)
         peer.kill()
         peer.wait()
+
+
+_FROZEN_INDIVIDUAL_PEER = r"""
+import sys
+from buffer_pubsub import Node
+with Node("teardown_individual_peer", domain_id=int(sys.argv[1])) as node:
+    node.create_subscription("tensor_msgs/msg/ExperimentalTensor", sys.argv[2], lambda m: None,
+                             history="keep_all", acceptable_buffer_backends="warp")
+    print("READY", flush=True)
+    sys.stdin.readline()
+"""
+
+
+def test_destroy_returns_while_a_keep_all_put_to_a_frozen_peer_blocks(domain, topic):
+    """A put on a peer's own channel (a warp-accepting subscription off the lane) holds that
+    peer's lock while it blocks on the frozen peer: destroy() waited on the lock for as long."""
+    import signal
+
+    import tensor_conversions.numpy as tc
+
+    env = child_env()
+    env["WARP_BUFFER_FAST_LANE"] = "0"  # the peer's own Zenoh channel carries its messages
+    peer = subprocess.Popen([sys.executable, "-c", _FROZEN_INDIVIDUAL_PEER, str(domain), topic],
+                            cwd=ROOT, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            text=True)
+    thread = None
+    try:
+        assert peer.stdout.readline().strip() == "READY"
+        with Node("teardown_individual_pub", domain_id=domain) as node:
+            pub = node.create_publisher(TENSOR, topic, history="keep_all")
+            assert pub.wait_for_subscriptions(1, timeout=15)
+            msg = tc.allocate_tensor_msg((1 << 20,), np.uint8, backend="cpu")
+            os.kill(peer.pid, signal.SIGSTOP)
+
+            def publish_until_closed() -> None:
+                try:
+                    while True:
+                        pub.publish(msg)
+                except PubSubError:
+                    pass
+
+            thread = threading.Thread(target=publish_until_closed, daemon=True)
+            thread.start()
+            time.sleep(1.5)  # the frozen peer's queues fill: the put blocks
+            start = time.monotonic()
+            pub.destroy()
+            took = time.monotonic() - start
+            os.kill(peer.pid, signal.SIGCONT)
+            thread.join(15)
+        assert took < 3.0, f"destroy() took {took:.1f} s behind a blocked put"
+        assert not thread.is_alive()
+    finally:
+        os.kill(peer.pid, signal.SIGCONT)
+        peer.kill()
+        peer.wait()
