@@ -31,6 +31,7 @@ from rosidl_buffer.messages import Message, get_message_type, get_type_hash
 
 from . import _lane_routes, _process, fast_lane as _fast_lane, wire
 from ._executor import Executor
+from ._info import endpoint_gone, endpoint_info
 from ._waker import Waker
 from ._zenoh import run_bounded, typed_zenoh_errors, undeclare_quietly
 from .config import make_config, resolve_domain_id
@@ -422,6 +423,11 @@ class Node:
                     _log.exception("negotiation with %s failed", token.key())
             for subscription in subscriptions:
                 subscription._on_publisher(token, appeared)
+            if not appeared and not token.is_publisher:
+                # Only its departure ends what backends keep for a subscription (blocks owed
+                # to it): not the end of one of our publishers, whose frames it may still
+                # import. Reported whether or not a publisher of ours still matches it.
+                endpoint_gone(self.backends.values(), endpoint_info(token))
 
     def _endpoint_put(self, key: str, token: wire.EndpointToken
                       ) -> list[tuple[wire.EndpointToken, bool]]:

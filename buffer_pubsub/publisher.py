@@ -202,8 +202,7 @@ class Publisher:
                 self._update_remote()
                 self._ready.notify_all()
             if peer is not None:
-                peer.close()
-                endpoint_gone(self._backends, peer.info)
+                peer.close()  # (backends hear of its departure from the node: see there)
             return
         info = endpoint_info(token)
         peer = _Peer(token, info)
@@ -221,7 +220,7 @@ class Publisher:
         # under the node's lock, which its DELETE takes before calling us), else a DELETE that
         # overtook us would leave a ghost peer pinning a block per publish.
         with self.node._lock:
-            keep = self.node._still_in_graph(token)
+            present = keep = self.node._still_in_graph(token)
             if keep:
                 with self._lock:
                     keep = not self._closed and gid not in self._peers
@@ -229,7 +228,8 @@ class Publisher:
                         self._peers[gid] = peer
                         self._update_remote()
         if not keep:
-            endpoint_gone(self._backends, info)
+            if not present:  # its DELETE (and the node's report of it) came before the
+                endpoint_gone(self._backends, info)  # negotiation above registered it again
             return
         try:
             self._open_lane(peer)
@@ -473,9 +473,8 @@ class Publisher:
         _process.remove_publisher(self.gid)
         self._loans.clear()
         undeclare_quietly(self._liveliness)
-        for peer in peers:
-            peer.close()
-            endpoint_gone(self._backends, peer.info)
+        for peer in peers:  # their routes; not their state in the backends: they live on, and
+            peer.close()  # may import frames of ours still in flight (a lane's queue)
         # After a publish in flight on another thread: zenoh-python cannot undeclare a publisher
         # while a put uses it ("Already borrowed"). One that outlasts the wait (a keep-all put
         # blocked by a frozen peer) undeclares them itself when its sends return.

@@ -71,6 +71,7 @@ _DESCRIPTOR_ROUTES = (ROUTE_BUFFER, ROUTE_LANE)
 
 REFUSED_ATTACHMENT = "attachment"
 REFUSED_DUPLICATE = "duplicate"
+REFUSED_LATE = "late"  # older than a message already delivered from its publisher (keep-last)
 REFUSED_UNKNOWN_PUBLISHER = "unknown_publisher"
 
 _BUFFER_AWARE_ENCODING = zenoh.Encoding.APPLICATION_CDR.with_schema(wire.BUFFER_AWARE_SCHEMA)
@@ -289,8 +290,9 @@ class Subscription:
     def _deliver_intra(self, msg: Message, attachment: wire.Attachment) -> None:
         self._enqueue((msg, attachment, ROUTE_INTRA, time.time_ns(), False))
 
-    def _track_sequence(self, attachment: wire.Attachment) -> None:
-        """Count gaps in the publisher's sequence; call with ``self._lock`` held."""
+    def _track_sequence(self, attachment: wire.Attachment) -> bool:
+        """Count gaps in the publisher's sequence; whether this message is older than one
+        already seen from it (call with ``self._lock`` held)."""
         gid = attachment.publisher_gid
         sequence = attachment.sequence_number
         last_seen = self._last_sequence
@@ -299,15 +301,16 @@ class Subscription:
             if len(last_seen) >= MAX_TRACKED_PUBLISHERS:
                 del last_seen[next(iter(last_seen))]
             last_seen[gid] = sequence
-            return
+            return False
         gap = sequence - last - 1
         if gap < 0 and last - sequence < LOST_WINDOW:
-            return  # late or repeated: neither new nor a gap
+            return True  # late or repeated: neither new nor a gap
         if 0 < gap <= LOST_WINDOW:
             self.counters.lost += gap
         elif gap != 0:
             self.counters.sequence_jumps += 1
         last_seen[gid] = sequence
+        return False
 
     def _enqueue(self, item: tuple[Any, ...], inline: bool = False) -> None:
         """Queue ``(payload or message, attachment, route, received_ns, owned)``; ``owned``:
@@ -324,9 +327,15 @@ class Subscription:
         with self._lock:
             if self._closed:
                 closed = True
+            elif self._track_sequence(item[1]) and self.history == wire.KEEP_LAST:
+                # Older than one already delivered: a route switch (Zenoh to the lane) let a
+                # later message overtake it. A keep-last reader gets each publisher's messages
+                # in order (its gap was counted as lost when the later one came).
+                closed = True  # (not queued: released below, as a closed one is)
+                refused = self.counters.refused
+                refused[REFUSED_LATE] = refused.get(REFUSED_LATE, 0) + 1
             else:
                 closed = False
-                self._track_sequence(item[1])
                 queue = self._queue
                 lane = item[2] == ROUTE_LANE
                 if (inline and not queue and not self.node._executor.has_ready()
@@ -356,7 +365,7 @@ class Subscription:
         elif schedule:
             self.node._executor.schedule(self)
         # Only an owned message holds anything: serialized bytes hold nothing, an intra-process
-        # message is shared with the publisher and other subscriptions (not ours to release).
+        # message shares the publisher's buffers (not ours to release).
         if evicted is not None and evicted[4]:
             release_buffers(evicted[0])
 

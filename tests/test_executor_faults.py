@@ -109,3 +109,32 @@ def test_a_forked_child_does_not_wait_for_its_parents_teardown_at_exit():
     assert process.returncode == 0, process.stderr[-2000:]
     waited = float(process.stdout.split("CHILD_EXIT")[1])
     assert waited < 0.5, f"the child waited {waited:.2f} s at exit"
+
+
+def test_a_keep_last_subscription_refuses_a_message_older_than_one_delivered(domain, topic):
+    """A switch of route (Zenoh to the fast lane) let later messages overtake earlier ones in
+    flight, and the late ones were delivered after them: out of order. Keep-last readers now
+    get each publisher's messages in order, the late one counted as refused "late"; keep-all
+    ones still get every message."""
+    from buffer_pubsub import wire
+    from buffer_pubsub.subscription import REFUSED_LATE, ROUTE_BASE
+
+    gid = bytes(range(16))
+    with Node("executor_order", domain_id=domain, executor="manual") as node:
+        got: dict[str, list[str]] = {"keep_last": [], "keep_all": []}
+        subs = {history: node.create_subscription(
+                    STRING, f"{topic}_{history}", lambda m, h=history: got[h].append(m.data),
+                    depth=10, history=history) for history in got}
+        for history, sub in subs.items():
+            for sequence in (1, 3, 2, 4):  # 2 arrives after 3
+                msg = sub.msg_type(data=str(sequence))
+                from rosidl_buffer.messages import serialize_message
+
+                attachment = wire.Attachment(sequence, 0, gid)
+                sub._enqueue((bytes(serialize_message(msg)), attachment, ROUTE_BASE, 0, False))
+        while node.spin_once(0.2):
+            pass
+        assert got["keep_last"] == ["1", "3", "4"]
+        assert subs["keep_last"].counters.refused == {REFUSED_LATE: 1}
+        assert subs["keep_last"].counters.lost == 1 and subs["keep_last"].counters.rejected == 0
+        assert got["keep_all"] == ["1", "3", "2", "4"]

@@ -157,3 +157,76 @@ def test_idle_warp_subscriptions_under_a_low_fd_limit_leave_room_for_imports(dom
         if child.poll() is None:
             child.kill()
         child.wait(timeout=20)
+
+
+_SLOW_WARP_SUBSCRIBER = r"""
+import json, sys, time
+import numpy as np
+from buffer_pubsub import Node
+import tensor_conversions.numpy as tc
+domain, topic = int(sys.argv[1]), sys.argv[2]
+bad = []
+with Node("routes_slow_sub", domain_id=domain) as node:
+    def callback(msg):
+        values = tc.from_input_tensor_msg(msg)
+        if not (values == values[0]).all():
+            bad.append(int(values[0]))
+        time.sleep(0.01)  # frames wait, not imported yet, in the lane's queue
+    sub = node.create_subscription("tensor_msgs/msg/ExperimentalTensor", topic, callback,
+                                   depth=200, acceptable_buffer_backends="warp")
+    print("READY", flush=True)
+    sys.stdin.readline()
+    deadline = time.monotonic() + 10
+    while sub.counters.received + sub.counters.errors < 80 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    c = sub.counters
+    print("RESULT", json.dumps({"received": c.received, "errors": c.errors, "bad": bad}),
+          flush=True)
+"""
+
+
+@requires_iceoryx2
+def test_destroying_a_publisher_keeps_its_queued_frames_readable(domain, topic):
+    """Destroying a publisher told the backend that each of its subscriptions was gone: blocks
+    of frames still waiting in a live subscriber's lane queue were recycled, and the subscriber
+    lost them (StaleBufferError), those of a sibling publisher too."""
+    import json
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    import tensor_conversions.numpy as tc
+    from buffer_pubsub import Node
+    from tests._pubsub_helpers import ROOT, child_env
+
+    child = subprocess.Popen([sys.executable, "-c", _SLOW_WARP_SUBSCRIBER, str(domain), topic],
+                             cwd=ROOT, env=child_env(), stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().startswith("READY")
+        with Node("routes_destroy_pub", domain_id=domain) as node:
+            tensor = "tensor_msgs/msg/ExperimentalTensor"
+            sibling = node.create_publisher(tensor, topic, depth=200)  # lives on, idle
+            value = 0
+            for _ in range(2):
+                pub = node.create_publisher(tensor, topic, depth=200)
+                assert pub.wait_for_subscriptions(1, timeout=15)
+                for _ in range(40):
+                    msg = tc.allocate_tensor_msg((1024,), np.uint32, backend="warp")
+                    tc.from_output_tensor_msg(msg)[:] = value
+                    pub.publish(msg)
+                    value += 1
+                    del msg
+                    time.sleep(0.001)
+                pub.destroy()  # while most of its frames still wait in the subscriber's queue
+            child.stdin.write("go\n")
+            child.stdin.flush()
+            line = child.stdout.readline()
+            sibling.destroy()
+        result = json.loads(line.split(" ", 1)[1])
+        assert result == {"received": 80, "errors": 0, "bad": []}, result
+    finally:
+        if child.poll() is None:
+            child.kill()
+        child.wait(timeout=20)
