@@ -33,6 +33,7 @@ buffer_pubsub knows backends only through :class:`rosidl_buffer.BufferBackend` a
 from .config import DEFAULT_CONFIG, make_config
 from .errors import (
     ExecutorModeError,
+    ForkedAfterZenohError,
     InvalidTimeoutError,
     InvalidEndpointError,
     InvalidNameError,
@@ -53,6 +54,7 @@ from .subscription import MessageInfo, Subscription, SubscriptionCounters
 __all__ = [
     "DEFAULT_CONFIG",
     "ExecutorModeError",
+    "ForkedAfterZenohError",
     "InvalidTimeoutError",
     "InvalidEndpointError",
     "InvalidNameError",

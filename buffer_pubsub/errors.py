@@ -6,7 +6,7 @@ from rosidl_buffer.errors import RosidlBufferError
 
 __all__ = ["PubSubError", "WireFormatError", "NodeClosedError", "TransportConfigError",
            "InvalidEndpointError", "InvalidNameError", "PayloadTooLargeError", "TransportError",
-           "ExecutorModeError", "InvalidTimeoutError"]
+           "ExecutorModeError", "InvalidTimeoutError", "ForkedAfterZenohError"]
 
 
 class PubSubError(RosidlBufferError):
@@ -51,3 +51,10 @@ class InvalidTimeoutError(PubSubError, ValueError):
 
 class LoanError(PubSubError, RuntimeError):
     """A loan used wrongly: entered twice, or a factory that returned no message."""
+
+
+class ForkedAfterZenohError(TransportError):
+    """A Node in a process forked (without exec) after its parent had opened a Zenoh session:
+    Zenoh's runtime threads are not copied by fork(), and a session opened there hung for good.
+    Create fork workers before the first Node, or use multiprocessing's "spawn" or "forkserver"
+    start method."""

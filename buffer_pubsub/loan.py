@@ -16,7 +16,8 @@ this or another process holds its memory). Otherwise the pool grows, up to ``max
 messages per key; past that a loan is a fresh, unpooled message (correct, just not reused).
 
 This module knows backends only through ``reclaim``; what a loan's buffers and native views
-are comes from the factory (``tensor_conversions`` provides tensor and image specs).
+are comes from the factory (``tensor_conversions`` provides tensor specs; a message whose
+storage cannot be re-armed, an image allocated on warp storage say, is loaned unpooled).
 """
 
 from __future__ import annotations
@@ -114,7 +115,7 @@ class LoanPool:
         self._slots: dict[Any, list[_Slot]] = {}
         self.created = 0  # pooled messages made by a factory
         self.reused = 0  # loans served by a pooled message
-        self.unpooled = 0  # loans past max_loans (fresh messages, not kept)
+        self.unpooled = 0  # loans not kept: past max_loans, or storage that cannot be re-armed
 
     def take(self, factory: Callable[[], Message],
              max_loans: int | None = None) -> tuple[Message, _Slot | None]:

@@ -1,5 +1,6 @@
-"""The executor against callbacks and samples users meet: a callback that calls sys.exit(), a
-sample that fails to decode. Each case was a fault found by trying the library."""
+"""The executor and the process model against what users meet: a callback that calls
+sys.exit(), a sample that fails to decode, samples out of order, a worker forked after Zenoh
+started. Each case was a fault found by trying the library."""
 
 from __future__ import annotations
 
@@ -138,3 +139,37 @@ def test_a_keep_last_subscription_refuses_a_message_older_than_one_delivered(dom
         assert subs["keep_last"].counters.refused == {REFUSED_LATE: 1}
         assert subs["keep_last"].counters.lost == 1 and subs["keep_last"].counters.rejected == 0
         assert got["keep_all"] == ["1", "3", "2", "4"]
+
+
+_NODE_IN_A_FORKED_WORKER = r"""
+import os, sys, time
+from buffer_pubsub import ForkedAfterZenohError, Node
+with Node("fork_parent", domain_id=int(sys.argv[1])):
+    pass  # the parent has run Zenoh (closed or not, it cannot start again in a child)
+pid = os.fork()
+if pid == 0:
+    start = time.monotonic()
+    try:
+        Node("fork_worker", domain_id=int(sys.argv[1]))
+    except ForkedAfterZenohError as exc:
+        print("REFUSED", round(time.monotonic() - start, 2), "spawn" in str(exc), flush=True)
+        os._exit(0)
+    os._exit(3)
+_, status = os.waitpid(pid, 0)
+sys.exit(os.waitstatus_to_exitcode(status))
+"""
+
+
+def test_a_node_in_a_worker_forked_after_zenoh_started_is_refused_at_once(domain):
+    """multiprocessing's default start method on Linux: Zenoh's runtime threads are not forked,
+    and the worker's Node() hung for good (the parent's pool.get with it)."""
+    import subprocess
+
+    from tests._pubsub_helpers import ROOT, child_env
+
+    process = subprocess.run([sys.executable, "-c", _NODE_IN_A_FORKED_WORKER, str(domain)],
+                             cwd=ROOT, env=child_env(), capture_output=True, text=True,
+                             timeout=60)
+    assert process.returncode == 0, (process.returncode, process.stderr[-2000:])
+    _, took, names_the_remedy = process.stdout.split()
+    assert float(took) < 1.0 and names_the_remedy == "True"
