@@ -40,7 +40,8 @@ def validate_node_name(name: object) -> str:
 
 
 def _check_tokens(name: str, what: str, original: str) -> None:
-    for token in name.strip("/").split("/") if name.strip("/") else ():
+    body = name[1:] if name.startswith("/") else name  # one leading '/' (absolute); no more
+    for token in body.split("/") if body else ():  # (callers refuse a trailing '/')
         if not token:
             raise InvalidNameError(f"invalid {what} {original!r}: contains '//'")
         if not _TOKEN.fullmatch(token):
