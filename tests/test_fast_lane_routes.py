@@ -99,6 +99,25 @@ def test_no_lane_end_opens_when_file_descriptors_run_short(monkeypatch) -> None:
     assert _lane_routes.open_writer(f"routes_test/{gid.hex()}", gid) is None
 
 
+def _ready_child(script: str, domain: int, topic: str):
+    """``python -c script domain topic`` once it printed READY (the caller reaps it)."""
+    import subprocess
+    import sys
+
+    from tests._pubsub_helpers import ROOT, child_env
+
+    child = subprocess.Popen([sys.executable, "-c", script, str(domain), topic], cwd=ROOT,
+                             env=child_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             text=True)
+    try:
+        assert child.stdout.readline().startswith("READY")
+    except BaseException:
+        child.kill()
+        child.wait()
+        raise
+    return child
+
+
 _IDLE_SUBSCRIPTIONS_CHILD = r"""
 import json, os, resource, sys
 resource.setrlimit(resource.RLIMIT_NOFILE, (256, 256))
@@ -124,20 +143,13 @@ def test_idle_warp_subscriptions_under_a_low_fd_limit_leave_room_for_imports(dom
     every zero-copy frame (lane readers of idle ones took every descriptor, and each import
     then failed with EMFILE)."""
     import json
-    import subprocess
-    import sys
 
     import numpy as np
 
     import tensor_conversions.numpy as tc
     from buffer_pubsub import Node
-    from tests._pubsub_helpers import ROOT, child_env
-
-    child = subprocess.Popen([sys.executable, "-c", _IDLE_SUBSCRIPTIONS_CHILD, str(domain), topic],
-                             cwd=ROOT, env=child_env(), stdin=subprocess.PIPE,
-                             stdout=subprocess.PIPE, text=True)
+    child = _ready_child(_IDLE_SUBSCRIPTIONS_CHILD, domain, topic)
     try:
-        assert child.stdout.readline().startswith("READY")
         with Node("idle_subscriptions_pub", domain_id=domain) as node:
             pub = node.create_publisher("tensor_msgs/msg/ExperimentalTensor", topic, depth=10)
             assert pub.wait_for_subscriptions(1, timeout=15)
@@ -191,20 +203,13 @@ def test_destroying_a_publisher_keeps_its_queued_frames_readable(domain, topic):
     of frames still waiting in a live subscriber's lane queue were recycled, and the subscriber
     lost them (StaleBufferError), those of a sibling publisher too."""
     import json
-    import subprocess
-    import sys
 
     import numpy as np
 
     import tensor_conversions.numpy as tc
     from buffer_pubsub import Node
-    from tests._pubsub_helpers import ROOT, child_env
-
-    child = subprocess.Popen([sys.executable, "-c", _SLOW_WARP_SUBSCRIBER, str(domain), topic],
-                             cwd=ROOT, env=child_env(), stdin=subprocess.PIPE,
-                             stdout=subprocess.PIPE, text=True)
+    child = _ready_child(_SLOW_WARP_SUBSCRIBER, domain, topic)
     try:
-        assert child.stdout.readline().startswith("READY")
         with Node("routes_destroy_pub", domain_id=domain) as node:
             tensor = "tensor_msgs/msg/ExperimentalTensor"
             sibling = node.create_publisher(tensor, topic, depth=200)  # lives on, idle
