@@ -124,13 +124,12 @@ class _Peer:
             self.info, delivery_queue_depth=_lane_routes.queue_depth(self.token))
 
     def close(self) -> None:
+        self.gone = True  # first: a put ending while we wait below sees it and closes the route
         if not self.lock.acquire(timeout=UNDECLARE_WAIT_S):
             # A put to this peer is blocked (keep-all, the peer frozen): it closes the route
             # itself when it returns (see Publisher._put_individual).
-            self.gone = True
             return
         try:
-            self.gone = True
             channel, self.channel = self.channel, None
             lane, self.lane = self.lane, None
         finally:
@@ -220,7 +219,8 @@ class Publisher:
         # under the node's lock, which its DELETE takes before calling us), else a DELETE that
         # overtook us would leave a ghost peer pinning a block per publish.
         with self.node._lock:
-            present = keep = self.node._still_in_graph(token)
+            keep = self.node._still_in_graph(token)
+            present = self.node._graph.get(gid) is token  # (whether or not our node closed)
             if keep:
                 with self._lock:
                     keep = not self._closed and gid not in self._peers

@@ -253,8 +253,11 @@ class Subscription:
         descriptors need; anything else is accepted at once (``inline``: see _enqueue)."""
         publisher = None
         if item[2] in _DESCRIPTOR_ROUTES:
-            publisher = self.node._publisher_token(item[1].publisher_gid)
-            if publisher is None:
+            gid = item[1].publisher_gid
+            publisher = self.node._publisher_token(gid)
+            # Behind its publisher's parked samples while they wait to resume: accepted first,
+            # it would make them late (and refused)
+            if publisher is None or (self._parked and self._has_parked(gid)):
                 self._park(item)
                 return
         self._accept(item, publisher, inline)
@@ -370,6 +373,10 @@ class Subscription:
             release_buffers(evicted[0])
 
     # -- samples waiting for their publisher's token -------------------------------------------
+    def _has_parked(self, gid: bytes) -> bool:
+        with self._lock:  # (a deque another thread changes cannot be iterated unlocked)
+            return any(entry[1][1].publisher_gid == gid for entry in self._parked)
+
     def _park(self, item: tuple[Any, ...]) -> None:
         deadline = time.monotonic() + PUBLISHER_DISCOVERY_WAIT_S
         with self._lock:

@@ -173,3 +173,32 @@ def test_a_node_in_a_worker_forked_after_zenoh_started_is_refused_at_once(domain
     assert process.returncode == 0, (process.returncode, process.stderr[-2000:])
     _, took, names_the_remedy = process.stdout.split()
     assert float(took) < 1.0 and names_the_remedy == "True"
+
+
+def test_a_parked_sample_is_not_overtaken_by_a_later_one_of_its_publisher(domain, topic):
+    """Samples wait (parked) for their publisher's token; a later sample of that publisher,
+    accepted between the token's arrival and the hook that resumes the parked ones, made them
+    late: refused. It waits behind them now."""
+    from rosidl_buffer.messages import serialize_message
+
+    from buffer_pubsub import wire
+    from buffer_pubsub.subscription import ROUTE_BUFFER
+
+    with Node("executor_parked", domain_id=domain, executor="manual") as node:
+        got: list[str] = []
+        sub = node.create_subscription(STRING, topic, lambda m: got.append(m.data), depth=10)
+        token = node._endpoint_token(wire.PUBLISHER_KIND, topic, STRING, 10, wire.KEEP_LAST, {})
+
+        def sample(sequence: int):
+            payload = bytes(serialize_message(sub.msg_type(data=f"m{sequence}")))
+            return (payload, wire.Attachment(sequence, time.time_ns(), token.gid),
+                    ROUTE_BUFFER, time.time_ns(), False)
+
+        sub._arrived(sample(1))  # parked: the publisher is not discovered yet
+        with node._lock:
+            node._graph[token.gid] = token  # discovery records it (under the node's lock) ...
+        sub._arrived(sample(2))  # ... a Zenoh thread delivers the next sample ...
+        sub._on_publisher(token, True)  # ... then the hook resumes the parked ones
+        while node.spin_once(0.2):
+            pass
+        assert got == ["m1", "m2"] and sub.counters.refused == {}

@@ -501,6 +501,41 @@ def test_peer_that_vanishes_during_negotiation_leaves_no_ghost(domain, topic, ba
         assert token.gid in {e.gid for e in fake.gone[gone:]}
 
 
+def test_a_node_closing_during_negotiation_does_not_report_a_live_peer_gone(domain, topic,
+                                                                            backends):
+    """The not-kept path took "not in the graph" from a check that is also False once the node
+    closes: backends (shared by the process) forgot a subscription that another node's
+    publisher still served, and recycled the blocks of its queued frames."""
+    fake = backends["fake"]
+    node = Node("closing_mid_negotiation", domain_id=domain, backends=backends)
+    try:
+        pub = node.create_publisher(TENSOR, topic)
+        token = wire.EndpointToken(
+            domain_id=domain, zid="0" * 32, node_id=0, entity_id=9, kind=wire.SUBSCRIPTION_KIND,
+            namespace="", node_name="live_sub", topic=pub.topic_name, type_name=TENSOR,
+            type_hash=pub._token.type_hash, qos=wire.qos_segment(10), buffer_aware=True,
+            locality=wire.Locality("h", 1, 0), backends={"fake": "fake-v1", "cpu": ""})
+        with node._lock:
+            node._graph[token.gid] = token
+        original = type(fake).on_discovering_endpoint
+
+        def closing(self, info, existing, supported):
+            node._closed = True  # close() begins meanwhile; the peer stays in the graph
+            return original(self, info, existing, supported)
+
+        type(fake).on_discovering_endpoint = closing
+        try:
+            gone = len(fake.gone)
+            pub._on_peer(token, True)
+        finally:
+            type(fake).on_discovering_endpoint = original
+        assert token.gid not in pub._peers
+        assert token.gid not in {e.gid for e in fake.gone[gone:]}
+    finally:
+        node._closed = False
+        node.close()
+
+
 def test_backend_forgets_endpoints_that_churn(domain, topic, backends):
     fake = backends["fake"]
     discovered, gone = len(fake.discovered), len(fake.gone)
