@@ -79,7 +79,7 @@ def _sizes_option(text: str) -> str:
     """``--sizes``: checked at parse time (a usage error, not a traceback after measuring)."""
     try:
         sizes = [parse_size(s) for s in text.split(",") if s.strip()]
-    except ValueError:
+    except (ValueError, OverflowError):  # OverflowError: infK, 1e400K
         raise argparse.ArgumentTypeError(
             f"{text!r}: use comma-separated positive sizes like 4K,1M,16M") from None
     if not sizes:
@@ -125,9 +125,11 @@ def prepare_out_dir(path: str) -> None:
 def default_out_dir() -> str:
     """Where results go without ``--out``: ``$XDG_STATE_HOME/warp-buffer/bench`` (XDG's place
     for data a program keeps between runs; ``~/.local/state`` when unset), never the current
-    directory, so a run from anywhere leaves no files behind in it."""
-    state = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local",
-                                                             "state")
+    directory, so a run from anywhere leaves no files behind in it. A relative
+    ``XDG_STATE_HOME`` is ignored, as the XDG specification says."""
+    state = os.environ.get("XDG_STATE_HOME", "")
+    if not os.path.isabs(state):
+        state = os.path.join(os.path.expanduser("~"), ".local", "state")
     return os.path.join(state, "warp-buffer", "bench")
 
 

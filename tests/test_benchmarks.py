@@ -129,6 +129,14 @@ def test_stats_helpers() -> None:
         parse_size("0")
 
 
+def test_a_relative_xdg_state_home_is_ignored(monkeypatch) -> None:
+    """XDG: relative paths are invalid; it made the bench write into the current directory."""
+    monkeypatch.setenv("XDG_STATE_HOME", "rel")
+    assert os.path.isabs(bench.default_out_dir())
+    monkeypatch.setenv("XDG_STATE_HOME", "/tmp/state_here")
+    assert bench.default_out_dir() == "/tmp/state_here/warp-buffer/bench"
+
+
 def test_add_arguments_defaults() -> None:
     parser = argparse.ArgumentParser()
     bench.add_arguments(parser)
@@ -162,6 +170,7 @@ def test_lane_stages_reports_every_stage(options: list[str]) -> None:
 
 @pytest.mark.parametrize("argv", [["--sizes", "0,abc"], ["--sizes", ","], ["--paths", "nosuch"],
                                   ["--paths", ","], ["--rounds", "0"], ["--rounds", "two"],
+                                  ["--sizes", "infK"], ["--sizes", "1e400K"],
                                   ["--rounds", str(bench.MAX_ROUNDS + 1)]])
 def test_bad_bench_options_are_usage_errors(argv: list[str], capsys: pytest.CaptureFixture[str]
                                              ) -> None:

@@ -55,3 +55,19 @@ def test_verbose_flag_reaches_child_processes(monkeypatch: pytest.MonkeyPatch,
     monkeypatch.setenv("WARP_BUFFER_VERBOSE", "")
     assert main(["--verbose", "info"]) == 0
     assert os.environ.get("WARP_BUFFER_VERBOSE") == "1"  # inherited by demo / bench children
+
+
+def test_a_reader_that_leaves_early_gets_no_traceback() -> None:
+    """``warp-buffer info | head -0``: a BrokenPipeError traceback (rc 1) before."""
+    import os
+    import subprocess
+    import sys
+
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone before anything is written
+    try:
+        done = subprocess.run([sys.executable, "-m", "warp_buffer_cli.main", "info"],
+                              stdout=write, stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write)
+    assert done.returncode == 141 and "Traceback" not in done.stderr, done.stderr[-2000:]

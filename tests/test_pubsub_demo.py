@@ -125,3 +125,77 @@ def test_sigterm_ends_the_demo_and_reaps_its_children():
             proc.wait()
         proc.communicate()
     assert not [pid for pid in children if pathlib.Path(f"/proc/{pid}").exists()]
+
+
+def _demo(*options: str, domain: int | None = None, **popen: object) -> subprocess.Popen:
+    argv = [sys.executable, "-m", "warp_buffer_cli.main", "demo", "--height", "32", "--width",
+            "48", "--device", "cpu", *options]
+    if domain is not None:
+        argv += ["--domain", str(domain)]
+    return subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, **popen)
+
+
+def _children_of(proc: subprocess.Popen, count: int = 3) -> list[str]:
+    children: list[str] = []
+    deadline = time.monotonic() + 60
+    while len(children) < count and time.monotonic() < deadline:
+        time.sleep(0.2)
+        children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True,
+                                  text=True).stdout.split()
+    assert len(children) == count
+    return children
+
+
+def test_a_slow_rate_passes_and_stays_within_its_timeout():
+    """--rate 0.02 slept 50 s after the only frame: the parent killed the publisher before it
+    reported, and a demo whose subscribers got every frame FAILED, after 33 s."""
+    start = time.monotonic()
+    proc = _demo("--frames", "1", "--rate", "0.02", "--timeout", "20",
+                 domain=190 + os.getpid() % 20)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, out + err[-2000:]
+    assert time.monotonic() - start < 30
+
+
+@pytest.mark.parametrize("sig", ["SIGKILL", "SIGINT"])
+def test_the_children_go_with_the_demo_and_ctrl_c_is_one_line(sig):
+    """SIGKILL (or SIGHUP) of the demo left its three children running for their whole run;
+    Ctrl-C (SIGINT to the process group, as a terminal sends it) printed a traceback per
+    process."""
+    import signal
+
+    proc = _demo("--frames", "3000", "--timeout", "30", domain=170 + os.getpid() % 20,
+                 start_new_session=True)
+    try:
+        children = _children_of(proc)
+        time.sleep(1.0)
+        if sig == "SIGKILL":
+            proc.kill()
+        else:
+            os.killpg(proc.pid, signal.SIGINT)
+        code = proc.wait(timeout=60)
+        deadline = time.monotonic() + 15
+        while (alive := [p for p in children if pathlib.Path(f"/proc/{p}").exists()
+                         and "zombie" not in pathlib.Path(f"/proc/{p}/status").read_text()
+                         .lower()]) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not alive, f"children still running after {sig}: {alive}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        _, err = proc.communicate()
+    if sig == "SIGINT":
+        assert code == 130 and "Traceback" not in err, err[-3000:]
+        assert "interrupted" in err
+
+
+def test_the_default_domain_follows_ros_domain_id_and_the_topic_is_private():
+    env = dict(os.environ, ROS_DOMAIN_ID=str(140 + os.getpid() % 10))
+    proc = _demo("--frames", "2", "--timeout", "30", env=env)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, out + err[-2000:]
+    first = out.splitlines()[0]
+    assert f"domain {env['ROS_DOMAIN_ID']}," in first
+    assert f"topic {demo.TOPIC}_{proc.pid}" in first  # two demos in one domain never mix

@@ -14,6 +14,7 @@ every check passed. Runs with no set-up (no router); on Warp's preferred device 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import math
 import os
@@ -29,6 +30,18 @@ import numpy as np
 TOPIC = "/warp_buffer_demo/frames"
 TENSOR = "tensor_msgs/msg/ExperimentalTensor"
 _CHILD = "from warp_buffer_cli.demo import child_main; child_main()"
+_PR_SET_PDEATHSIG = 1  # prctl(2)
+
+
+def _topic(text: str) -> str:
+    """argparse type of ``--topic``: a valid ROS 2 topic name."""
+    from buffer_pubsub.errors import InvalidNameError
+    from buffer_pubsub.names import validate_topic_name
+
+    try:
+        return validate_topic_name(text)
+    except InvalidNameError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _number(kind: type, low: float, inclusive: bool = True, high: float = math.inf,
@@ -43,10 +56,11 @@ def _number(kind: type, low: float, inclusive: bool = True, high: float = math.i
         if zero and value == 0:
             return value
         if not (value >= low if inclusive else value > low) or value != value or value > high:
-            above = f"{'>=' if inclusive else '>'} {low:g}"
+            show = (lambda v: str(int(v))) if kind is int else (lambda v: f"{v:g}")
+            above = f"{'>=' if inclusive else '>'} {show(low)}"
             raise argparse.ArgumentTypeError(
                 f"{text} is out of range: must be {above}" +
-                (f" and <= {high:g}" if high != math.inf else "") + (" (or 0)" if zero else ""))
+                (f" and <= {show(high)}" if high != math.inf else "") + (" (or 0)" if zero else ""))
         return value
 
     return parse
@@ -70,7 +84,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Warp device of the frames, e.g. cpu or cuda:0 (default: Warp's "
                              "preferred device, cuda:0 where a GPU is usable, else cpu)")
     parser.add_argument("--domain", type=_number(int, 0, high=2**31 - 1), default=None,
-                        help="domain id (default: a private one derived from the process id)")
+                        help="domain id (default: ROS_DOMAIN_ID when set, else one derived "
+                             "from the process id)")
+    parser.add_argument("--topic", default=None, type=_topic,
+                        help=f"topic (default: {TOPIC}_<process id>: two demos never share one)")
     parser.add_argument("--timeout", type=_number(float, 0, inclusive=False, high=86_400.0),
                         default=60.0,
                         help="seconds before the demo gives up")
@@ -128,7 +145,7 @@ def _publish(args: argparse.Namespace) -> int:
     # Compile the kernel before matching, so the first frame is not late.
     _fill(wp.empty((1, 1), dtype=wp.float32, device=args.device), 0)
     with Node("demo_publisher", domain_id=args.domain) as node:
-        pub = node.create_publisher(TENSOR, TOPIC, depth=args.frames)
+        pub = node.create_publisher(TENSOR, args.topic, depth=args.frames)
         matched = pub.wait_for_subscriptions(2, timeout=args.timeout)
         _emit("READY")
         if not matched:
@@ -146,7 +163,8 @@ def _publish(args: argparse.Namespace) -> int:
             _release_output(msg)
             pub.publish(msg)
             published += 1
-            time.sleep(period)
+            if period and published < args.frames:  # none after the last; never past --timeout
+                time.sleep(max(0.0, min(period, deadline - time.monotonic())))
         sys.stdin.readline()  # keep the buffers alive until the subscribers are done
     if published < args.frames:
         _emit("RESULT", {"ok": False, "published": published,
@@ -167,6 +185,14 @@ def _release_output(msg: Any) -> None:
 
 
 def _subscriber(args: argparse.Namespace, accept: str) -> int:
+    try:
+        return _subscribe(args, accept)
+    except Exception as exc:  # as _publisher: the parent prints the typed error's message
+        _emit("RESULT", {"failed": f"{type(exc).__name__}: {exc}"})
+        return 1
+
+
+def _subscribe(args: argparse.Namespace, accept: str) -> int:
     from buffer_pubsub import Node
 
     # Import the conversion stack before matching: a first import inside the callback (torch
@@ -206,7 +232,7 @@ def _subscriber(args: argparse.Namespace, accept: str) -> int:
             (time.time_ns() - info.source_timestamp_ns) / 1e6)
 
     with Node(f"demo_{accept}_subscriber", domain_id=args.domain) as node:
-        sub = node.create_subscription(TENSOR, TOPIC, check, depth=args.frames,
+        sub = node.create_subscription(TENSOR, args.topic, check, depth=args.frames,
                                        acceptable_buffer_backends=accept, with_info=True)
         sub.wait_for_publishers(1, timeout=args.timeout)
         _emit("READY")
@@ -227,10 +253,13 @@ def child_main(argv: list[str] | None = None) -> int:
     from warp_buffer import init_warp
 
     init_warp()  # before any Warp call: nothing of Warp's on the protocol (stdout) or stderr
-    if args.role == "publisher":
-        code = _publisher(args)
-    else:
-        code = _subscriber(args, args.role)
+    try:
+        if args.role == "publisher":
+            code = _publisher(args)
+        else:
+            code = _subscriber(args, args.role)
+    except KeyboardInterrupt:  # (run by hand: the demo's own children ignore SIGINT)
+        code = 130
     sys.exit(code)
 
 
@@ -238,9 +267,23 @@ def child_main(argv: list[str] | None = None) -> int:
 def _spawn(role: str, args: argparse.Namespace) -> subprocess.Popen:
     argv = [sys.executable, "-c", _CHILD, role, "--frames", str(args.frames),
             "--height", str(args.height), "--width", str(args.width), "--rate", str(args.rate),
-            "--device", args.device, "--domain", str(args.domain),
+            "--device", args.device, "--domain", str(args.domain), "--topic", args.topic,
             "--timeout", str(args.timeout)]
-    return subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    return subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                            preexec_fn=_die_with_parent)
+
+
+def _die_with_parent() -> None:
+    """In a child, before exec: SIGTERM when the demo's process dies, whatever kills it
+    (SIGKILL, SIGHUP: its own handlers reap the children only for SIGTERM and Ctrl-C); and no
+    Ctrl-C of its own (a terminal sends it to the whole group, and a child interrupted while
+    it imports prints a traceback): the demo ends its children itself."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # (kept across exec: Python leaves it)
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):  # not Linux: the parent's handlers still reap them
+        pass
 
 
 class _Child:
@@ -322,10 +365,15 @@ def run(args: argparse.Namespace) -> int:
     if error is not None:
         print(f"warp-buffer demo: FAILED: {error}", file=sys.stderr)
         return 1
-    if args.domain is None:
-        args.domain = 150 + os.getpid() % 80
+    if args.domain is None:  # ROS_DOMAIN_ID when set (checked above), else one of our own
+        from buffer_pubsub.config import resolve_domain_id
+
+        args.domain = (resolve_domain_id(None) if os.environ.get("ROS_DOMAIN_ID", "").strip()
+                       else 150 + os.getpid() % 80)
+    if args.topic is None:  # (a shared domain then carries another demo's frames on another topic)
+        args.topic = f"{TOPIC}_{os.getpid()}"
     print(f"warp-buffer demo: {args.frames} frames of {args.height}x{args.width} float32 on "
-          f"Warp device {args.device!r}, domain {args.domain}, topic {TOPIC}")
+          f"Warp device {args.device!r}, domain {args.domain}, topic {args.topic}")
     children: dict[str, _Child] = {}
     # SIGTERM ends the demo as Ctrl-C does: through the finally below, which reaps the children
     previous = signal.signal(signal.SIGTERM, _terminated)
@@ -364,8 +412,8 @@ def run(args: argparse.Namespace) -> int:
               "CPU bytes expected")
         expected_path["warp"] = "cpu"
     for role, stats in subs.items():
-        if stats is None:
-            print(f"{role} subscriber: FAILED (no result)")
+        if stats is None or "failed" in stats:
+            print(f"{role} subscriber: FAILED ({(stats or {}).get('failed', 'no result')})")
             ok = False
             continue
         path_ok = stats["backends"] == [expected_path[role]]

@@ -49,7 +49,15 @@ def main(argv: list[str] | None = None) -> int:
             sub.set_defaults(run=module.run)
     args = parser.parse_args(argv)
     _configure_output(args.verbose)
-    return int(args.run(args))
+    try:
+        return int(args.run(args))
+    except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback (children were reaped)
+        print(f"warp-buffer {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # stdout's reader left (| head -1): nothing more to write there
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # the interpreter's last flush must not fail too
+        return 141
 
 
 if __name__ == "__main__":
