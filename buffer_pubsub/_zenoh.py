@@ -53,9 +53,10 @@ def _await_background() -> None:
         running = list(_background)
     for done in running:
         done.wait(max(0.0, deadline - time.monotonic()))
-    if any(not done.is_set() for done in running):
+    blocked = sum(not done.is_set() for done in running)
+    if blocked:
         _log.warning("exiting with %d Zenoh teardown call(s) still blocked (a frozen peer?)",
-                     sum(not done.is_set() for done in running))
+                     blocked)
 
 
 atexit.register(_await_background)

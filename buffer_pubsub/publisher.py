@@ -130,14 +130,24 @@ class _Peer:
             # itself when it returns (see Publisher._put_individual).
             return
         try:
-            channel, self.channel = self.channel, None
-            lane, self.lane = self.lane, None
+            route = self.take_route()
         finally:
             self.lock.release()
-        if channel is not None:
-            undeclare_quietly(channel)
-        if lane is not None:
-            lane.close()
+        _close_route(*route)
+
+    def take_route(self) -> tuple[zenoh.Publisher | None, fast_lane.LaneWriter | None]:
+        """The channel and lane of this peer, which it has no more (call with ``lock`` held)."""
+        channel, self.channel = self.channel, None
+        lane, self.lane = self.lane, None
+        return channel, lane
+
+
+def _close_route(channel: zenoh.Publisher | None, lane: fast_lane.LaneWriter | None) -> None:
+    """Undeclare and close what :meth:`_Peer.take_route` took."""
+    if channel is not None:
+        undeclare_quietly(channel)
+    if lane is not None:
+        lane.close()
 
 
 class Publisher:
@@ -444,11 +454,7 @@ class Publisher:
                     wire.buffer_channel_key(self.base_key, peer.token.gid))
             peer.channel.put(payload, attachment=attachment)
             if peer.gone:  # closed while this put was blocked (see _Peer.close)
-                channel, peer.channel = peer.channel, None
-                lane, peer.lane = peer.lane, None
-                undeclare_quietly(channel)
-                if lane is not None:
-                    lane.close()
+                _close_route(*peer.take_route())
 
     def _declare_channel(self, key: str) -> zenoh.Publisher:
         # Zenoh's same-session delivery is skipped: local subscriptions are served in-process.

@@ -101,12 +101,11 @@ def _aligned_copy(view: TensorView) -> torch.Tensor:
     return torch.from_numpy(copy)
 
 
-def _refuse_misaligned(view: TensorView) -> None:
-    if _misaligned(view):
-        raise InvalidTensorMetadataError(
-            f"byte_offset {view.layout.byte_offset} and strides {list(view.layout.strides)} "
-            f"leave {view.dtype.name} elements off the {_ALIGNMENT[dtype_to_torch(view.dtype)]}"
-            "-byte alignment torch needs; a writable torch view cannot be made over them")
+def _misaligned_error(view: TensorView) -> InvalidTensorMetadataError:
+    return InvalidTensorMetadataError(
+        f"byte_offset {view.layout.byte_offset} and strides {list(view.layout.strides)} "
+        f"leave {view.dtype.name} elements off the {_ALIGNMENT[dtype_to_torch(view.dtype)]}"
+        "-byte alignment torch needs; a writable torch view cannot be made over them")
 
 
 def _over_bytes(view: TensorView) -> torch.Tensor:
@@ -133,6 +132,13 @@ def _over_bytes(view: TensorView) -> torch.Tensor:
 def _needs_bytes(view: TensorView) -> bool:
     """Past Warp's 4 dimensions, where a Warp array carries the tensor."""
     return len(view.layout.shape) > MAX_WARP_DIMS and view.warp_carried
+
+
+def _alias(view: TensorView) -> torch.Tensor:
+    """A torch tensor over ``view``'s memory (its elements aligned for torch)."""
+    if _needs_bytes(view):
+        return _over_bytes(view)
+    return view.reshape_result(torch.from_dlpack(view))
 
 
 class _TorchAdapter(_api.Adapter[torch.Tensor]):
@@ -162,16 +168,14 @@ class _TorchAdapter(_api.Adapter[torch.Tensor]):
     def from_view(self, view: TensorView) -> torch.Tensor:
         if _misaligned(view):
             if view.writable:
-                _refuse_misaligned(view)
+                raise _misaligned_error(view)
             return view.reshape_result(_aligned_copy(view))  # one copy, documented
-        if _needs_bytes(view):
-            return _over_bytes(view)
-        return view.reshape_result(torch.from_dlpack(view))
+        return _alias(view)
 
     def clone(self, view: TensorView) -> torch.Tensor:
         if _misaligned(view):
             return view.reshape_result(_aligned_copy(view))
-        return self.from_view(view).clone(memory_format=torch.contiguous_format)
+        return _alias(view).clone(memory_format=torch.contiguous_format)
 
     def describe(self, value: Any) -> tuple[tuple[int, ...], DType, str, str | None]:
         if not isinstance(value, torch.Tensor):
@@ -188,8 +192,7 @@ class _TorchAdapter(_api.Adapter[torch.Tensor]):
         return tuple(value.shape), torch_to_dtype(value.dtype), backend, wp_device
 
     def copy_into(self, view: TensorView, value: Any) -> None:
-        _refuse_misaligned(view)
-        self.from_view(view).copy_(value)
+        self.from_view(view).copy_(value)  # a writable view: misaligned storage refused there
 
 
 _ADAPTER = _TorchAdapter()

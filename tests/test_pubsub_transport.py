@@ -471,34 +471,50 @@ def test_names_expand_like_rcl(domain, backends):
 
 
 # --------------------------------------------------------------------------- 7. races and churn
+def _remote_subscription(pub, domain: int, entity_id: int, node_name: str) -> wire.EndpointToken:
+    """A buffer-aware subscription token of another host matching ``pub`` (the fake backend)."""
+    return wire.EndpointToken(
+        domain_id=domain, zid="0" * 32, node_id=0, entity_id=entity_id,
+        kind=wire.SUBSCRIPTION_KIND, namespace="", node_name=node_name, topic=pub.topic_name,
+        type_name=TENSOR, type_hash=pub._token.type_hash, qos=wire.qos_segment(10),
+        buffer_aware=True, locality=wire.Locality("h", 1, 0),
+        backends={"fake": "fake-v1", "cpu": ""})
+
+
+def _negotiate(pub, token: wire.EndpointToken, fake, meanwhile) -> set[bytes]:
+    """Match ``pub`` with ``token``, running ``meanwhile()`` inside the backend's negotiation;
+    the gids the backend was told are gone in the meantime."""
+    original = type(fake).on_discovering_endpoint
+
+    def negotiating(self, info, existing, supported):
+        meanwhile()
+        return original(self, info, existing, supported)
+
+    type(fake).on_discovering_endpoint = negotiating
+    gone = len(fake.gone)
+    try:
+        pub._on_peer(token, True)
+    finally:
+        type(fake).on_discovering_endpoint = original
+    return {e.gid for e in fake.gone[gone:]}
+
+
 def test_peer_that_vanishes_during_negotiation_leaves_no_ghost(domain, topic, backends):
     fake = backends["fake"]
     with Node("ghost", domain_id=domain, backends=backends) as node:
         pub = node.create_publisher(TENSOR, topic)
-        token = wire.EndpointToken(
-            domain_id=domain, zid="0" * 32, node_id=0, entity_id=7, kind=wire.SUBSCRIPTION_KIND,
-            namespace="", node_name="ghost_sub", topic=pub.topic_name, type_name=TENSOR,
-            type_hash=pub._token.type_hash, qos=wire.qos_segment(10), buffer_aware=True,
-            locality=wire.Locality("h", 1, 0), backends={"fake": "fake-v1", "cpu": ""})
+        token = _remote_subscription(pub, domain, entity_id=7, node_name="ghost_sub")
         with node._lock:
             node._graph[token.gid] = token
-        original = type(fake).on_discovering_endpoint
-
-        def racing(self, info, existing, supported):
+        def delete_overtakes() -> None:
             # The DELETE overtakes the PUT's negotiation, as the discovery thread would do it.
             with node._lock:
                 node._graph.pop(token.gid, None)
             pub._on_peer(token, False)
-            return original(self, info, existing, supported)
 
-        type(fake).on_discovering_endpoint = racing
-        try:
-            gone = len(fake.gone)
-            pub._on_peer(token, True)
-        finally:
-            type(fake).on_discovering_endpoint = original
+        gone = _negotiate(pub, token, fake, delete_overtakes)
         assert token.gid not in pub._peers
-        assert token.gid in {e.gid for e in fake.gone[gone:]}
+        assert token.gid in gone
 
 
 def test_a_node_closing_during_negotiation_does_not_report_a_live_peer_gone(domain, topic,
@@ -510,27 +526,15 @@ def test_a_node_closing_during_negotiation_does_not_report_a_live_peer_gone(doma
     node = Node("closing_mid_negotiation", domain_id=domain, backends=backends)
     try:
         pub = node.create_publisher(TENSOR, topic)
-        token = wire.EndpointToken(
-            domain_id=domain, zid="0" * 32, node_id=0, entity_id=9, kind=wire.SUBSCRIPTION_KIND,
-            namespace="", node_name="live_sub", topic=pub.topic_name, type_name=TENSOR,
-            type_hash=pub._token.type_hash, qos=wire.qos_segment(10), buffer_aware=True,
-            locality=wire.Locality("h", 1, 0), backends={"fake": "fake-v1", "cpu": ""})
+        token = _remote_subscription(pub, domain, entity_id=9, node_name="live_sub")
         with node._lock:
             node._graph[token.gid] = token
-        original = type(fake).on_discovering_endpoint
+        def close_begins() -> None:  # the peer stays in the graph
+            node._closed = True
 
-        def closing(self, info, existing, supported):
-            node._closed = True  # close() begins meanwhile; the peer stays in the graph
-            return original(self, info, existing, supported)
-
-        type(fake).on_discovering_endpoint = closing
-        try:
-            gone = len(fake.gone)
-            pub._on_peer(token, True)
-        finally:
-            type(fake).on_discovering_endpoint = original
+        gone = _negotiate(pub, token, fake, close_begins)
         assert token.gid not in pub._peers
-        assert token.gid not in {e.gid for e in fake.gone[gone:]}
+        assert token.gid not in gone
     finally:
         node._closed = False
         node.close()
