@@ -13,17 +13,9 @@ import pytest
 import zenoh
 
 from buffer_pubsub import Node, make_config
+from tests._reliability_helpers import wait_until
 
 STRING = "std_msgs/msg/String"
-
-
-def _wait(predicate, timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
 
 
 @pytest.mark.parametrize("inline", [True, False], ids=["inline", "executor-thread"])
@@ -43,7 +35,7 @@ def test_a_callback_calling_sys_exit_does_not_end_delivery(domain, topic, inline
         for i in range(20):
             pub.publish(pub.msg_type(data=str(i)))
             time.sleep(0.002)
-        assert _wait(lambda: len(calls) == 20), calls
+        assert wait_until(lambda: len(calls) == 20), calls
         assert sub.counters.callback_errors == 1
         assert isinstance(sub.last_error, SystemExit)
         assert node._thread.is_alive()
