@@ -5,8 +5,8 @@
 loopback Zenoh port and a domain of their own), one message in flight.
 
 - ``--route lane`` (default): a loaned warp tensor (``loan_tensor_msg``), whose descriptor the
-  publisher writes to the subscriber's fast lane (iceoryx2); the subscriber's node runs
-  ``executor="manual"`` and spins in its main thread, woken by the lane's event, and the
+  publisher writes to the subscriber's fast lane (a ring, an eventfd doorbell); the subscriber's
+  node runs ``executor="manual"`` and spins in its main thread, woken by the doorbell, and the
   callback takes ``from_input_tensor_msg(msg, clone=False)``.
 - ``--route cpu``: a prepared CPU tensor message (stamped in place, as the bench's
   ``cpu_fallback`` path) over Zenoh to a CPU subscriber on the node's default executor thread.

@@ -1,4 +1,4 @@
-"""The executor waker's cost: the fast lane's iceoryx2 WaitSet waker against a threading.Condition.
+"""The executor waker's cost: the fast lane's native waker (ppoll on eventfds) against a threading.Condition.
 
 ``python -m benchmarks.waker_cost [--count N]``, one process, side by side:
 - ``notify()`` with nobody waiting (what every Zenoh-route delivery pays to post a task);
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     rows = []
     for label, waker in (("threading.Condition", ConditionWaker()),
-                         ("LaneWaker (iceoryx2 WaitSet + eventfd)", fast_lane.LaneWaker())):
+                         ("LaneWaker (native: eventfd + ppoll)", fast_lane.LaneWaker())):
         notify = _per_call_us(waker.notify, args.count)
         waker.wait(0.0)
         idle = _per_call_us(lambda: waker.wait(0.0), args.count)

@@ -1,14 +1,15 @@
-"""The transport's side of the fast lane: which peers it serves, its frame, clean-up on loss.
+"""The transport's side of the fast lane: which peers it serves, and its frame.
 
-Small pure pieces the publisher, subscription and node call (see /tmp/notes/issue15.md for where):
+Small pure pieces the publisher, subscription and node call:
 
 - :func:`serves`: the route decision for one matched subscription;
 - :func:`open_writer` / :func:`open_reader`: a lane for a route, or None (Zenoh carries it);
 - :func:`split_frame`: a lane message is the attachment (as Zenoh carries it beside the
   payload) then the CDR payload, ``writer.write(attachment, payload)``, so lane and Zenoh
-  deliveries enter one receive path;
-- :class:`DeadPeerSweeper`: iceoryx2's dead-node clean-up when discovery says a same-host peer
-  of another process is gone (Zenoh's liveliness DELETE arrives at once, SIGKILL included).
+  deliveries enter one receive path.
+
+A lane leaves nothing behind when a peer dies (the kernel reclaims its memfds, sockets and
+eventfds): there is nothing to clean up on loss.
 """
 
 from __future__ import annotations
@@ -16,12 +17,10 @@ from __future__ import annotations
 import logging
 import os
 import resource
-import threading
-import time
 
 from . import fast_lane, wire
 
-__all__ = ["DeadPeerSweeper", "fd_headroom", "open_reader", "open_writer", "queue_depth",
+__all__ = ["fd_headroom", "open_reader", "open_writer", "queue_depth",
            "serves", "split_frame"]
 
 _log = logging.getLogger(__name__)
@@ -45,13 +44,14 @@ def serves(local: wire.Locality, peer: wire.EndpointToken, *, individual: bool, 
 
 def queue_depth(peer: wire.EndpointToken) -> int:
     """How many frames the lane to subscription ``peer`` holds before it overwrites the oldest:
-    the reader made its iceoryx2 queue as deep as its keep-last depth (see
-    :meth:`Subscription.__init__`, at most :data:`fast_lane.MAX_DEPTH`)."""
+    its keep-last depth (the reader keeps as many, see :meth:`Subscription.__init__`), at most
+    :data:`fast_lane.MAX_DEPTH`."""
     return min(max(1, wire.qos_depth(peer.qos)), fast_lane.MAX_DEPTH)
 
 
-#: File descriptors one lane end costs (iceoryx2's node, service and port files, ~8-10).
-LANE_FDS = 12
+#: File descriptors one lane end costs: a reader's listening socket, a writer's connection and
+#: doorbell (and the reader's copies of them), and the memfd while it is handed over.
+LANE_FDS = 4
 #: Descriptors left free for what cannot do without them (an import's hand-off socket and the
 #: arena it receives, Zenoh's connections): the lane is an optimization and gives way first.
 FD_RESERVE = 64
@@ -78,14 +78,16 @@ def _room_for_a_lane(what: str) -> bool:
     return False
 
 
-def open_writer(base_key: str, subscriber_gid: bytes) -> fast_lane.LaneWriter | None:
-    """The lane to ``subscriber_gid``'s reader, or None when it has none (lane off there, an
-    older peer, another lane domain) or this process is short of file descriptors: the Zenoh
-    channel serves it then."""
+def open_writer(base_key: str, subscriber_gid: bytes,
+                depth: int = fast_lane.DEFAULT_DEPTH) -> fast_lane.LaneWriter | None:
+    """The lane to ``subscriber_gid``'s reader (a ring of ``depth`` frames: its keep-last depth,
+    :func:`queue_depth`), or None when it has none (lane off there, an older peer, another
+    user) or this process is short of file descriptors: the Zenoh channel serves it then."""
     if not _room_for_a_lane(f"subscription {subscriber_gid.hex()}"):
         return None
     try:
-        return fast_lane.LaneWriter(fast_lane.service_name(base_key, subscriber_gid))
+        return fast_lane.LaneWriter(fast_lane.service_name(base_key, subscriber_gid),
+                                    depth=depth)
     except fast_lane.LaneUnavailableError as error:
         _log.debug("no lane to %s: %s", subscriber_gid.hex(), error)
         return None
@@ -110,54 +112,3 @@ def split_frame(data: bytes) -> tuple[wire.Attachment, memoryview]:
     """
     head = data[:wire.ATTACHMENT_SIZE]
     return wire.Attachment.decode(head), memoryview(data)[wire.ATTACHMENT_SIZE:]
-
-
-class DeadPeerSweeper:
-    """Runs iceoryx2's dead-node clean-up when a same-host peer of another process vanished,
-    at most once per ``interval_s`` (a burst of DELETEs from one dead process cleans once), and
-    once more ``settle_s`` later: Zenoh may report the death before the kernel has released
-    the dead process's locks, which is how iceoryx2 tells a dead node from a live one."""
-
-    def __init__(self, local: wire.Locality, interval_s: float = 0.1,
-                 settle_s: float = 0.5) -> None:
-        self._local = local
-        self._interval_s = interval_s
-        self._settle_s = max(settle_s, interval_s)
-        self._lock = threading.Lock()
-        self._last = 0.0
-        self._timer: threading.Timer | None = None
-        self.sweeps = 0
-
-    def peer_gone(self, token: wire.EndpointToken) -> None:
-        """Discovery saw ``token`` vanish (call it from the liveliness DELETE handler)."""
-        theirs = token.locality
-        if theirs.host_id != self._local.host_id or theirs.process_id == self._local.process_id:
-            return
-        with self._lock:
-            now = time.monotonic()
-            run_now = now - self._last >= self._interval_s
-            if run_now:
-                self._last = now
-            if self._timer is None:  # the follow-up sweep, one per burst
-                self._timer = threading.Timer(self._settle_s, self._sweep_later)
-                self._timer.daemon = True
-                self._timer.start()
-        if run_now:
-            self._sweep()
-
-    def close(self) -> None:
-        """Cancel a pending sweep."""
-        with self._lock:
-            timer, self._timer = self._timer, None
-        if timer is not None:
-            timer.cancel()
-
-    def _sweep_later(self) -> None:
-        with self._lock:
-            self._timer = None
-            self._last = time.monotonic()
-        self._sweep()
-
-    def _sweep(self) -> None:
-        self.sweeps += 1
-        fast_lane.cleanup_dead_nodes()

@@ -1,47 +1,58 @@
-"""The same-host fast lane: small messages (descriptor CDR) between processes over iceoryx2.
+"""The same-host fast lane: small messages (descriptor CDR) between processes, through rings in
+the publisher's memory with an eventfd doorbell (the native core, :mod:`buffer_pubsub._ring`).
 
 Zenoh stays the discovery layer and the transport between hosts; between two processes of one
 host and user the lane carries what the transport would otherwise put on a subscription's own
 Zenoh channel ``<data key>/_buf/<subscriber gid>``: at most :data:`MAX_PAYLOAD` opaque bytes per
-message. One iceoryx2 publish-subscribe service (plus an event service of the same name, for the
-wake-up) per such channel, created by the subscription's :class:`LaneReader` before it is
-announced; a publisher's :class:`LaneWriter` opens it, so opening succeeds exactly when the
-subscription is on this host, runs as this user and has the lane on (iceoryx2's files are
-owner-only).
+message.
 
-Wake-ups are iceoryx2 events, never a poll: :class:`LaneWaker` waits on an iceoryx2 ``WaitSet``
-holding every attached reader's listener and an ``eventfd`` that :meth:`LaneWaker.notify`
-writes, so one thread (the node's executor, or the user's own ``spin``) sleeps until either a
-lane message or anything else (a Zenoh-route delivery, a timer) needs it, and runs the lane
-callbacks itself: no extra thread hop. ``LaneWaker(busy_poll_s=...)`` spins that long before it
-blocks: lower latency, at the price of a core held at 100% (and the GIL) while it spins.
+- A subscription's :class:`LaneReader` listens on an abstract Unix socket named after the route
+  (:func:`address`: numbers and a hash only; abstract names leave nothing in the filesystem and
+  vanish with the process), made before the subscription is announced, so that a publisher that
+  discovers it finds it.
+- A publisher's :class:`LaneWriter` connects (the kernel's credentials: same user only, both
+  ways), makes a ring (a sealed anonymous memfd: one frame per slot, keep-last) and an eventfd,
+  and hands both over in one message; the connection stays open and silent, which is how each
+  side learns that the other is gone. ``write()`` copies the frame into the next slot and rings
+  the doorbell only when the reader sleeps; it never waits.
+- :class:`LaneWaker` is the node's executor waker: one thread sleeps in ``ppoll`` (the GIL
+  released) on its notify eventfd, the doorbells and the readers' sockets, and runs the lane
+  callbacks itself when frames arrive (no extra thread hop). ``LaneWaker(busy_poll_s=...)``
+  spins that long first (GIL released, a core at 100%) before it blocks.
 
-Turn it off with ``WARP_BUFFER_FAST_LANE=0`` (or ``Node(..., fast_lane=False)``, see
-:func:`enabled`). When iceoryx2 is missing or cannot start,
-:func:`status` says why (logged once per process) and the transport keeps using Zenoh.
+Everything is reclaimed by the kernel when a process ends, however it ends: the memfd goes with
+the last mapping, sockets and eventfds with their last descriptor; nothing has a name in
+``/dev/shm`` or the filesystem, and nothing needs cleaning up after a crash. The reader trusts
+nothing the writer puts in the ring (lengths, indexes and stamps are checked), and the writer
+nothing the reader puts there.
+
+Turn the lane off with ``WARP_BUFFER_FAST_LANE=0`` (or ``Node(..., fast_lane=False)``, see
+:func:`enabled`).
 """
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import dataclasses
+import errno
 import hashlib
 import logging
 import os
-import queue
+import select
+import socket
+import struct
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
-from . import _iox2
-from ._iox2 import ENV_DOMAIN, LaneStartError, cleanup_dead_nodes, resource_prefix
+from rosidl_buffer.native import load_extension
+
 from .errors import PubSubError
 
-__all__ = ["ENV_DOMAIN", "ENV_SWITCH", "MAX_PAYLOAD", "NODE_OPTION", "LaneError",
-           "LaneReader", "LaneStatus", "LaneUnavailableError", "LaneWaker", "LaneWriter",
-           "cleanup_dead_nodes", "enabled", "resource_prefix", "service_name", "status"]
+_ring = load_extension("buffer_pubsub._ring")
+
+__all__ = ["ENV_SWITCH", "MAX_PAYLOAD", "NODE_OPTION", "LaneError", "LaneReader", "LaneStatus",
+           "LaneUnavailableError", "LaneWaker", "LaneWriter", "address", "enabled",
+           "resource_prefix", "service_name", "status"]
 
 _log = logging.getLogger(__name__)
 
@@ -52,16 +63,22 @@ NODE_OPTION = "fast_lane"
 #: Largest message the lane carries; bigger ones take the Zenoh route. A descriptor is at most
 #: 4096 B (rosidl::Buffer's kMaxBufferDescriptorSize); the rest is the message's other fields.
 MAX_PAYLOAD = 8192
-#: Services and ports a lane service admits: publishers of one topic on this host per subscription.
+#: Writers one reader admits at once (the listening socket's backlog, too).
 MAX_WRITERS = 32
-#: The deepest keep-last subscription the lane serves: iceoryx2 preallocates its queue (about
-#: MAX_PAYLOAD bytes a slot, in /dev/shm), so deeper ones stay on Zenoh, which does not.
+#: The deepest keep-last subscription the lane serves (a ring is depth slots of ~MAX_PAYLOAD).
 MAX_DEPTH = 1024
+#: A writer's ring when the route does not say how deep the reader keeps (``LaneWriter(depth=)``).
+DEFAULT_DEPTH = 64
 _OFF = {"0", "false", "off", "no"}
 _ON = {"", "1", "true", "on", "yes"}
 _warned_values: dict[str, bool] = {}
-_string_at = ctypes.string_at
 _SERVICE_ROOT = "warp_buffer"
+#: The hello a writer sends with the ring's memfd and doorbell: magic, version, writer pid,
+#: ring depth, slot bytes, largest frame.
+HELLO = struct.Struct("<8sIIIII")
+MAGIC = b"WBLANE\x00\x01"
+VERSION = 1
+_UCRED = struct.Struct("3i")
 
 
 class LaneError(PubSubError, RuntimeError):
@@ -69,8 +86,11 @@ class LaneError(PubSubError, RuntimeError):
 
 
 class LaneUnavailableError(LaneError):
-    """The lane cannot be used for this route (iceoryx2 missing, no reader, service full):
+    """The lane cannot be used for this route (no reader, another user's, out of descriptors):
     the transport uses Zenoh instead."""
+
+
+_ring.set_error_class(LaneError)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,209 +114,302 @@ def enabled(option: bool | None = None) -> bool:
     return value not in _OFF
 
 
-_status_lock = threading.Lock()
-_probed: dict[int, LaneStatus] = {}  # by pid: a forked child probes again
 _logged = False
 
 
 def status(option: bool | None = None) -> LaneStatus:
-    """Whether the lane runs here: wanted (:func:`enabled`), iceoryx2 importable, and this
-    process's iceoryx2 node created (which also cleans up dead nodes of our domain). The reason
+    """Whether the lane runs here: it runs wherever it is wanted (:func:`enabled`); the reason
     it does not is logged once per process."""
     global _logged
-    if not enabled(option):
-        result = LaneStatus(False, f"turned off ({ENV_SWITCH}=0 or {NODE_OPTION}=False)")
-    else:
-        with _status_lock:
-            result = _probed.get(os.getpid())
-            if result is None:
-                try:
-                    _iox2.process_node()
-                    result = LaneStatus(True)
-                except LaneStartError as error:
-                    result = LaneStatus(False, str(error))
-                _probed[os.getpid()] = result
-    if not result.available and not _logged:
+    if enabled(option):
+        return LaneStatus(True)
+    result = LaneStatus(False, f"turned off ({ENV_SWITCH}=0 or {NODE_OPTION}=False)")
+    if not _logged:
         _logged = True
         _log.info("fast lane off, Zenoh carries same-host messages: %s", result.reason)
     return result
 
 
 def service_name(data_key: str, subscriber_gid: bytes) -> str:
-    """The iceoryx2 service of the route ``<data_key>/_buf/<subscriber gid>``.
-
-    The Zenoh key itself when it is a valid iceoryx2 service name (printable ASCII, at most 255
-    characters), else a SHA-256 of it: both sides derive the same name from the same key.
-    """
+    """The lane of the route ``<data_key>/_buf/<subscriber gid>``: the Zenoh key itself when it
+    is printable ASCII of at most 255 characters, else a SHA-256 of it (both sides derive the
+    same name from the same key)."""
     name = f"{_SERVICE_ROOT}/{data_key}/_buf/{subscriber_gid.hex()}"
     if len(name) <= 255 and name.isascii() and name.isprintable():
         return name
     return f"{_SERVICE_ROOT}/sha256/{hashlib.sha256(name.encode()).hexdigest()}"
 
 
-def _services(name: str, create: bool, depth: int) -> tuple[Any, Any]:
-    """The publish-subscribe and event services of ``name`` (the reader creates them)."""
-    try:
-        iox2 = _iox2.load()
-        node = _iox2.process_node()
-    except LaneStartError as error:
-        raise LaneUnavailableError(str(error)) from None
-    service = iox2.ServiceName.new(name)
-    pubsub = node.service_builder(service).publish_subscribe(iox2.Slice[ctypes.c_uint8])
-    event = node.service_builder(service).event()
-    if not create:
-        return pubsub.open(), event.open()
-    pubsub = (pubsub.max_publishers(MAX_WRITERS).max_subscribers(1).history_size(0)
-              .subscriber_max_buffer_size(depth).enable_safe_overflow(True).create())
-    return pubsub, event.max_notifiers(MAX_WRITERS).max_listeners(1).create()
+def resource_prefix() -> str:
+    """The prefix of every name the lane takes (abstract Unix socket names, ``@`` shown for the
+    leading NUL as ``ss -x`` does): ``@warp_buffer.lane.<uid>.``; nothing else is named."""
+    return f"@warp_buffer.lane.{os.getuid()}."
 
 
-@contextlib.contextmanager
-def _ports_of(owner: Any, failure: str) -> Iterator[None]:
-    """Create ``owner``'s ports inside: on an iceoryx2 error, delete what was made and raise
-    :class:`LaneUnavailableError` starting with ``failure``; on success, close at exit."""
-    try:
-        yield
-    except LaneUnavailableError:
-        owner.close()
-        raise
-    except Exception as error:  # iceoryx2's open / create errors: no lane for this route
-        owner.close()
-        raise LaneUnavailableError(f"{failure}: {type(error).__name__}: {error}") from None
-    _iox2.track(owner)
+def address(name: str) -> bytes:
+    """The abstract socket address of lane ``name``'s reader (this user's: the kernel's uid)."""
+    digest = hashlib.sha256(name.encode()).hexdigest()[:40]
+    return f"\0warp_buffer.lane.{os.getuid()}.{digest}".encode()
 
 
-def _delete_ports(owner: Any, attributes: tuple[str, ...]) -> None:
-    """Take ``owner``'s ports under its lock, then delete them (idempotent)."""
-    with owner._lock:
-        ports = [getattr(owner, a) for a in attributes]
-        for attribute in attributes:
-            setattr(owner, attribute, None)
-    for port in ports:
-        if port is not None:
-            port.delete()
+def _peer_uid(sock: socket.socket) -> int:
+    _pid, uid, _gid = _UCRED.unpack(sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
+                                                    _UCRED.size))
+    return uid
 
 
-class LaneWriter:
-    """Publishes messages to one reader's lane service (the publisher side of one route).
+def _slot_bytes(max_payload: int) -> int:
+    return -(-(max_payload + _ring.SLOT_HEAD) // 64) * 64
+
+
+def _close_quietly(*fds: int) -> None:
+    for fd in fds:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+
+
+class LaneWriter(_ring.RingWriter):
+    """Publishes messages to one reader's lane (the publisher side of one route); ``depth``:
+    frames its ring keeps for a reader that falls behind (the reader keeps at most its own
+    depth of them). ``write(*parts) -> bool`` and ``fits(nbytes) -> bool`` are the ring's own
+    (one C call per message, atomic under the GIL against the publisher's other threads):
+    ``write`` copies the concatenation of ``parts`` into the next slot, wakes the reader if it
+    sleeps, never waits, and returns False when the reader is gone (the message reached
+    nobody); it raises :class:`LaneError` for a message over ``max_payload`` or once closed.
 
     Raises:
-        LaneUnavailableError: iceoryx2 does not run here, or no reader created the service
-            (the subscription is on another host, runs as another user, or has the lane off),
-            or it admits no more writers.
+        LaneUnavailableError: no reader listens on this route here (the subscription is on
+            another host, runs as another user, has the lane off), it admits no more writers,
+            or this process is out of file descriptors.
     """
 
-    def __init__(self, name: str, max_payload: int = MAX_PAYLOAD) -> None:
+    def __init__(self, name: str, max_payload: int = MAX_PAYLOAD,
+                 depth: int = DEFAULT_DEPTH) -> None:
         self.name = name
         self.max_payload = max_payload
-        self._lock = threading.Lock()
-        self._publisher: Any = None
-        self._notifier: Any = None
-        with _ports_of(self, f"no lane reader for {name!r}"):
-            pubsub, event = _services(name, create=False, depth=0)
-            iox2 = _iox2.load()
-            # Keep-last: the service's safe overflow drops a full reader's oldest message. Say
-            # DiscardData too: iceoryx2's default, RetryUntilDelivered, blocks (GIL held) behind
-            # a full reader of any service made without safe overflow.
-            self._publisher = (pubsub.publisher_builder().initial_max_slice_len(max_payload)
-                               .max_loaned_samples(1)
-                               .backpressure_strategy(iox2.BackpressureStrategy.DiscardData)
-                               .create())
-            self._notifier = event.notifier_builder().create()
+        self._conn = _connect(name)
+        try:
+            super().__init__(min(max(1, depth), MAX_DEPTH), _slot_bytes(max_payload),
+                             max_payload)
+            memfd = self.take_memfd()
+            try:
+                socket.send_fds(self._conn, [HELLO.pack(MAGIC, VERSION, os.getpid(), self.depth,
+                                                        self.slot_bytes, max_payload)],
+                                [memfd, self.doorbell], socket.MSG_DONTWAIT)
+            finally:
+                os.close(memfd)  # the mapping keeps the ring; the reader has its own fd
+            self.watch(self._conn.fileno())
+        except (OSError, LaneError) as error:
+            self.close()
+            raise LaneUnavailableError(f"no lane to {name!r}: {error}") from None
 
     def __repr__(self) -> str:
         return f"LaneWriter({self.name!r})"
 
-    def fits(self, nbytes: int) -> bool:
-        """Whether a message of ``nbytes`` can travel on the lane."""
-        return nbytes <= self.max_payload
-
-    def write(self, *parts: bytes | bytearray | memoryview) -> bool:
-        """Send one message, the concatenation of ``parts`` (e.g. an attachment and a CDR
-        payload: joined, then copied into iceoryx2's segment with one ``memmove``; both copies
-        are of at most :data:`MAX_PAYLOAD` bytes, cheaper than slicing views in Python), and
-        wake the reader; False when no reader is connected any more (the message reached
-        nobody).
-
-        Raises:
-            LaneError: the message is larger than ``max_payload``, the writer is closed, or
-                iceoryx2 failed to loan or send.
-        """
-        data = parts[0] if len(parts) == 1 and type(parts[0]) is bytes else b"".join(parts)
-        nbytes = len(data)
-        if nbytes > self.max_payload:
-            raise LaneError(f"{nbytes} B message exceeds the lane's {self.max_payload} B")
-        with self._lock:
-            if self._publisher is None:
-                raise LaneError(f"{self!r} is closed")
-            try:
-                sample = self._publisher.loan_slice_uninit(nbytes)
-                if nbytes:
-                    ctypes.memmove(sample.payload_ptr, data, nbytes)
-                reached = sample.assume_init().send()
-                if reached:  # the wake-up (a syscall waking the reader) only when one got it
-                    self._notifier.notify()
-            except Exception as error:  # LoanError / SendError / NotifierNotifyError
-                raise LaneError(f"{self!r}: {type(error).__name__}: {error}") from None
-        return bool(reached)
-
     def close(self) -> None:
-        """Delete the ports (idempotent; also run at exit)."""
-        _delete_ports(self, ("_notifier", "_publisher"))
+        """Tell the reader this end is closed (it takes what is left, then lets the ring go);
+        idempotent."""
+        super().close()
+        self._conn.close()
+
+
+def _connect(name: str) -> socket.socket:
+    try:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC
+                             | socket.SOCK_NONBLOCK)
+    except OSError as error:
+        raise LaneUnavailableError(f"no lane to {name!r}: no socket ({error})") from None
+    try:
+        sock.connect(address(name))
+        if _peer_uid(sock) != os.getuid():
+            raise LaneUnavailableError(f"the lane reader of {name!r} runs as another user")
+    except (FileNotFoundError, ConnectionRefusedError):
+        sock.close()
+        raise LaneUnavailableError(f"no lane reader for {name!r}") from None
+    except BlockingIOError:
+        sock.close()
+        raise LaneUnavailableError(f"the lane reader of {name!r} admits no more writers "
+                                   f"now") from None
+    except OSError as error:
+        sock.close()
+        raise LaneUnavailableError(f"no lane to {name!r}: {error}") from None
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
+@dataclasses.dataclass
+class _Inbound:
+    """One writer's connection to a reader: its ring once its hello came."""
+
+    conn: socket.socket
+    ring: Any = None
 
 
 class LaneReader:
     """Receives one route's messages (the subscription side); create it before the subscription
-    is announced, so that a writer that discovers the subscription finds the service.
+    is announced, so that a writer that discovers the subscription finds it.
 
-    ``depth``: iceoryx2's queue for this reader, keep-last (the oldest message is overwritten
-    when the reader falls behind by more than ``depth``).
+    ``depth``: keep-last; of the frames a writer sent that were not taken yet, the newest
+    ``depth`` are delivered, the older ones dropped (a reader that falls behind).
 
     Raises:
-        LaneUnavailableError: iceoryx2 does not run here or the service cannot be created.
+        LaneUnavailableError: another reader has this route, or no socket could be made.
     """
 
     def __init__(self, name: str, depth: int = 16) -> None:
         self.name = name
-        self._lock = threading.Lock()
-        self._subscriber: Any = None
-        self.listener: Any = None
-        with _ports_of(self, f"cannot create lane reader {name!r}"):
-            pubsub, event = _services(name, create=True, depth=max(1, depth))
-            self._subscriber = pubsub.subscriber_builder().buffer_size(max(1, depth)).create()
-            self.listener = event.listener_builder().create()
+        self.depth = min(max(1, depth), MAX_DEPTH)
+        self._inbound: dict[int, _Inbound] = {}  # by connection fd
+        self._closed = False
+        try:
+            self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET
+                                           | socket.SOCK_CLOEXEC | socket.SOCK_NONBLOCK)
+        except OSError as error:
+            raise LaneUnavailableError(f"cannot create lane reader {name!r}: {error}") from None
+        try:
+            self._listener.bind(address(name))
+            self._listener.listen(MAX_WRITERS)
+        except OSError as error:
+            self._listener.close()
+            why = "one reader per route" if error.errno == errno.EADDRINUSE else str(error)
+            raise LaneUnavailableError(f"cannot create lane reader {name!r}: {why}") from None
 
     def __repr__(self) -> str:
         return f"LaneReader({self.name!r})"
 
-    def take(self) -> bytes | None:
-        """The oldest waiting message (copied out, so iceoryx2's sample is released at once),
-        or None."""
-        with self._lock:
-            subscriber = self._subscriber
-            sample = None if subscriber is None else subscriber.receive()
-            if sample is None:
-                return None
+    @property
+    def listener(self) -> socket.socket | None:
+        """The listening socket (None once closed)."""
+        return None if self._closed else self._listener
+
+    # -- the waiting thread ---------------------------------------------------------------------
+    def rings(self) -> list[Any]:
+        """The rings of the writers connected now (``buffer_pubsub._ring.RingReader``)."""
+        return [inbound.ring for inbound in self._inbound.values() if inbound.ring is not None]
+
+    def watched(self) -> list[tuple[int, int]]:
+        """``(fd, poll events)`` the waker watches for this reader: new writers, hellos still
+        to come, and hang-ups of connected writers."""
+        if self._closed:
+            return []
+        fds = [(self._listener.fileno(), select.POLLIN)]
+        fds += [(fd, select.POLLIN if inbound.ring is None else 0)
+                for fd, inbound in self._inbound.items()]
+        return fds
+
+    def handle(self, fd: int, revents: int) -> bool:
+        """React to ``revents`` on one of :meth:`watched`'s fds; True when the set of rings or
+        watched fds changed."""
+        if self._closed:
+            return False
+        if fd == self._listener.fileno():
+            return self.accept()
+        inbound = self._inbound.get(fd)
+        if inbound is None:
+            return False
+        if inbound.ring is None and revents & select.POLLIN:
+            return self._hello(fd, inbound)
+        if revents & (select.POLLHUP | select.POLLERR | select.POLLNVAL):
+            self._drop(fd)  # the writer is gone: its frames were delivered before this
+            return True
+        return False
+
+    def accept(self) -> bool:
+        """Take in every writer that connected (and its ring, when its hello is there)."""
+        changed = False
+        while len(self._inbound) < MAX_WRITERS * 2:
             try:
-                return _string_at(sample.payload_ptr, sample.header.number_of_elements)
-            finally:
-                sample.delete()
+                conn, _ = self._listener.accept()
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError as error:  # out of descriptors: the writer sees a hang-up
+                _log.debug("lane %r: cannot accept a writer: %s", self.name, error)
+                break
+            conn.setblocking(False)
+            try:
+                uid = _peer_uid(conn)
+            except OSError:
+                uid = -1
+            if uid != os.getuid():
+                _log.warning("lane %r: refused a writer of uid %d", self.name, uid)
+                conn.close()
+                continue
+            self._inbound[conn.fileno()] = inbound = _Inbound(conn)
+            self._hello(conn.fileno(), inbound)
+            changed = True
+        return changed
+
+    def _hello(self, fd: int, inbound: _Inbound) -> bool:
+        """Receive a writer's hello and ring; True when it came (or the writer was refused)."""
+        try:
+            data, fds, _flags, _addr = socket.recv_fds(inbound.conn, HELLO.size, 2,
+                                                       socket.MSG_DONTWAIT)
+        except (BlockingIOError, InterruptedError):
+            return False  # not there yet: watched for it
+        except OSError as error:
+            _log.debug("lane %r: a writer's hello failed: %s", self.name, error)
+            self._drop(fd)
+            return True
+        try:
+            inbound.ring = self._ring_of(data, fds)
+        except LaneError as error:
+            _log.warning("lane %r: refused a writer: %s", self.name, error)
+            self._drop(fd)
+        finally:
+            _close_quietly(*fds)
+        return True
+
+    def _ring_of(self, data: bytes, fds: list[int]) -> Any:
+        if len(data) != HELLO.size or len(fds) != 2:
+            raise LaneError(f"a hello of {len(data)} bytes with {len(fds)} fds")
+        magic, version, _pid, depth, slot_bytes, _max = HELLO.unpack(data)
+        if magic != MAGIC or version != VERSION:
+            raise LaneError(f"not a lane hello of version {VERSION}")
+        return _ring.RingReader(fds[0], fds[1], depth, slot_bytes, self.depth)
+
+    def _drop(self, fd: int) -> None:
+        inbound = self._inbound.pop(fd, None)
+        if inbound is None:
+            return
+        if inbound.ring is not None:
+            inbound.ring.close()
+        inbound.conn.close()
+
+    # -- without a waker ------------------------------------------------------------------------
+    def take(self) -> bytes | None:
+        """The oldest waiting message of a writer (copied out of its ring), or None. For a
+        reader that is not attached to a waker (the waker delivers attached ones)."""
+        if self._closed:
+            return None
+        self.accept()
+        for fd, inbound in list(self._inbound.items()):
+            if inbound.ring is None:
+                self._hello(fd, inbound)
+            if inbound.ring is not None:
+                frame = inbound.ring.take()
+                if frame is not None:
+                    return frame
+        return None
 
     def has_samples(self) -> bool:
-        """Whether a message waits (non-blocking; for busy-polling)."""
-        with self._lock:
-            return self._subscriber is not None and self._subscriber.has_samples()
-
-    def consume_events(self) -> bool:
-        """Clear the pending wake-ups; True when there were any. Call it after draining, and
-        drain again until it says False: see :meth:`LaneWaker._deliver`."""
-        with self._lock:
-            return self.listener is not None and bool(self.listener.try_wait())
+        """Whether a message waits (non-blocking)."""
+        return any(inbound.ring is not None and inbound.ring.pending
+                   for inbound in self._inbound.values())
 
     def close(self) -> None:
-        """Delete the ports; iceoryx2 removes the services with their last port. Detach the
-        reader from its waker first (the WaitSet watches the listener)."""
-        _delete_ports(self, ("listener", "_subscriber"))
+        """Stop listening and tell every writer this end is closed (their ``write()`` returns
+        False from now on); idempotent. Detach the reader from its waker first (the waker
+        watches its sockets): :meth:`LaneWaker.detach` with ``close=True`` does both."""
+        if self._closed:
+            return
+        self._closed = True
+        self._listener.close()
+        for fd in list(self._inbound):
+            self._drop(fd)
 
 
 OnMessage = Callable[[bytes], None]
@@ -306,76 +419,36 @@ OnMessage = Callable[[bytes], None]
 class _Attachment:
     reader: LaneReader
     on_message: OnMessage
-    guard: Any = None
     close_reader: bool = False  # a detach request that closes the reader once detached
 
 
-class LaneWaker:
+class LaneWaker(_ring.Waker):
     """The executor's wait primitive (``wait(timeout)`` / ``notify()``) that also wakes for lane
     messages and delivers them on the waiting thread.
 
-    :meth:`attach` / :meth:`detach` may be called from any thread; the waiting thread applies
-    them (iceoryx2's WaitSet must not change while a wait runs); one thread waits at a time.
-    While no reader is attached (a node with no same-host lane peer yet, or only in-process
-    ones) a wait blocks on a ``queue.SimpleQueue`` instead of the WaitSet, as the default
-    :class:`~buffer_pubsub._waker.ThreadWaker` does: that wake-up costs ~7-18 us less here.
-    ``busy_poll_s`` > 0: each :meth:`wait` first spins that long (a core at 100% and the GIL
-    held meanwhile) checking the readers and notifications, then blocks.
+    ``notify()`` is the core's own (any thread, one C call). :meth:`attach` / :meth:`detach`
+    may be called from any thread; the waiting thread applies them; one thread waits at a time.
+    ``busy_poll_s`` > 0: each :meth:`wait` first spins that long (the GIL released, a core at
+    100%) checking the rings and notifications, then blocks.
+
+    Raises:
+        LaneUnavailableError: no eventfd could be made (out of file descriptors).
     """
 
     def __init__(self, busy_poll_s: float = 0.0) -> None:
         try:
-            self._iox2 = iox2 = _iox2.load()
-        except LaneStartError as error:
-            raise LaneUnavailableError(str(error)) from None
-        self.busy_poll_s = busy_poll_s
+            super().__init__(_callback_failed, max(0.0, float(busy_poll_s)))
+        except (OSError, LaneError) as error:
+            raise LaneUnavailableError(f"no eventfd for the lane's waker: {error}") from None
         self._lock = threading.Lock()
         self._pending: list[tuple[bool, _Attachment]] = []  # (attach?, attachment)
         self._attached: dict[int, _Attachment] = {}  # id(reader) -> attachment
-        self._by_id: dict[Any, _Attachment] = {}  # WaitSetAttachmentId -> attachment
-        self._notified = False
-        # A wait with nothing attached blocks on this queue, and notify() puts a token there
-        # instead of writing the eventfd (both decided under the lock: no wake-up is lost).
-        self._queue: queue.SimpleQueue[None] = queue.SimpleQueue()
-        self._queue_mode = False
-        self._fd_written = False  # the eventfd holds a count that a wake-up must read
-        self.lost_wakeups = 0  # messages found by the timeout's check, not by an event
+        self._by_fd: dict[int, LaneReader] = {}
         self._waiter: int | None = None  # the thread in wait(), if any
         self._released = threading.Event()
         self._closed = False
-        try:
-            self._eventfd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
-        except OSError as error:  # out of file descriptors: the node runs without the lane
-            raise LaneUnavailableError(f"no eventfd for the lane's waker: {error}") from None
-        try:
-            self._waitset = (iox2.WaitSetBuilder.new()
-                             .signal_handling_mode(iox2.SignalHandlingMode.Disabled)
-                             .create(iox2.ServiceType.Ipc))
-            # Kept: the WaitSet's guard refers to this object without owning it.
-            self._wake_fd = iox2.FileDescriptor.non_owning_new(self._eventfd)
-            self._wake_guard = self._waitset.attach_notification_fd(self._wake_fd)
-            self._wake_id = iox2.WaitSetAttachmentId.from_guard(self._wake_guard)
-        except Exception as error:  # WaitSetCreateError (InsufficientResources: fds), ...
-            self._wake_guard = self._wake_fd = self._waitset = None
-            os.close(self._eventfd)
-            raise LaneUnavailableError(
-                f"iceoryx2 cannot make the lane's WaitSet: {type(error).__name__}: {error}"
-            ) from None
-        _iox2.track(self, early=True)
 
     # -- any thread ----------------------------------------------------------------------------
-    def notify(self) -> None:
-        """Wake the waiting thread (or make its next wait return at once)."""
-        self._notified = True
-        if self._waiter == threading.get_ident():
-            return  # a lane callback on the waiting thread: wait() sees the flag, no syscall
-        with self._lock:  # never write to a closed (and maybe reused) descriptor number
-            if self._queue_mode:
-                self._queue.put(None)
-            elif self._eventfd >= 0:
-                os.eventfd_write(self._eventfd, 1)
-                self._fd_written = True
-
     def attach(self, reader: LaneReader, on_message: OnMessage) -> None:
         """Deliver ``reader``'s messages to ``on_message(bytes)`` on the waiting thread."""
         with self._lock:
@@ -384,16 +457,14 @@ class LaneWaker:
 
     def detach(self, reader: LaneReader, close: bool = False) -> None:
         """Stop delivering ``reader``'s messages (applied by the waiting thread, or when the
-        waker closes); with ``close``, close the reader once it is detached (a reader must not
-        be closed while a WaitSet watches its listener)."""
+        waker closes); with ``close``, close the reader once it is detached."""
         with self._lock:
             self._pending.append((False, _Attachment(reader, _ignore, close_reader=close)))
         self.notify()
 
     def close(self, timeout: float = 1.0) -> None:
-        """Release the WaitSet and the eventfd. A thread waiting meanwhile is woken and releases
-        them itself; close waits up to ``timeout`` s for that (at exit, a wait left running
-        would keep the iceoryx2 node, and its files, alive)."""
+        """Release the eventfd (and close the readers detached with ``close``). A thread waiting
+        meanwhile is woken and releases it itself; close waits up to ``timeout`` s for that."""
         with self._lock:
             if self._closed:
                 return
@@ -414,154 +485,77 @@ class LaneWaker:
             if self._closed:
                 return
             self._waiter = threading.get_ident()
-            # Nothing attached and nothing to attach: block on the queue (see notify). Decided
-            # here, under the lock notify() takes, so no wake-up is lost in between.
-            self._queue_mode = (not self._attached and not self._pending
-                                and not self.busy_poll_s)
         try:
-            self._apply_pending()
-            self._wait_once(timeout)
-            self._apply_pending()  # requests that woke us take effect before we return
+            if self._pending:  # perf: read without the lock; attach/detach notify after adding
+                self._apply_pending()
+            events = _core_wait(self, timeout)
+            if events:
+                self._handle(events)
+            if self._pending:  # requests that woke us take effect before we return
+                self._apply_pending()
+                _core_wait(self, 0)  # frames written before an attachment: delivered now
         finally:
             with self._lock:
                 self._waiter = None
-                self._queue_mode = False  # also after a KeyboardInterrupt inside the wait
                 release = self._closed
             if release:
                 self._release()
 
-    def _wait_once(self, timeout: float | None) -> None:
-        if timeout is not None:
-            # clamped (NaN -> 0): an unrepresentable Duration aborts the process in iceoryx2
-            timeout = min(timeout, threading.TIMEOUT_MAX) if timeout > 0 else 0.0
-        if self.busy_poll_s > 0 and self._spin(timeout):
-            return
-        if self._queue_mode:  # set by wait(); reset in its finally
-            try:
-                if not self._notified:  # read after the mode is set: a notify is seen or queued
-                    self._queue.get(timeout=timeout)
-            except queue.Empty:
-                pass
-            self._consume_notification()
-            return
-        if self._notified:  # notified before we got here: no need to sleep
-            self._consume_notification()
-            return
-        if timeout is None:
-            ready, _ = self._waitset.wait_and_process()
-        else:
-            ready, _ = self._waitset.wait_and_process_with_timeout(
-                self._iox2.Duration.from_secs_f64(timeout))
-        for attachment_id in ready:
-            attachment = self._by_id.get(attachment_id)
-            if attachment is not None:
-                self._deliver(attachment)
-            elif attachment_id == self._wake_id:
-                self._fd_written = True  # readable: read it, whatever the flag said
-                self._consume_notification()
-        if not ready:
-            # Timed out (the executor's tick): a safety net for a wake-up iceoryx2 lost (see
-            # _deliver), so a message waits at most one tick instead of until the next one.
-            for attachment in list(self._attached.values()):
-                if attachment.reader.has_samples():
-                    self.lost_wakeups += 1
-                    _log.debug("lane %r: message found without its wake-up", attachment.reader)
-                    self._deliver(attachment)
-
-    def _spin(self, timeout: float | None) -> bool:
-        """Busy-poll up to ``busy_poll_s``; True when something was handled."""
-        spin = self.busy_poll_s if timeout is None else min(self.busy_poll_s, timeout)
-        deadline = time.perf_counter() + spin
-        attachments = list(self._attached.values())
-        while True:
-            if self._notified:
-                self._consume_notification()
-                return True
-            handled = False
-            for attachment in attachments:
-                if attachment.reader.has_samples():
-                    self._deliver(attachment)
-                    handled = True
-            if handled:
-                return True
-            if time.perf_counter() >= deadline:
-                return False
-
-    def _consume_notification(self) -> None:
-        self._notified = False
-        if self._fd_written:  # perf: no syscall when every notify went through the queue
-            self._fd_written = False
-            try:
-                os.eventfd_read(self._eventfd)
-            except BlockingIOError:  # already consumed
-                pass
-        while not self._queue.empty():  # tokens of notifies already seen through the flag
-            try:
-                self._queue.get_nowait()
-            except queue.Empty:
-                break
-
-    def _deliver(self, attachment: _Attachment) -> None:
-        reader = attachment.reader
-        on_message = attachment.on_message
-        take = reader.take
-        while True:
-            # Messages first, their wake-ups after: the first callback runs without waiting
-            # for a syscall. A message written meanwhile either raised the wake-up consumed
-            # below (so we drain again) or raises a later one (the WaitSet wakes us for it).
-            while (data := take()) is not None:
-                try:
-                    on_message(data)
-                except Exception:  # one bad callback must not strand the messages behind it
-                    _log.exception("lane callback of %r failed", reader)
-            # iceoryx2 0.10 skips the wake-up datagram while its listener state says "notified";
-            # a notify racing a try_wait can leave that state set with the datagram already
-            # consumed, and the next notify would then wake nobody. Ending on a try_wait that
-            # found nothing resets the state; one that found something means drain again.
-            if not reader.consume_events():
-                return
+    def _handle(self, events: tuple[tuple[int, int], ...]) -> None:
+        changed = False
+        for fd, revents in events:
+            reader = self._by_fd.get(fd)
+            if reader is not None and reader.handle(fd, revents):
+                changed = True
+        if changed:
+            self._rebuild()
+            _core_wait(self, 0)  # a new writer's ring may hold frames already: deliver them
 
     def _apply_pending(self) -> None:
-        if not self._pending:  # perf: read without the lock; attach/detach notify after adding
-            return
         with self._lock:
             pending, self._pending = self._pending, []
         for attach, attachment in pending:
-            key = id(attachment.reader)
-            old = self._attached.pop(key, None)
-            if old is not None:
-                self._forget(old)
+            reader = attachment.reader
+            self._attached.pop(id(reader), None)
             if attachment.close_reader:
-                attachment.reader.close()
-            if not attach or attachment.reader.listener is None:
-                continue
-            attachment.guard = self._waitset.attach_notification(attachment.reader.listener)
-            self._by_id[self._iox2.WaitSetAttachmentId.from_guard(attachment.guard)] = attachment
-            self._attached[key] = attachment
-            # Messages written before the attachment raised no event this WaitSet saw.
-            self._deliver(attachment)
+                self._rebuild()  # the core lets go of its sockets before they close
+                reader.close()
+            if attach and reader.listener is not None:
+                reader.accept()  # writers that came before the attachment
+                self._attached[id(reader)] = attachment
+        self._rebuild()
 
-    def _forget(self, attachment: _Attachment) -> None:
-        self._by_id = {k: v for k, v in self._by_id.items() if v is not attachment}
-        if attachment.guard is not None:
-            attachment.guard.delete()
-            attachment.guard = None
+    def _rebuild(self) -> None:
+        rings: list[tuple[Any, OnMessage, LaneReader]] = []
+        fds: list[tuple[int, int]] = []
+        by_fd: dict[int, LaneReader] = {}
+        for attachment in self._attached.values():
+            reader = attachment.reader
+            rings += [(ring, attachment.on_message, reader) for ring in reader.rings()]
+            for fd, events in reader.watched():
+                fds.append((fd, events))
+                by_fd[fd] = reader
+        self.watch(rings, fds)
+        self._by_fd = by_fd
 
     def _release(self) -> None:
         with self._lock:
             pending, self._pending = self._pending, []
+        self._attached.clear()
+        self._by_fd = {}
+        _ring.Waker.close(self)
         for _attach, attachment in pending:
             if attachment.close_reader:
                 attachment.reader.close()
-        for attachment in list(self._attached.values()):
-            self._forget(attachment)
-        self._attached.clear()
-        self._wake_guard.delete()
-        self._waitset.delete()
-        with self._lock:
-            fd, self._eventfd = self._eventfd, -1
-        os.close(fd)
         self._released.set()
+
+
+_core_wait = _ring.Waker.wait
+
+
+def _callback_failed(reader: LaneReader, error: BaseException) -> None:
+    """One bad callback must not strand the messages behind it: logged, delivery goes on."""
+    _log.error("lane callback of %r failed", reader, exc_info=error)
 
 
 def _ignore(data: bytes) -> None:

@@ -29,7 +29,7 @@ import zenoh
 from rosidl_buffer import BufferBackend, RosidlBufferError, local_host_id
 from rosidl_buffer.messages import Message, get_message_type, get_type_hash
 
-from . import _lane_routes, _process, fast_lane as _fast_lane, wire
+from . import _process, fast_lane as _fast_lane, wire
 from ._executor import Executor
 from ._info import endpoint_gone, endpoint_info
 from ._waker import Waker
@@ -69,7 +69,7 @@ class Node:
     ``executor="thread"`` runs callbacks on a thread of the node;
     ``"manual"`` runs them only inside :meth:`spin` / :meth:`spin_once` on the caller's thread.
     ``waker`` replaces the executor's wake-up source (see :mod:`buffer_pubsub._waker`).
-    ``fast_lane``: carry descriptors to same-host subscriptions of other processes over iceoryx2
+    ``fast_lane``: carry descriptors to same-host subscriptions of other processes over the lane
     (:mod:`buffer_pubsub.fast_lane`); None follows env ``WARP_BUFFER_FAST_LANE`` (on by
     default). The lane's waker is then the executor's (lane callbacks run on the executor
     thread or in :meth:`spin`); a custom ``waker`` that is not a ``LaneWaker`` turns it off.
@@ -122,7 +122,6 @@ class Node:
         self._spin_lock = threading.Lock()  # executor="manual": the one thread that spins
         self._inline_callbacks = executor == "thread" and bool(inline_callbacks)
         self._executor = Executor(waker, self._housekeeping, self._gate)
-        self._sweeper = _lane_routes.DeadPeerSweeper(self.locality)
         self._thread: threading.Thread | None = None
 
         try:
@@ -223,7 +222,6 @@ class Node:
         # After the executor stopped: the waker closes the readers detached from it.
         if self._lane is not None and self._own_lane:
             self._lane.close()
-        self._sweeper.close()
 
     def _check_open(self) -> None:
         if self._closed:
@@ -457,7 +455,6 @@ class Node:
             keys.remove(key)
         if self._graph.get(gid) is not token:
             return []  # a twin kept aside went away
-        self._sweeper.peer_gone(token)  # a SIGKILLed peer's iceoryx2 files
         if keys:  # another live key claims the gid: its endpoint is the one now
             successor = self._graph[gid] = self._keys[keys[0]]
             return [(token, False), (successor, True)]

@@ -6,7 +6,7 @@ Per publish:
   no copy of the payload) when they accept every backend the message's buffers live in, else a
   CPU copy; they are never served through Zenoh as well;
 - a remote subscription that advertises a backend besides CPU gets its own channel
-  ``<key>/_buf/<its gid>`` (over the same-host iceoryx2 lane when its process is on this host
+  ``<key>/_buf/<its gid>`` (over the same-host lane when its process is on this host
   and user and has the lane on, see :mod:`._lane_routes`; else on Zenoh): a payload
   serialized for it alone when a backend agreed to serve it (``on_discovering_endpoint``)
   and holds one of the message's buffers (``create_descriptor_with_endpoint`` per buffer,
@@ -257,7 +257,8 @@ class Publisher:
                 node.locality, token, individual=peer.individual, served=bool(peer.served),
                 keep_all=wire.KEEP_ALL in (self.history, wire.qos_history(token.qos))):
             return
-        writer = _lane_routes.open_writer(self.base_key, token.gid)  # None: Zenoh serves it
+        writer = _lane_routes.open_writer(self.base_key, token.gid,  # None: Zenoh serves it
+                                          _lane_routes.queue_depth(token))
         if writer is None:
             return
         with peer.lock:
@@ -447,7 +448,7 @@ class Publisher:
                     lane.close()
                     _log.warning("lane to %s failed, Zenoh carries it: %s",
                                  peer.token.gid.hex(), exc)
-                # False: iceoryx2 reached no reader (it died before its DELETE came), so the
+                # False: the lane reached no reader (it died before its DELETE came), so the
                 # Zenoh put below cannot duplicate the message.
             if peer.channel is None:
                 peer.channel = self._declare_channel(

@@ -18,6 +18,7 @@ __all__ = [
     "UnknownMessageTypeError",
     "InvalidBufferDataError",
     "UnknownFieldError",
+    "NativeExtensionMissingError",
 ]
 
 
@@ -75,3 +76,8 @@ class UnknownFieldError(RosidlBufferError, AttributeError, TypeError):
     """A message has no field of that name (a misspelt keyword or attribute); the message
     names the closest field. Also an ``AttributeError`` (attributes) and a ``TypeError``
     (keywords), as Python raises for each."""
+
+
+class NativeExtensionMissingError(RosidlBufferError, ImportError):
+    """A native extension of the project (its per-message core, compiled from C at install) is
+    not built or does not load; the message names it and the remedy. Also an ``ImportError``."""

@@ -3,6 +3,7 @@ and a guard that fails the run if a test leaves shared memory or child processes
 
 from __future__ import annotations
 
+import gc
 import itertools
 import os
 import pathlib
@@ -203,81 +204,37 @@ def warp_pool_drained():
         time.sleep(0.02)
 
 
-# --------------------------------------------------------------------------- iceoryx2 leak guard
-# The fast lane's iceoryx2 files carry a prefix naming its domain (buffer_pubsub._iox2); this run
-# gets a domain of its own, inherited by the processes its tests start, so the guard judges only
-# files this run created, never those of other iceoryx2 programs or concurrent test runs.
-_OWN_LANE_DOMAIN = "WARP_BUFFER_FAST_LANE_DOMAIN" not in os.environ
-os.environ.setdefault("WARP_BUFFER_FAST_LANE_DOMAIN", f"t{os.getpid()}")
-IOX2_ROOT = pathlib.Path("/tmp/iceoryx2")
+# --------------------------------------------------------------------------- lane leak guard
+# The fast lane's rings are anonymous memfds (nothing in /dev/shm or the filesystem: the kernel
+# reclaims them with the processes that map them). What a process can still hold too long is a
+# ring of a peer that is gone or a lane end nobody closed: its mapping.
+LANE_MAPPING = "/memfd:warp_buffer_lane"
 
 
-def lane_files() -> set[str]:
-    """Our run's iceoryx2 files in /dev/shm and under iceoryx2's root, but the 16-byte
-    ``global_mgmt`` segment iceoryx2 keeps per domain on purpose (removed at session end)."""
-    from buffer_pubsub._iox2 import resource_prefix
-
-    prefix = resource_prefix()
-    found = {p.name for p in _listdir(SHM_DIR) if p.name.startswith(prefix)}
-    for root, _dirs, files in os.walk(IOX2_ROOT):
-        found.update(os.path.join(root, f) for f in files if f.startswith(prefix))
-    return {name for name in found if not name.endswith(".global_mgmt")}
-
-
-def _listdir(path: pathlib.Path) -> list[pathlib.Path]:
+def lane_files(pid: int | str = "self") -> set[str]:
+    """The lane rings process ``pid`` maps now (by address range): one per writer and reader
+    end of each connected route."""
     try:
-        return list(path.iterdir())
+        with open(f"/proc/{pid}/maps", encoding="ascii", errors="replace") as maps:
+            return {line.split()[0] for line in maps if LANE_MAPPING in line}
     except OSError:
-        return []
-
-
-def _remove_lane_files(names: set[str]) -> None:
-    from buffer_pubsub._iox2 import cleanup_dead_nodes
-
-    cleanup_dead_nodes()
-    for name in names:
-        try:
-            (SHM_DIR / name if "/" not in name else pathlib.Path(name)).unlink()
-        except OSError:
-            pass
+        return set()
 
 
 @pytest.fixture(autouse=True)
 def no_lane_leaks(request: pytest.FixtureRequest):
-    """Fail a test after which iceoryx2 files of this run remain that were not there before."""
+    """Fail a test after which this process maps lane rings it did not map before."""
     import time
-
-    import sys
 
     before = lane_files()
     yield
-    iox2 = sys.modules.get("buffer_pubsub._iox2")
-    if iox2 is not None:  # this process's own node lives as long as the process, like the pool
-        iox2.close_node()
     deadline = time.monotonic() + 3.0
-    while True:  # a reaped child's node may take a moment to go
+    while True:  # a lane end dropped by a closing node may take a collection to go
         leaked = lane_files() - before
         if not leaked or time.monotonic() > deadline:
             break
-        # What the next lane process would do: iceoryx2's dead-node clean-up (a SIGKILLed
-        # child leaves its node's files to it). Files of live nodes stay and fail the test.
-        from buffer_pubsub._iox2 import cleanup_dead_nodes
-
-        cleanup_dead_nodes()
+        gc.collect()
         time.sleep(0.05)
     if leaked:
-        _remove_lane_files(leaked)
-        pytest.fail(f"{request.node.nodeid} leaked iceoryx2 files: {sorted(leaked)}", pytrace=False)
-
-
-@pytest.hookimpl(trylast=True)
-def pytest_unconfigure(config: pytest.Config) -> None:
-    """Remove the ``global_mgmt`` segment of this run's lane domain (nothing else uses it)."""
-    if not _OWN_LANE_DOMAIN:
-        return
-    from buffer_pubsub._iox2 import resource_prefix
-
-    prefix = resource_prefix()
-    for path in _listdir(SHM_DIR):
-        if path.name.startswith(prefix) and path.name.endswith(".global_mgmt"):
-            path.unlink(missing_ok=True)
+        pytest.fail(f"{request.node.nodeid} left {len(leaked)} lane ring(s) mapped",
+                    pytrace=False)

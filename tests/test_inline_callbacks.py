@@ -10,7 +10,6 @@ import time
 import pytest
 
 from tests._pubsub_helpers import TENSOR, Child, pick_backend, use_fake_backend
-from tests.test_fast_lane import requires_iceoryx2
 
 use_fake_backend()
 
@@ -141,7 +140,6 @@ def test_one_callback_of_the_node_at_a_time(domain, topic):
         assert counter["received"] == COUNT
 
 
-@requires_iceoryx2
 def test_lane_callbacks_run_inside_the_wait_and_spin_once_counts_them(domain, topic,
                                                                       monkeypatch):
     monkeypatch.setenv(fast_lane.ENV_SWITCH, "1")

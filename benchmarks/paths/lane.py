@@ -3,8 +3,8 @@
 What travels is what the lane carries for a zero-copy message: a 602-byte message (the size of
 today's warp descriptor message for a 4 KiB tensor; the payload itself stays where the
 publisher wrote it, in shared memory, so the message is the same at every size). The receiver
-blocks in ``LaneWaker.wait`` (an iceoryx2 WaitSet: woken by the writer's event, no polling) and
-reads the stamp from the message it took. The import of the descriptor is not part of this
+blocks in ``LaneWaker.wait`` (``ppoll`` on the ring's eventfd doorbell, no polling) and reads
+the stamp from the message it took. The import of the descriptor is not part of this
 path: ``benchmarks/lane_stages.py`` measures it, stage by stage.
 """
 
@@ -17,10 +17,9 @@ from typing import Any, Callable
 from benchmarks.paths import PathSettings, PathUnavailable
 from benchmarks.protocol import STAMP_SIZE, stamp_into
 
-LABEL = "ours: fast lane (descriptor over iceoryx2)"
+LABEL = "ours: fast lane (descriptor through a ring, eventfd doorbell)"
 KIND = "ours"
 TOPOLOGY = "pair"
-SHM_PREFIXES = ("warp_lane_",)  # the lane's iceoryx2 files, global_mgmt included
 MESSAGE_BYTES = 602
 WAIT_S = 0.05  # the receiver loop checks its control pipe this often while idle
 
@@ -55,12 +54,12 @@ class LaneSender:
         self._sizes.append(nbytes)
 
     def send(self, seq: int) -> None:
-        """Stamp, write (one copy of 602 B into iceoryx2's segment), wake the receiver."""
+        """Stamp, write (one copy of 602 B into the ring), wake the receiver."""
         stamp_into(self._message, seq)
         self._writer.write(self._message)
 
     def report(self) -> dict:
-        """Bytes copied per message: the 602-byte message into iceoryx2's segment (never the
+        """Bytes copied per message: the 602-byte message into the ring (never the
         payload, which stays in shared memory)."""
         return {"per_size": {str(n): {"serialized_bytes_per_message": MESSAGE_BYTES}
                              for n in self._sizes}}
@@ -97,7 +96,7 @@ class LaneReceiver:
         self._sizes.append(nbytes)
 
     def report(self) -> dict:
-        """Bytes copied per message (the message out of iceoryx2's segment, ``take``) and the
+        """Bytes copied per message (the message out of the ring) and the
         CPU this receiver process used per second of the run (1.0 = a core held)."""
         wall = time.monotonic() - self._started[0]
         return {"per_size": {str(n): {"received_wire_bytes": MESSAGE_BYTES, "backend": "lane",

@@ -2,7 +2,7 @@
 
 The same messages as the ``lane`` path; after each message the receiver spins up to 1 ms
 checking for the next before it blocks. Its CPU cost is in the receiver's report
-(``cpu_per_wall_s``: 1.0 = a core held at 100%, with the GIL).
+(``cpu_per_wall_s``: 1.0 = a core held at 100%; the spin releases the GIL).
 """
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ from __future__ import annotations
 from typing import Any
 
 from benchmarks.paths import PathSettings
-from benchmarks.paths.lane import SHM_PREFIXES, LaneReceiver, make_sender
+from benchmarks.paths.lane import LaneReceiver, make_sender
 
-__all__ = ["LABEL", "KIND", "TOPOLOGY", "SHM_PREFIXES", "make_receiver", "make_sender"]
+__all__ = ["LABEL", "KIND", "TOPOLOGY", "make_receiver", "make_sender"]
 
 LABEL = "ours: fast lane, busy-poll receiver (1 ms spin)"
 KIND = "ours"
