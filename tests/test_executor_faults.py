@@ -123,7 +123,7 @@ def test_a_keep_last_subscription_refuses_a_message_older_than_one_delivered(dom
                 msg = sub.msg_type(data=str(sequence))
                 from rosidl_buffer.messages import serialize_message
 
-                attachment = wire.Attachment(sequence, 0, gid)
+                attachment = wire.Attachment(sequence, sequence, gid)
                 sub._enqueue((bytes(serialize_message(msg)), attachment, ROUTE_BASE, 0, False))
         while node.spin_once(0.2):
             pass
