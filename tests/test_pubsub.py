@@ -309,7 +309,7 @@ def test_stale_descriptor_is_counted_and_the_subscription_goes_on(domain, topic,
 
 def test_samples_without_attachment_are_rejected_and_base_key_serves_plain_peers(
         domain, topic, backends):
-    """A peer that knows nothing of buffers (plain rmw_zenoh: no extra segment) gets CPU bytes on
+    """A peer that knows nothing of buffers (pre-0.10.5 rmw_zenoh: no backends) gets CPU bytes on
     the base key; a bare sample with no attachment is dropped."""
     tensor = get_message_type(TENSOR)
     got, plain = [], []
