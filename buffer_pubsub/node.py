@@ -348,6 +348,7 @@ class Node:
         *,
         with_info: bool = False,
         history: str = wire.KEEP_LAST,
+        raw: bool = False,
     ) -> Subscription:
         """A subscription calling ``callback(msg)`` (``callback(msg, info)`` with ``with_info``)
         on this node's executor for every message of ``topic``.
@@ -357,6 +358,8 @@ class Node:
         discovery.
         ``history="keep_last"`` keeps the newest ``depth`` messages waiting for the callback
         (older ones are dropped and counted); ``"keep_all"`` keeps every one (as rmw_zenoh).
+        ``raw=True`` (CPU-only subscriptions) passes the serialized CDR bytes instead of a
+        message, decoding nothing (rclpy's ``raw``): for tools that measure or record.
         """
         self._check_open()
         if not callable(callback):
@@ -371,13 +374,17 @@ class Node:
                 acceptable_buffer_backends, ["cpu", *self.backends])
         except ValueError as exc:
             raise InvalidEndpointError(str(exc)) from None
+        if raw and accepted != ["cpu"]:
+            raise InvalidEndpointError(
+                "raw=True takes CPU bytes only: a backend's descriptor means nothing serialized "
+                f"(acceptable_buffer_backends={acceptable_buffer_backends!r})")
         advertised = (_subscription_advertisement(acceptable_buffer_backends, accepted, self)
                       if cls._buffer_fields else None)
         token = self._endpoint_token(
             wire.SUBSCRIPTION_KIND, fq_topic, cls.__msgtype__, depth, history, advertised)
         with typed_zenoh_errors(f"cannot declare a subscription on {fq_topic}"):
             subscription = Subscription(self, cls, token, callback, depth, accepted, with_info,
-                                        history)
+                                        history, raw=raw)
         with self._lock:
             closed = self._closed  # close() ran meanwhile: it did not see this one
             if not closed:

@@ -38,7 +38,12 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from rosidl_buffer import RosidlBufferError
-from rosidl_buffer.messages import Message, deserialize_message, release_buffers
+from rosidl_buffer.messages import (
+    Message,
+    deserialize_message,
+    release_buffers,
+    serialize_message,
+)
 
 from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info, unknown_publisher_info
@@ -102,9 +107,10 @@ class Subscription:
 
     def __init__(self, node: Node, msg_type: type[Message], token: wire.EndpointToken,
                  callback: Callable[..., Any], depth: int, accepted: list[str],
-                 with_info: bool, history: str = wire.KEEP_LAST) -> None:
+                 with_info: bool, history: str = wire.KEEP_LAST, *, raw: bool = False) -> None:
         self.node = node
         self.msg_type = msg_type
+        self.raw = raw  # callbacks get the serialized CDR bytes (rclpy's raw=True)
         self.topic_name = token.topic
         self.depth = depth
         self.history = history
@@ -393,7 +399,9 @@ class Subscription:
         """Deserialize a queued payload if it still is one, then run the callback; whether it
         ran (not for a message that failed to decode or arrived after close)."""
         payload, attachment, route, received_ns, owned = item
-        if owned or route == ROUTE_INTRA:
+        if self.raw:  # the bytes as they came (CPU routes only); an intra message serialized
+            msg = bytes(serialize_message(payload)) if route == ROUTE_INTRA else bytes(payload)
+        elif owned or route == ROUTE_INTRA:
             msg = payload
         else:
             try:

@@ -481,3 +481,22 @@ def test_tokens_with_impossible_type_names_are_ignored(domain, topic, backends, 
     assert not [t for t in node._graph.values() if t.node_name == "odd"]
     assert not any("/msg/X" == n or n.startswith("a/b") for types in names.values()
                    for n in types)
+
+
+def test_a_raw_subscription_gets_the_serialized_bytes(domain, topic, backends):
+    """rclpy's raw=True: the CDR bytes, nothing decoded (CPU-only: a descriptor means nothing
+    serialized); in process, the message serialized as the wire would carry it."""
+    from rosidl_buffer.messages import deserialize_message, serialize_message
+
+    got = []
+    with Node("raw", domain_id=domain, backends=backends) as node:
+        with pytest.raises(InvalidEndpointError, match="raw"):
+            node.create_subscription(TENSOR, topic, got.append, raw=True,
+                                     acceptable_buffer_backends="any")
+        node.create_subscription(TENSOR, topic, got.append, raw=True)
+        pub = node.create_publisher(TENSOR, topic)
+        frame = make_frame(0, 3, 64, "cpu")
+        pub.publish(frame)
+        assert wait_until(lambda: got)
+    assert type(got[0]) is bytes and got[0] == bytes(serialize_message(frame))
+    assert check_frame(deserialize_message(got[0], TENSOR))["index"] == 3

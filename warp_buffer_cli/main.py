@@ -18,6 +18,10 @@ _COMMANDS = {
     "bench": ("benchmarks.run", "measure latency, rate and copies against peer transports"),
     "router": ("warp_buffer_cli.router",
                "run a Zenoh router (rmw_zenoh's defaults) for nodes on several hosts"),
+    # Groups of subcommands (warp_buffer_cli._groups): one module each, its leaves beside it.
+    "topic": ("warp_buffer_cli.topic",
+              "list topics, show their endpoints and routes, echo, measure rate and bandwidth"),
+    "node": ("warp_buffer_cli.node", "list the nodes of the domain, show one's endpoints"),
 }
 
 
@@ -46,7 +50,8 @@ def main(argv: list[str] | None = None) -> int:
         if name == chosen:
             module = importlib.import_module(module_name)
             module.add_arguments(sub)
-            sub.set_defaults(run=module.run)
+            if hasattr(module, "run"):  # a group's leaves set their own
+                sub.set_defaults(run=module.run)
     args = parser.parse_args(argv)
     _configure_output(args.verbose)
     try:
