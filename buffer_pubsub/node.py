@@ -15,6 +15,7 @@ vanish on DELETE, which Zenoh also sends when a peer process dies (SIGKILL inclu
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import math
@@ -349,6 +350,7 @@ class Node:
         with_info: bool = False,
         history: str = wire.KEEP_LAST,
         raw: bool = False,
+        max_rate: float | None = None,
     ) -> Subscription:
         """A subscription calling ``callback(msg)`` (``callback(msg, info)`` with ``with_info``)
         on this node's executor for every message of ``topic``.
@@ -360,6 +362,11 @@ class Node:
         (older ones are dropped and counted); ``"keep_all"`` keeps every one (as rmw_zenoh).
         ``raw=True`` (CPU-only subscriptions) passes the serialized CDR bytes instead of a
         message, decoding nothing (rclpy's ``raw``): for tools that measure or record.
+        ``max_rate``: at most this many messages a second from each publisher, the first after
+        each interval (a viewer that looks at a few frames a second). Publishers of ours honour
+        it before they serialize for this subscription, so they save the work; for others
+        (rmw_zenoh knows nothing of it) the subscription drops the extra messages on arrival,
+        before decoding them. The keep-last ``depth`` applies to what passes.
         """
         self._check_open()
         if not callable(callback):
@@ -374,14 +381,16 @@ class Node:
                 acceptable_buffer_backends, ["cpu", *self.backends])
         except ValueError as exc:
             raise InvalidEndpointError(str(exc)) from None
+        rate = _max_rate(max_rate)
         if raw and accepted != ["cpu"]:
             raise InvalidEndpointError(
                 "raw=True takes CPU bytes only: a backend's descriptor means nothing serialized "
                 f"(acceptable_buffer_backends={acceptable_buffer_backends!r})")
         advertised = (_subscription_advertisement(acceptable_buffer_backends, accepted, self)
                       if cls._buffer_fields else None)
-        token = self._endpoint_token(
-            wire.SUBSCRIPTION_KIND, fq_topic, cls.__msgtype__, depth, history, advertised)
+        token = dataclasses.replace(self._endpoint_token(
+            wire.SUBSCRIPTION_KIND, fq_topic, cls.__msgtype__, depth, history, advertised),
+            max_rate_hz=rate)
         with typed_zenoh_errors(f"cannot declare a subscription on {fq_topic}"):
             subscription = Subscription(self, cls, token, callback, depth, accepted, with_info,
                                         history, raw=raw)
@@ -586,6 +595,21 @@ class Node:
                 for info in self._endpoints(kind, None)
                 if info.node_name == node_name
                 and (info.node_namespace.rstrip("/") or "") == namespace]
+
+
+def _max_rate(value: float | None) -> float:
+    """A subscription's ``max_rate`` in Hz (0: none); InvalidEndpointError unless positive and
+    finite."""
+    if value is None:
+        return 0.0
+    try:
+        rate = float(value)
+    except (TypeError, ValueError):
+        raise InvalidEndpointError(f"max_rate must be a number of Hz, got {value!r}") from None
+    if isinstance(value, bool) or not 0 < rate < math.inf:
+        raise InvalidEndpointError(f"max_rate must be a positive, finite rate in Hz, got "
+                                   f"{value!r}")
+    return rate
 
 
 def _nothing_periodic() -> None:

@@ -48,6 +48,7 @@ from rosidl_buffer.messages import Message, deserialize_message, iter_buffers, s
 
 from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info
+from ._rate import RateLimit
 from ._snapshot import snapshot
 from .loan import Loan, LoanPool, flat_buffer_fields
 from ._validation import validate_message
@@ -126,9 +127,14 @@ class _Peer:
     # What backends are told when descriptors are made for it: its info, plus the depth of
     # the lane's keep-last queue while the lane carries them (EndpointInfo.delivery_queue_depth).
     route_info: EndpointInfo = field(init=False)
+    # A subscription of ours that asked for at most max_rate_hz messages a second: served on
+    # its own stream at that rate (None: every message). Used by the publishing thread alone.
+    rate: RateLimit | None = field(init=False)
 
     def __post_init__(self) -> None:
         self.route_info = self.info
+        limited = self.token.is_ours and self.token.max_rate_hz
+        self.rate = RateLimit(self.token.max_rate_hz) if limited else None
 
     @property
     def individual(self) -> bool:
@@ -266,8 +272,11 @@ class Publisher:
                 peer.close()  # (backends hear of its departure from the node: see there)
             return
         info = endpoint_info(token)
-        peer = _Peer(token, info, wire.subscription_channel(token) if self._aware
-                     else wire.SubscriptionChannel.BASE)
+        stream = (wire.subscription_channel(token) if self._aware
+                  else wire.SubscriptionChannel.BASE)
+        if stream == wire.SubscriptionChannel.CPU and token.is_ours and token.max_rate_hz:
+            stream = wire.SubscriptionChannel.OWN  # it listens there too, for its rate
+        peer = _Peer(token, info, stream)
         with self._lock:
             if self._closed or gid in self._peers:
                 return
@@ -358,6 +367,8 @@ class Publisher:
             gid = peer.token.gid
             if gid in local:
                 continue
+            rate = (f"; at most {peer.token.max_rate_hz:g} messages a second (its max_rate)"
+                    if peer.rate is not None else "")
             if not self._aware:
                 routes.append(RouteInfo(gid, ROUTE_CPU, "base key",
                                         "the type has no top-level uint8[]: classic rmw_zenoh"))
@@ -366,10 +377,10 @@ class Publisher:
                 if peer.served:
                     why = "served by " + ", ".join(sorted(peer.served)) + self._why(peer, True)
                     routes.append(RouteInfo(gid, ROUTE_DESCRIPTOR, via, why + (
-                        "; CPU bytes for a message whose buffers live elsewhere")))
+                        "; CPU bytes for a message whose buffers live elsewhere") + rate))
                 else:
-                    routes.append(RouteInfo(gid, ROUTE_CPU, via,
-                                            "no backend serves it" + self._why(peer, False)))
+                    routes.append(RouteInfo(gid, ROUTE_CPU, via, "no backend serves it"
+                                            + self._why(peer, False) + rate))
             elif routing.base:
                 routes.append(RouteInfo(gid, ROUTE_CPU, "base key",
                                         "a subscription that advertises no backends is matched "
@@ -481,7 +492,10 @@ class Publisher:
         need_base = routing.base
         need_cpu = routing.cpu or need_base
         individual: list[tuple[_Peer, bytearray | None]] = []
+        now = time.monotonic()
         for peer in routing.own:
+            if peer.rate is not None and not peer.rate.admit(now):
+                continue  # at its max_rate: nothing serialized, nothing sent
             if peer.served & backends:
                 individual.append((peer, self._checked(self._serialize_for(peer, msg))))
             elif not need_base:

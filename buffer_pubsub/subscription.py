@@ -48,6 +48,7 @@ from rosidl_buffer.messages import (
 from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info, unknown_publisher_info
 from ._inline import InlinePolicy
+from ._rate import RateLimit
 from ._sequence import Deduplicator, SequenceTracker
 from ._zenoh import undeclare_quietly
 from .errors import PubSubError
@@ -98,6 +99,9 @@ class SubscriptionCounters:
     # Samples refused as malformed (see refused; a duplicate or late copy is no fault of input).
     rejected: int = 0
     callback_errors: int = 0  # exceptions raised by the user callback
+    # Messages left out by the subscription's max_rate (here; a publisher of ours that honours
+    # the rate does not send them at all, and they count nowhere).
+    decimated: int = 0
     sequence_jumps: int = 0  # jumps beyond _sequence.LOST_WINDOW (resynchronized, not counted)
     refused: dict[str, int] = field(default_factory=dict)  # reason -> samples not delivered
 
@@ -111,6 +115,11 @@ class Subscription:
         self.node = node
         self.msg_type = msg_type
         self.raw = raw  # callbacks get the serialized CDR bytes (rclpy's raw=True)
+        # At most max_rate_hz messages a second from each publisher (0: all). Our publishers
+        # honour it on this subscription's own stream; what comes otherwise (a shared stream,
+        # another implementation) is thinned here, before it is decoded or copied.
+        self.max_rate_hz = token.max_rate_hz
+        self._rates: dict[bytes, RateLimit] = {}  # per publisher
         self.topic_name = token.topic
         self.depth = depth
         self.history = history
@@ -144,14 +153,17 @@ class Subscription:
             self.base_key, lambda s: self._on_sample(s, ROUTE_BASE), allowed_origin=remote)]
         # A buffer-aware subscription (its type has a top-level uint8[]) listens on one more key:
         # the shared CPU stream when it advertises exactly cpu, else its own.
+        # A rate-limited CPU-only one listens on its own stream too: our publishers serve it
+        # there, at its rate (see max_rate below).
         own_stream = False
         if msg_type._buffer_fields:
-            if wire.subscription_channel(token) == wire.SubscriptionChannel.CPU:
+            cpu_only = wire.subscription_channel(token) == wire.SubscriptionChannel.CPU
+            if cpu_only:
                 self._subscribers.append(session.declare_subscriber(
                     wire.cpu_channel_key(self.base_key),
                     lambda s: self._on_sample(s, ROUTE_CPU), allowed_origin=remote))
-            else:
-                own_stream = True
+            if not cpu_only or token.max_rate_hz:
+                own_stream = not cpu_only
                 self._subscribers.append(session.declare_subscriber(
                     wire.buffer_channel_key(self.base_key, self.gid),
                     lambda s: self._on_sample(s, ROUTE_BUFFER), allowed_origin=remote))
@@ -222,6 +234,8 @@ class Subscription:
             return
         if _process.is_local_publisher(attachment.publisher_gid):
             return  # delivered intra-process already
+        if self.max_rate_hz and not self._due(attachment, route):
+            return
         # ZBytes has no buffer protocol in zenoh 1.10: to_bytes() is the one copy out of Zenoh
         # (deserialization then aliases these bytes).
         self._arrived((sample.payload.to_bytes(), attachment, route, received_ns, False),
@@ -241,7 +255,26 @@ class Subscription:
         gid = attachment.publisher_gid
         if _process.is_local_publisher(gid):
             return  # delivered intra-process already (never sent here; a forged frame)
+        if self.max_rate_hz and not self._due(attachment, ROUTE_LANE):
+            return
         self._arrived((payload, attachment, ROUTE_LANE, received_ns, False), inline=True)
+
+    def _due(self, attachment: wire.Attachment, route: str) -> bool:
+        """Whether a message passes ``max_rate_hz`` (the first after each interval, per
+        publisher); one that does not is counted in ``decimated``, its number still judged."""
+        gid = attachment.publisher_gid
+        if route in _DESCRIPTOR_ROUTES and self._from_ours(gid, route):
+            return True  # our publisher sends this stream at our rate already
+        now = time.monotonic()
+        with self._lock:
+            rate = self._rates.get(gid)
+            if rate is None:
+                rate = self._rates[gid] = RateLimit(self.max_rate_hz)
+            if rate.admit(now):
+                return True
+            self._judge(attachment, route)
+            self.counters.decimated += 1
+            return False
 
     def _arrived(self, item: tuple[Any, ...], inline: bool = False) -> None:
         """Queue an arrived sample (``inline``: deliver at once if nothing waits, see
@@ -272,6 +305,8 @@ class Subscription:
                      exc_info=not isinstance(exc, RosidlBufferError))
 
     def _deliver_intra(self, msg: Message, attachment: wire.Attachment) -> None:
+        if self.max_rate_hz and not self._due(attachment, ROUTE_INTRA):
+            return
         self._enqueue((msg, attachment, ROUTE_INTRA, time.time_ns(), False))
 
     def _judge(self, attachment: wire.Attachment, route: str) -> bool:
@@ -380,6 +415,7 @@ class Subscription:
             with self._lock:
                 self._sequences.forget(token.gid)
                 self._copies.forget(token.gid)
+                self._rates.pop(token.gid, None)
 
     # -- executor ------------------------------------------------------------------------------
     def _run_one(self) -> bool:

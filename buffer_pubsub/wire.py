@@ -376,17 +376,31 @@ class Locality:
     process_id: int = 0
     user_id: int = -1
 
-    def encode(self) -> str:
-        return (f"{LOCALITY_PREFIX}{_escape_key_field(self.host_id)}:{self.process_id}:"
-                f"{self.user_id}")
 
-    @classmethod
-    def decode(cls, segment: str) -> Locality:
-        fields = segment[len(LOCALITY_PREFIX):].split(":")
-        if len(fields) != 3 or not all(f.isascii() and f.lstrip("-").isdecimal()
-                                       for f in fields[1:]):
-            raise WireFormatError(f"malformed locality segment {segment!r}")
-        return cls(unescape_backend_field(fields[0]), int(fields[1]), int(fields[2]))
+
+def encode_extension(locality: Locality, max_rate_hz: float = 0.0) -> str:
+    """Our segment: ``wbloc:<host>:<pid>:<uid>``, plus ``:<max rate in Hz>`` for a subscription
+    that asked for at most that many messages a second (see :mod:`buffer_pubsub.subscription`)."""
+    text = (f"{LOCALITY_PREFIX}{_escape_key_field(locality.host_id)}:{locality.process_id}:"
+            f"{locality.user_id}")
+    return f"{text}:{max_rate_hz!r}" if max_rate_hz > 0 else text
+
+
+def decode_extension(segment: str) -> tuple[Locality, float]:
+    """Inverse of :func:`encode_extension`; WireFormatError for anything else."""
+    fields = segment[len(LOCALITY_PREFIX):].split(":")
+    if len(fields) not in (3, 4) or not all(f.isascii() and f.lstrip("-").isdecimal()
+                                            for f in fields[1:3]):
+        raise WireFormatError(f"malformed locality segment {segment!r}")
+    rate = 0.0
+    if len(fields) == 4:
+        try:
+            rate = float(fields[3])
+        except ValueError:
+            raise WireFormatError(f"malformed rate in {segment!r}") from None
+        if not 0 < rate < float("inf"):
+            raise WireFormatError(f"malformed rate in {segment!r}")
+    return Locality(unescape_backend_field(fields[0]), int(fields[1]), int(fields[2])), rate
 
 
 # --------------------------------------------------------------------------- tokens
@@ -422,8 +436,8 @@ class SubscriptionChannel:
 class EndpointToken:
     """A publisher (``MP``) or subscription (``MS``) as advertised through liveliness.
 
-    ``backends`` is the parsed 14th segment (None: the token has none); ``locality`` our
-    extension segment (None: not one of ours). ``node_id`` and ``entity_id`` keep the text of the
+    ``backends`` is the parsed 14th segment (None: the token has none); ``locality`` and
+    ``max_rate_hz`` our extension segment (None: not one of ours; 0: no rate asked). ``node_id`` and ``entity_id`` keep the text of the
     token (rmw_zenoh hashes them as text).
     """
 
@@ -441,6 +455,7 @@ class EndpointToken:
     backends: dict[str, str] | None = field(default=None, hash=False, compare=False)
     locality: Locality | None = None
     enclave: str = DEFAULT_ENCLAVE
+    max_rate_hz: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "node_id", str(self.node_id))
@@ -462,7 +477,9 @@ class EndpointToken:
         """The key this endpoint declares: the canonical key (key-unsafe bytes of backend
         metadata escaped), plus our locality segment."""
         key = self.canonical_key(declarable=True)
-        return key if self.locality is None else f"{key}/{self.locality.encode()}"
+        if self.locality is None:
+            return key
+        return f"{key}/{encode_extension(self.locality, self.max_rate_hz)}"
 
     @property
     def gid(self) -> bytes:
@@ -526,13 +543,13 @@ def parse_token(key: str) -> NodeToken | EndpointToken | None:
     extra = parts[MANDATORY_ENDPOINT_SEGMENTS:]
     backends = decode_backends(extra[0]) if extra else None
     # Ours comes last; rmw_zenoh reads only a 14th segment starting with "backends:".
-    locality = None
+    locality, max_rate_hz = None, 0.0
     if extra and extra[-1].startswith(LOCALITY_PREFIX):
-        locality = Locality.decode(extra[-1])
+        locality, max_rate_hz = decode_extension(extra[-1])
     return EndpointToken(
         domain_id=domain_id, zid=parts[2], node_id=parts[3], entity_id=parts[4], kind=kind,
         namespace=demangle(parts[7]), node_name=parts[8].replace("%", "/"),
         topic=parts[9].replace("%", "/"), type_name=ros_type_name(parts[10].replace("%", "/")),
         type_hash=parts[11].replace("%", "/"), qos=qos, backends=backends, locality=locality,
-        enclave=demangle(parts[6]),
+        enclave=demangle(parts[6]), max_rate_hz=max_rate_hz,
     )
