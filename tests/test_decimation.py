@@ -11,7 +11,7 @@ import pytest
 
 from buffer_pubsub import InvalidEndpointError, Node
 from tests._pubsub_helpers import TENSOR, Child, make_frame
-from tests.test_ros2_interop import Procs, image, wait_ready
+from tests.test_ros2_interop import Procs
 
 pytestmark = pytest.mark.multiprocess
 

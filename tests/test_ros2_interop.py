@@ -22,7 +22,8 @@ import pytest
 from buffer_pubsub import Node
 from rosidl_buffer import Buffer
 from rosidl_buffer.messages import get_message_type
-from tests._pubsub_helpers import ROOT, TENSOR, check_frame, child_env, make_frame
+from tests._pubsub_helpers import ROOT, TENSOR, child_env, make_frame
+from tests._reliability_helpers import wait_until
 from tests.upstream_model import messages as model_messages
 
 pytestmark = pytest.mark.multiprocess
@@ -79,15 +80,6 @@ def result(proc: subprocess.Popen, timeout: float = 60.0) -> dict:
     lines = [line for line in out.splitlines() if line.startswith("RESULT ")]
     assert lines, (out, err[-2000:])
     return json.loads(lines[-1][len("RESULT "):])
-
-
-def wait_until(predicate, timeout: float = 15.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return predicate()
 
 
 def sha(data) -> str:
