@@ -69,7 +69,9 @@ def test_topic_list_shows_the_topic_its_type_and_the_backends(graph):
     typed = cli("topic", "list", "-t", "--domain", str(domain))
     assert typed.returncode == 0 and f"{topic} [sensor_msgs/msg/Image]" in typed.stdout.split("\n")
     assert typed.stderr == ""
-    verbose = cli("topic", "list", "-v", "--domain", str(domain)).stdout
+    listed = cli("topic", "list", "-v", "--domain", str(domain))
+    assert listed.stderr == ""  # -v is the command's, not the top-level --verbose (logs)
+    verbose = listed.stdout
     published, subscribed = verbose.split("Subscribed topics:")
     # (the tests' children also load the test-only "fake" backend)
     assert re.search(rf" \* {topic} \[sensor_msgs/msg/Image\] 1 publisher "
@@ -82,7 +84,9 @@ def test_topic_info_shows_every_endpoint_and_the_routes(graph):
     short = cli("topic", "info", topic, "--domain", str(domain)).stdout
     assert short.splitlines() == ["Type: sensor_msgs/msg/Image", "Publisher count: 1",
                                   "Subscription count: 2"]
-    out = cli("topic", "info", "-v", topic, "--domain", str(domain)).stdout
+    done = cli("topic", "info", "-v", topic, "--domain", str(domain))
+    out = done.stdout
+    assert done.stderr == ""
     assert "Node name: talker" in out and "Node name: ros2_viewer" in out
     assert "Node namespace: /robot" in out
     assert out.count("Buffer backends: cpu\n") == 1  # the rmw_zenoh CPU-only subscription

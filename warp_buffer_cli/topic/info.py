@@ -14,7 +14,7 @@ from .._graph import add_graph_options, graph_node, hidden, resolve_topic, route
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("topic_name", help="the topic, e.g. /camera/image")
-    parser.add_argument("-v", "--verbose", action="store_true",
+    parser.add_argument("-v", "--verbose", action="store_true", dest="detailed",
                         help="every endpoint with its QoS, backends and routes")
     add_graph_options(parser)
 
@@ -84,9 +84,9 @@ def run(args: argparse.Namespace) -> int:
                       if not hidden(i.node_name, args)]
         subscriptions = [i for i in node.get_subscriptions_info_by_topic(topic)
                          if not hidden(i.node_name, args)]
-        routes = routes_by_publisher(node) if args.verbose else {}
+        routes = routes_by_publisher(node) if args.detailed else {}
     print(f"Type: {type_name}")
-    if not args.verbose:
+    if not args.detailed:
         print(f"Publisher count: {len(publishers)}")
         print(f"Subscription count: {len(subscriptions)}")
         return 0

@@ -15,7 +15,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also print each topic's type")
     parser.add_argument("-c", "--count-topics", action="store_true",
                         help="print only the number of topics")
-    parser.add_argument("-v", "--verbose", action="store_true",
+    parser.add_argument("-v", "--verbose", action="store_true", dest="detailed",
                         help="published and subscribed topics, with counts and backends")
     add_graph_options(parser)
 
@@ -53,7 +53,7 @@ def _verbose(node, args: argparse.Namespace) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     with graph_node(args) as node:
         found = topics(node, args)
-        if args.verbose and not args.count_topics:
+        if args.detailed and not args.count_topics:
             print("\n".join(_verbose(node, args)))
             return 0
     if args.count_topics:
