@@ -697,6 +697,7 @@ def test_the_keep_last_depth_is_read_from_a_qos_segment(segment, depth):
 
 
 
+@pytest.mark.usefixtures("sigint_raises")
 def test_ctrl_c_during_a_bounded_teardown_step_lets_it_finish_then_propagates():
     """A second Ctrl-C while Node.close() waits on Zenoh must not leave the interpreter exiting
     with the step still inside Zenoh (the process aborted): the step finishes (within its

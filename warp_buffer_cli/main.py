@@ -6,6 +6,7 @@ import argparse
 import importlib
 import logging
 import os
+import signal
 import sys
 
 VERBOSE_ENV = "WARP_BUFFER_VERBOSE"  # read by warp_buffer.startup (not imported here: cost)
@@ -49,6 +50,10 @@ def main(argv: list[str] | None = None) -> int:
             sub.set_defaults(run=module.run)
     args = parser.parse_args(argv)
     _configure_output(args.verbose)
+    # Ctrl-C ends a command even when it was started from a background job (nohup, &, a CI
+    # runner), which hands it an ignored SIGINT: as ros2's tools do (rclpy installs its handler
+    # whatever it inherited).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         return int(args.run(args))
     except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback (children were reaped)
