@@ -3,14 +3,14 @@
 Run as ``python -m tests._bag_helpers <role> ...`` from the repository root. Protocol on stdout:
 ``READY`` once its endpoints exist, then one ``RESULT <json>`` line.
 
-- ``publish``: waits for a subscription on each topic, then publishes ``--count`` messages on
-  two topics at ``--rate``: ``<topic>`` ExperimentalTensor frames whose bytes follow
+- ``publish``: waits for a subscription on each topic, then publishes ``--count`` messages
+  (keep-all) on two topics at ``--rate``: ``<topic>`` ExperimentalTensor frames whose bytes follow
   :func:`frame_bytes` (``--backend`` warp or cpu storage) and ``<topic>_text`` std_msgs/String;
   then waits for ``stop`` on stdin (warp frames stay alive until their readers are done).
   ``--custom`` publishes one type only this process knows instead.
 - ``listen``: subscribes to the same two topics (``--accept`` warp or cpu) and, after ``--count``
-  messages per topic or ``stop`` on stdin, reports each message: topic, arrival time (monotonic
-  s), the backend of its buffer, and its CDR (hex).
+  messages per topic or ``stop`` on stdin, reports each message: topic, publish time (the
+  source timestamp, s: when the player sent it), the backend of its buffer, and its CDR (hex).
 """
 
 from __future__ import annotations
@@ -82,8 +82,12 @@ def run_publish(args: argparse.Namespace) -> int:
             _emit("RESULT " + json.dumps({"published": args.count}))
             _wait_stop(args.timeout).wait()
             return 0
-        tensors = node.create_publisher(TENSOR, args.topic, depth=args.count)
-        texts = node.create_publisher(STRING, args.topic + "_text", depth=args.count)
+        # Keep-all (Zenoh's BLOCK): a keep-last publisher's sample may be dropped by Zenoh on a
+        # busy machine, and the tests compare every message.
+        tensors = node.create_publisher(TENSOR, args.topic, depth=args.count,
+                                        history="keep_all")
+        texts = node.create_publisher(STRING, args.topic + "_text", depth=args.count,
+                                      history="keep_all")
         _emit("READY")
         matched = (tensors.wait_for_subscriptions(1, timeout=args.timeout)
                    and texts.wait_for_subscriptions(1, timeout=args.timeout))
@@ -116,21 +120,21 @@ def run_listen(args: argparse.Namespace) -> int:
     lock = threading.Lock()
 
     def on_message(topic: str) -> Any:
-        def callback(msg: Any) -> None:
-            arrived = time.monotonic()
+        def callback(msg: Any, info: Any) -> None:
             backend = msg.data.get_backend_type() if hasattr(msg.data, "get_backend_type") \
                 else ""
             cdr = bytes(serialize_message(msg)).hex()
             with lock:
-                got.append({"topic": topic, "t": arrived, "backend": backend, "cdr": cdr})
+                got.append({"topic": topic, "t": info.source_timestamp_ns / 1e9,
+                            "backend": backend, "cdr": cdr})
 
         return callback
 
     with Node("bag_test_listener", domain_id=args.domain) as node:
         node.create_subscription(TENSOR, args.topic, on_message(args.topic), depth=1000,
-                                 acceptable_buffer_backends=args.accept)
+                                 acceptable_buffer_backends=args.accept, with_info=True)
         node.create_subscription(STRING, args.topic + "_text", on_message(args.topic + "_text"),
-                                 depth=1000)
+                                 depth=1000, with_info=True)
         _emit("READY")
         stop = _wait_stop(args.timeout)
         while not stop.wait(0.05):

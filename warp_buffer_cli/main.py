@@ -59,12 +59,13 @@ def main(argv: list[str] | None = None) -> int:
     # Ctrl-C ends a command even when it was started from a background job (nohup, &, a CI
     # runner), which hands it an ignored SIGINT: as ros2's tools do (rclpy installs its handler
     # whatever it inherited).
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
     name = getattr(args, "command_name", f"warp-buffer {args.command}")
     try:
         return int(args.run(args))
     except RosidlBufferError as exc:  # bad input the command found: one line, no traceback
-        print(f"{name}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        text = " ".join(str(exc).split())  # one line, whatever the message (a YAML parser's)
+        print(f"{name}: {type(exc).__name__}: {text}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback (children were reaped)
         print(f"{name}: interrupted", file=sys.stderr)
@@ -73,6 +74,8 @@ def main(argv: list[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # the interpreter's last flush must not fail too
         return 141
+    finally:
+        signal.signal(signal.SIGINT, inherited)  # main() called in a program leaves it as found
 
 
 if __name__ == "__main__":

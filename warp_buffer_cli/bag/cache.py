@@ -35,6 +35,14 @@ class WriteCache:
             self._cond.notify()
             return True
 
+    def put_always(self, item: Any) -> None:
+        """Queue ``item`` whatever the cache holds (a command for the writer, no payload)."""
+        with self._cond:
+            if self._closed:
+                raise RuntimeError("the write cache is closed")
+            self._items.append((item, 0))
+            self._cond.notify()
+
     def get(self) -> Any | None:
         """The oldest item, waiting for one; None once the cache is closed and empty."""
         with self._cond:

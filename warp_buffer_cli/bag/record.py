@@ -82,7 +82,6 @@ class Recorder:
         self.started = time.monotonic()
         self.cache = WriteCache(max_cache_bytes)
         self._writer: Any = None
-        self._writer_lock = threading.Lock()  # the writer thread's writes and add()'s connections
         self._thread: threading.Thread | None = None
         self._subscriptions: dict[tuple[str, str], Any] = {}
         self._closed = False
@@ -122,23 +121,41 @@ class Recorder:
         if key in self.records:
             return self.records[key]
         cls = get_message_type(type_name)
-        with self._writer_lock:
-            writer = self._open_writer()
+        if self._writer is None:
+            self._writer = self._in_writer_thread(self._create_writer)
+
+        def add_connection() -> Any:
             try:
-                connection = writer.add_connection(
+                return self._writer.add_connection(
                     topic, cls.__msgtype__, typestore=get_typestore(),
                     offered_qos_profiles=[offered_profile()])
             except Exception as exc:  # rosbags' own errors: one line for the user
                 raise BagWriteError(f"cannot add {topic} to {self.path}: {exc}") from exc
+
+        connection = self._in_writer_thread(add_connection)
         record = self.records[key] = TopicRecord(topic, cls.__msgtype__)
         self._subscriptions[key] = self.node.create_subscription(
             cls, topic, self._callback(connection, record), depth=SUBSCRIPTION_DEPTH,
             acceptable_buffer_backends=self.backend, with_info=True)
         return record
 
-    def _open_writer(self) -> Any:
-        if self._writer is not None:
-            return self._writer
+    def _in_writer_thread(self, call: Any) -> Any:
+        """``call()`` run by the writer thread, after the messages queued before it: rosbags'
+        writer is used by that one thread (sqlite3 objects belong to the thread that made them).
+        Its result, or its exception raised here."""
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._write_loop, name="bag-writer",
+                                            daemon=True)
+            self._thread.start()
+        done = threading.Event()
+        outcome: dict[str, Any] = {}
+        self.cache.put_always(("call", call, outcome, done))
+        done.wait()
+        if "error" in outcome:
+            raise outcome["error"]
+        return outcome.get("value")
+
+    def _create_writer(self) -> Any:
         from rosbags.rosbag2 import StoragePlugin, Writer
 
         plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
@@ -147,9 +164,6 @@ class Recorder:
             writer.open()
         except Exception as exc:
             raise BagWriteError(f"cannot create the bag {self.path}: {exc}") from exc
-        self._writer = writer
-        self._thread = threading.Thread(target=self._write_loop, name="bag-writer", daemon=True)
-        self._thread.start()
         return writer
 
     def _callback(self, connection: Any, record: TopicRecord) -> Any:
@@ -161,26 +175,40 @@ class Recorder:
             data = serialize_message(msg)  # buffers as CPU bytes: the one copy to the host
             if info.route != "intra":  # (an in-process message's buffers are its publisher's)
                 release_buffers(msg)  # the publisher may reuse its block now, not at GC
-            if not cache.put((connection, info.received_timestamp_ns, data, record), len(data)):
+            if not cache.put(("message", connection, info.received_timestamp_ns, data, record),
+                             len(data)):
                 record.dropped += 1
 
         return on_message
 
     def _write_loop(self) -> None:
         while (item := self.cache.get()) is not None:
-            connection, timestamp, data, record = item
+            if item[0] == "call":
+                _, call, outcome, done = item
+                try:
+                    outcome["value"] = call()
+                except BaseException as exc:  # handed to the caller's thread
+                    outcome["error"] = exc
+                done.set()
+                continue
+            _, connection, timestamp, data, record = item
             if self.write_error is not None:
                 record.dropped += 1  # the bag cannot take it: counted, not written
                 continue
             try:
-                with self._writer_lock:
-                    self._writer.write(connection, timestamp, data)
+                self._writer.write(connection, timestamp, data)
             except Exception as exc:  # a full disk, say: stop writing, keep the bag readable
                 self.write_error = exc
                 record.dropped += 1
                 continue
             record.messages += 1
             record.nbytes += len(data)
+
+    def _finalize(self) -> None:
+        try:
+            self._writer.close()
+        except Exception as exc:
+            raise BagWriteError(f"cannot finalize the bag {self.path}: {exc}") from exc
 
     # -- counts and end --------------------------------------------------------------------
     def totals(self) -> tuple[int, int, int]:
@@ -204,14 +232,13 @@ class Recorder:
         self._closed = True
         self._count_lost()
         self.node.close()  # no callback runs after this
-        self.cache.close()
-        if self._thread is not None:
-            self._thread.join()
-        if self._writer is not None:
-            try:
-                self._writer.close()
-            except Exception as exc:
-                raise BagWriteError(f"cannot finalize the bag {self.path}: {exc}") from exc
+        try:
+            if self._writer is not None:  # after the messages the cache holds
+                self._in_writer_thread(self._finalize)
+        finally:
+            self.cache.close()
+            if self._thread is not None:
+                self._thread.join()
         if self.write_error is not None:
             raise BagWriteError(f"writing {self.path} failed, recording stopped: "
                                 f"{self.write_error}") from self.write_error
