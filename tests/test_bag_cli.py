@@ -454,3 +454,21 @@ def test_progress_goes_to_a_terminal_only(recorded_bag, domain):
     assert done.returncode == 0
     assert b"played " in seen and b"msg/s" in seen and b"MiB" in seen, seen
     assert done.stdout.startswith("played ") and "msg/s" not in done.stdout
+
+
+# --------------------------------------------------------------------------- the benchmark
+def test_the_record_benchmark_runs_and_reports_both_backends(tmp_path):
+    """``python -m benchmarks.bag_record`` (figures are not judged here: speed lives there)."""
+    out = tmp_path / "figures.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "benchmarks.bag_record", "--seconds", "0.5", "--size", "64K",
+         "--rate", "20", "--rounds", "1", "--dir", str(tmp_path), "--json", str(out)],
+        cwd=ROOT, env=child_env(), capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "warp median" in done.stdout and "cpu median" in done.stdout
+    rows = json.loads(out.read_text())["rows"]
+    assert {r["backend"] for r in rows} == {"warp", "cpu"}
+    for r in rows:
+        assert r["published"] == 10 and 0 < r["recorded"] <= 10
+        assert r["recorded"] + r["dropped"] + r["lost"] == r["published"]
+    assert [p.name for p in tmp_path.iterdir()] == ["figures.json"]  # bags deleted

@@ -35,6 +35,13 @@ class WriteCache:
             self._cond.notify()
             return True
 
+    def has_room(self, nbytes: int) -> bool:
+        """Whether :meth:`put` of ``nbytes`` would be taken now (a caller skips the work of
+        making an item that would be refused)."""
+        with self._cond:
+            return not self._closed and (not self._items
+                                         or self.queued_bytes + nbytes <= self.max_bytes)
+
     def put_always(self, item: Any) -> None:
         """Queue ``item`` whatever the cache holds (a command for the writer, no payload)."""
         with self._cond:

@@ -156,27 +156,31 @@ class Recorder:
         return outcome.get("value")
 
     def _create_writer(self) -> Any:
-        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2 import StoragePlugin
+
+        from .mcap import BagWriter
 
         plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
         try:
-            writer = Writer(self.path, version=Writer.VERSION_LATEST, storage_plugin=plugin)
+            writer = BagWriter(self.path, version=BagWriter.VERSION_LATEST, storage_plugin=plugin)
             writer.open()
         except Exception as exc:
             raise BagWriteError(f"cannot create the bag {self.path}: {exc}") from exc
         return writer
 
     def _callback(self, connection: Any, record: TopicRecord) -> Any:
-        from rosidl_buffer.messages import release_buffers, serialize_message
+        from rosidl_buffer.messages import release_buffers, serialize_message, serialized_size
 
         cache = self.cache
 
         def on_message(msg: Any, info: Any) -> None:
-            data = serialize_message(msg)  # buffers as CPU bytes: the one copy to the host
+            # A message the full cache would refuse is not serialized at all: the copy would
+            # only take time from the writer, which is behind.
+            data = serialize_message(msg) if cache.has_room(serialized_size(msg)) else None
             if info.route != "intra":  # (an in-process message's buffers are its publisher's)
                 release_buffers(msg)  # the publisher may reuse its block now, not at GC
-            if not cache.put(("message", connection, info.received_timestamp_ns, data, record),
-                             len(data)):
+            if data is None or not cache.put(
+                    ("message", connection, info.received_timestamp_ns, data, record), len(data)):
                 record.dropped += 1
 
         return on_message
