@@ -79,7 +79,7 @@ class Recorder:
         self.backend = backend
         self.records: dict[tuple[str, str], TopicRecord] = {}
         self.write_error: BaseException | None = None
-        self.started = time.monotonic()
+        self.started: float | None = None  # when the first topic was subscribed
         self.cache = WriteCache(max_cache_bytes)
         self._writer: Any = None
         self._thread: threading.Thread | None = None
@@ -134,6 +134,8 @@ class Recorder:
 
         connection = self._in_writer_thread(add_connection)
         record = self.records[key] = TopicRecord(topic, cls.__msgtype__)
+        if self.started is None:
+            self.started = time.monotonic()
         self._subscriptions[key] = self.node.create_subscription(
             cls, topic, self._callback(connection, record), depth=SUBSCRIPTION_DEPTH,
             acceptable_buffer_backends=self.backend, with_info=True)
@@ -408,7 +410,7 @@ def _close_quietly(recorder: Recorder) -> None:
 
 def _report(recorder: Recorder) -> None:
     """The summary on stdout: totals, then one line per topic."""
-    elapsed = time.monotonic() - recorder.started
+    elapsed = time.monotonic() - (recorder.started or time.monotonic())
     messages, nbytes, _ = recorder.totals()
     records = list(recorder.records.values())
     dropped = sum(r.dropped for r in records)
