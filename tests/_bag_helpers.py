@@ -24,15 +24,12 @@ from typing import Any
 
 import numpy as np
 
+from tests._pubsub_helpers import _emit, _stdin_stop
+
 TENSOR = "tensor_msgs/msg/ExperimentalTensor"
 STRING = "std_msgs/msg/String"
 CUSTOM = "bag_test_msgs/msg/Custom"
 CUSTOM_DEFINITION = "int32 value\nstring label\n"
-
-
-def _emit(line: str) -> None:
-    sys.stdout.write(line + "\n")
-    sys.stdout.flush()
 
 
 def frame_bytes(index: int, size: int) -> np.ndarray:
@@ -52,20 +49,6 @@ def expected_messages(index: int, size: int) -> tuple[Any, Any]:
     return tensor, text
 
 
-def _wait_stop(timeout: float) -> threading.Event:
-    stop = threading.Event()
-
-    def read() -> None:
-        sys.stdin.readline()
-        stop.set()
-
-    threading.Thread(target=read, daemon=True).start()
-    timer = threading.Timer(timeout, stop.set)
-    timer.daemon = True
-    timer.start()
-    return stop
-
-
 def run_publish(args: argparse.Namespace) -> int:
     from buffer_pubsub import Node
     from rosidl_buffer.messages import get_message_type, register_message_definitions
@@ -80,7 +63,7 @@ def run_publish(args: argparse.Namespace) -> int:
                 custom.publish(get_message_type(CUSTOM)(value=index, label="x"))
                 time.sleep(1.0 / args.rate)
             _emit("RESULT " + json.dumps({"published": args.count}))
-            _wait_stop(args.timeout).wait()
+            _stdin_stop(args.timeout).wait()
             return 0
         # Keep-all (Zenoh's BLOCK): a keep-last publisher's sample may be dropped by Zenoh on a
         # busy machine, and the tests compare every message.
@@ -108,7 +91,7 @@ def run_publish(args: argparse.Namespace) -> int:
             time.sleep(1.0 / args.rate)
         _emit("RESULT " + json.dumps({"published": args.count, "matched": bool(matched),
                                       "backend": kept[-1].data.get_backend_type()}))
-        _wait_stop(args.timeout).wait()
+        _stdin_stop(args.timeout).wait()
     return 0
 
 
@@ -136,7 +119,7 @@ def run_listen(args: argparse.Namespace) -> int:
         node.create_subscription(STRING, args.topic + "_text", on_message(args.topic + "_text"),
                                  depth=1000, with_info=True)
         _emit("READY")
-        stop = _wait_stop(args.timeout)
+        stop = _stdin_stop(args.timeout)
         while not stop.wait(0.05):
             with lock:
                 if len(got) >= 2 * args.count:

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import ctypes
 import json
-import math
 import os
 import signal
 import subprocess
@@ -29,43 +28,12 @@ from typing import Any
 
 import numpy as np
 
+from ._arguments import number, topic_name
+
 TOPIC = "/warp_buffer_demo/frames"
 TENSOR = "tensor_msgs/msg/ExperimentalTensor"
 _CHILD = "from warp_buffer_cli.demo import child_main; child_main()"
 _PR_SET_PDEATHSIG = 1  # prctl(2)
-
-
-def _topic(text: str) -> str:
-    """argparse type of ``--topic``: a valid ROS 2 topic name."""
-    from buffer_pubsub.errors import InvalidNameError
-    from buffer_pubsub.names import validate_topic_name
-
-    try:
-        return validate_topic_name(text)
-    except InvalidNameError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _number(kind: type, low: float, inclusive: bool = True, high: float = math.inf,
-            zero: bool = False) -> Any:
-    """An argparse type: a ``kind`` number >= ``low`` (> ``low`` unless ``inclusive``) and
-    <= ``high``; ``zero``: 0 is allowed too (a special value)."""
-    def parse(text: str) -> Any:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a{'n integer' if kind is int else ' number'}") from None
-        if zero and value == 0:
-            return value
-        if not (value >= low if inclusive else value > low) or value != value or value > high:
-            show = (lambda v: str(int(v))) if kind is int else (lambda v: f"{v:g}")
-            above = f"{'>=' if inclusive else '>'} {show(low)}"
-            raise argparse.ArgumentTypeError(
-                f"{text} is out of range: must be {above}" +
-                (f" and <= {show(high)}" if high != math.inf else "") + (" (or 0)" if zero else ""))
-        return value
-
-    return parse
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -77,20 +45,20 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = _HelpFormatter
-    parser.add_argument("--frames", type=_number(int, 1), default=50, help="frames to publish")
-    parser.add_argument("--height", type=_number(int, 1), default=240, help="frame height")
-    parser.add_argument("--width", type=_number(int, 1), default=320, help="frame width")
-    parser.add_argument("--rate", type=_number(float, 0.01, zero=True), default=50.0,
+    parser.add_argument("--frames", type=number(int, 1), default=50, help="frames to publish")
+    parser.add_argument("--height", type=number(int, 1), default=240, help="frame height")
+    parser.add_argument("--width", type=number(int, 1), default=320, help="frame width")
+    parser.add_argument("--rate", type=number(float, 0.01, zero=True), default=50.0,
                         help="frames per second (0: as fast as possible)")
     parser.add_argument("--device", default=None,
                         help="Warp device of the frames, e.g. cpu or cuda:0 (default: Warp's "
                              "preferred device, cuda:0 where a GPU is usable, else cpu)")
-    parser.add_argument("--domain", type=_number(int, 0, high=2**31 - 1), default=None,
+    parser.add_argument("--domain", type=number(int, 0, high=2**31 - 1), default=None,
                         help="domain id (default: ROS_DOMAIN_ID when set, else one derived "
                              "from the process id)")
-    parser.add_argument("--topic", default=None, type=_topic,
+    parser.add_argument("--topic", default=None, type=topic_name,
                         help=f"topic (default: {TOPIC}_<process id>: two demos never share one)")
-    parser.add_argument("--timeout", type=_number(float, 0, inclusive=False, high=86_400.0),
+    parser.add_argument("--timeout", type=number(float, 0, inclusive=False, high=86_400.0),
                         default=60.0,
                         help="seconds before the demo gives up")
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .._arguments import absolute_topic_name, number
 from .errors import BagError, BagReadError, UnknownTopicError
 from .progress import Progress, mib
 from .qos import publisher_history
@@ -208,29 +209,9 @@ def _buffers_to_warp(msg: Any, device: str | None) -> None:
 
 
 # --------------------------------------------------------------------------- command line
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not 0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(f"{text} must be > 0")
-    return value
-
-
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not 0 <= value < float("inf"):
-        raise argparse.ArgumentTypeError(f"{text} must be >= 0")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bag", metavar="DIR", help="the bag directory (or its .mcap/.db3 file)")
-    parser.add_argument("-r", "--rate", type=_positive_float, default=1.0,
+    parser.add_argument("-r", "--rate", type=number(float, 0, inclusive=False, high=1e6), default=1.0,
                         help="time scale: 2 plays twice as fast (default: 1)")
     parser.add_argument("-l", "--loop", action="store_true",
                         help="play again from the start until Ctrl-C")
@@ -239,9 +220,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "or warp (copied into Warp memory first) (default: cpu)")
     parser.add_argument("--device", default=None,
                         help="Warp device of --backend warp (default: Warp's preferred one)")
-    parser.add_argument("--topics", nargs="+", metavar="TOPIC",
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", type=absolute_topic_name,
                         help="play only these topics (default: every topic of the bag)")
-    parser.add_argument("--wait-for-subscribers", type=_seconds, default=1.0, metavar="S",
+    parser.add_argument("--wait-for-subscribers", type=number(float, 0, high=86_400.0),
+                        default=1.0, metavar="S",
                         help="before the first message, wait up to S seconds for a subscription "
                              "on every topic (default: 1)")
 

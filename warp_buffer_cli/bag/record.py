@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .._arguments import absolute_topic_name, number
 from .errors import BagWriteError, UnknownTopicError
 from .progress import Progress, mib
 from .qos import offered_profile
@@ -257,32 +258,8 @@ class Recorder:
 
 
 # --------------------------------------------------------------------------- command line
-def _topic_name(text: str) -> str:
-    from buffer_pubsub.errors import InvalidNameError
-    from buffer_pubsub.names import validate_topic_name
-
-    name = text if text.startswith(("/", "~")) else "/" + text  # relative: from the root
-    try:
-        return validate_topic_name(name)
-    except InvalidNameError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _positive(kind: type) -> Any:
-    def parse(text: str) -> Any:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-        if not 0 < value < float("inf"):
-            raise argparse.ArgumentTypeError(f"{text} must be > 0")
-        return value
-
-    return parse
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("topics", nargs="*", type=_topic_name, metavar="TOPIC",
+    parser.add_argument("topics", nargs="*", type=absolute_topic_name, metavar="TOPIC",
                         help="topics to record (or -a)")
     parser.add_argument("-a", "--all", action="store_true",
                         help="record every topic of the domain, also those that appear later")
@@ -291,17 +268,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "ros2 bag names it)")
     parser.add_argument("-s", "--storage", choices=STORAGES, default="mcap",
                         help="storage format (default: mcap)")
-    parser.add_argument("--duration", type=_positive(float), metavar="S",
+    parser.add_argument("--duration", type=number(float, 0, inclusive=False, high=1e9), metavar="S",
                         help="stop after S seconds (default: until Ctrl-C or SIGTERM)")
     parser.add_argument("--backend", choices=("warp", "cpu"), default="warp",
                         help="how buffer fields reach the recorder: warp (zero-copy from a "
                              "same-host publisher, then one copy to the host; the faster, see "
                              "benchmarks/bag_record.py) or cpu (CDR bytes) (default: warp)")
-    parser.add_argument("--max-cache-size", type=_positive(int), metavar="BYTES",
+    parser.add_argument("--max-cache-size", type=number(int, 1), metavar="BYTES",
                         default=DEFAULT_MAX_CACHE_BYTES,
                         help="bytes of messages that may wait for the disk; messages beyond are "
                              f"dropped and counted (default: {DEFAULT_MAX_CACHE_BYTES})")
-    parser.add_argument("--discovery-timeout", type=_positive(float), default=10.0, metavar="S",
+    parser.add_argument("--discovery-timeout", type=number(float, 0, inclusive=False, high=86_400.0),
+                        default=10.0, metavar="S",
                         help="seconds to wait for the named topics' publishers (default: 10)")
 
 
