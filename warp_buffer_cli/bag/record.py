@@ -19,6 +19,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -142,7 +143,7 @@ class Recorder:
             acceptable_buffer_backends=self.backend, with_info=True)
         return record
 
-    def _in_writer_thread(self, call: Any) -> Any:
+    def _in_writer_thread(self, call: Callable[[], Any]) -> Any:
         """``call()`` run by the writer thread, after the messages queued before it: rosbags'
         writer is used by that one thread (sqlite3 objects belong to the thread that made them).
         Its result, or its exception raised here."""
@@ -171,7 +172,7 @@ class Recorder:
             raise BagWriteError(f"cannot create the bag {self.path}: {exc}") from exc
         return writer
 
-    def _callback(self, connection: Any, record: TopicRecord) -> Any:
+    def _callback(self, connection: Any, record: TopicRecord) -> Callable[[Any, Any], None]:
         from rosidl_buffer.messages import release_buffers, serialize_message, serialized_size
 
         cache = self.cache
@@ -237,8 +238,8 @@ class Recorder:
         if self._closed:
             return
         self._closed = True
-        self._count_lost()
         self.node.close()  # no callback runs after this
+        self._count_lost()
         try:
             if self._writer is not None:  # after the messages the cache holds
                 self._in_writer_thread(self._finalize)
