@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 import time
 import zlib
@@ -115,6 +116,10 @@ def run_foreign(args: argparse.Namespace) -> int:
 def run_flood(args: argparse.Namespace) -> int:
     from buffer_pubsub import Node
 
+    # Started from a background job (nohup, &, a CI runner) this process inherits an ignored
+    # SIGINT, and Python then installs no KeyboardInterrupt handler: restore it, since the test
+    # ends this flood with SIGINT.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     started = None
     try:
         with Node(f"flood_{os.getpid()}", domain_id=args.domain) as node:

@@ -706,6 +706,7 @@ def test_qos_segments_rmw_zenoh_rejects_are_refused(segment):
 
 
 
+@pytest.mark.usefixtures("sigint_raises")
 def test_ctrl_c_during_a_bounded_teardown_step_lets_it_finish_then_propagates():
     """A second Ctrl-C while Node.close() waits on Zenoh must not leave the interpreter exiting
     with the step still inside Zenoh (the process aborted): the step finishes (within its

@@ -1,5 +1,8 @@
 """Subcommand groups (``warp-buffer bag record``, ``warp-buffer topic list``): a group module
-calls :func:`add_subcommands` from its ``add_arguments`` with its own table of leaves.
+(listed in ``warp_buffer_cli.main._COMMANDS``, with no ``run`` of its own) keeps its table of
+leaves in ``COMMANDS`` (tests/test_readme.py reads it) and calls :func:`add_subcommands` with it
+from its ``add_arguments``. ``warp_buffer_cli/bag`` is one; ``topic`` and ``node`` fit the same
+way, each in a module of its own.
 
 A leaf module has ``add_arguments(parser)`` and ``run(args) -> int`` and must be cheap to import
 (heavy imports inside ``run``): a group registers all its leaves so that ``--help`` lists them.
