@@ -293,6 +293,7 @@ def test_busy_poll_delivers_without_blocking() -> None:
         reader.close()
 
 
+@pytest.mark.usefixtures("sigint_raises")
 @pytest.mark.parametrize("attached", [False, True], ids=["no-reader", "reader"])
 def test_ctrl_c_interrupts_a_wait(attached: bool) -> None:
     """A KeyboardInterrupt ends a wait at once, with or without a reader attached; the waker

@@ -6,9 +6,13 @@ the reference: tests check this codec byte for byte against ``Typestore.serializ
 
 Wire form of a buffer field:
 - CPU: the ordinary sequence, ``uint32 length`` then the bytes (old readers are unaffected);
-- backend: ``uint32 0xFFFFFFFF``, the backend name as a CDR string, then the descriptor message
-  inline (aligned against the same origin as the rest of the stream), at most
-  ``MAX_BUFFER_DESCRIPTOR_SIZE`` bytes.
+- backend (rosidl_typesupport_fastrtps >= 3.9.4, ``buffer_serialization.hpp``): after aligning to
+  4, the words ``0xFFFFFFFF`` and ``0x524F5332`` ("ROS2"), the backend name as a CDR string, then
+  the descriptor message inline (aligned against the same origin as the rest of the stream), at
+  most ``MAX_BUFFER_DESCRIPTOR_SIZE`` bytes. A reader takes the descriptor path only when both
+  words match; a first word alone is the length of an ordinary sequence. As upstream's generated
+  type support, only top-level ``uint8[]`` fields travel in backend form: a nested message's
+  buffers are always CPU bytes.
 
 Serialization runs in two passes, sizing then writing into one preallocated ``bytearray``, so a
 payload is copied exactly once. Deserialization returns buffers that alias the input bytes.
@@ -42,6 +46,7 @@ from ._schema import PRIMITIVE_FORMATS, FieldKind, FieldSpec, get_schema
 
 __all__ = [
     "BUFFER_DESCRIPTOR_MARKER",
+    "BUFFER_DESCRIPTOR_MARKER_2",
     "CDR_HEADER",
     "BufferRoute",
     "serialize_message",
@@ -52,7 +57,9 @@ __all__ = [
 CDR_HEADER = b"\x00\x01\x00\x00"  # representation CDR_LE, options 0
 _ORIGIN = len(CDR_HEADER)  # alignment counts from the end of the header
 BUFFER_DESCRIPTOR_MARKER = 0xFFFFFFFF
+BUFFER_DESCRIPTOR_MARKER_2 = 0x524F5332  # "ROS2"
 _U32 = struct.Struct("<I")
+_MARKERS = struct.Struct("<II")
 _NUMPY_COPY_THRESHOLD = 1 << 16
 _ZEROS = tuple(bytes(n) for n in range(8))  # padding, by length
 _LITTLE_ENDIAN = sys.byteorder == "little"
@@ -81,6 +88,13 @@ class _SizeContext:
     route: BufferRoute | None
     decisions: list[Any]
 
+    def inner(self) -> _SizeContext:
+        """The context of a nested message: no route (its buffers are CPU bytes), the same
+        decisions (pass two replays them in field order)."""
+        if self.route is None:
+            return self
+        return _SizeContext(None, self.decisions)
+
 
 @dataclass
 class _ReadContext:
@@ -88,6 +102,13 @@ class _ReadContext:
     owner: Any
     backends: Mapping[str, BufferBackend] | None
     endpoint_info: EndpointInfo | None
+    top_level: bool = True
+
+    def inner(self) -> _ReadContext:
+        """The context of a nested message, where a descriptor is malformed input."""
+        if not self.top_level:
+            return self
+        return _ReadContext(self.data, self.owner, self.backends, self.endpoint_info, False)
 
 
 class _Decision:
@@ -210,13 +231,13 @@ class _String(_Field):
 
 class _Nested(_Field):
     def size(self, value: Any, pos: int, ctx: _SizeContext) -> int:
-        return _codec(self.spec.element).size(value, pos, ctx)
+        return _codec(self.spec.element).size(value, pos, ctx.inner())
 
     def write(self, value: Any, out: bytearray, pos: int, decisions: list[Any]) -> int:
         return _codec(self.spec.element).write(value, out, pos, decisions)
 
     def read(self, ctx: _ReadContext, pos: int) -> tuple[Any, int]:
-        return _codec(self.spec.element).read(ctx, pos)
+        return _codec(self.spec.element).read(ctx.inner(), pos)
 
 
 class _NumericArray(_Field):
@@ -389,7 +410,7 @@ class _BufferField(_Field):
         backend_name, descriptor = route
         decision = _Decision(None, backend_name, descriptor)
         ctx.decisions.append(decision)
-        pos = _align(pos, 4) + 4
+        pos = _align(pos, 4) + 8
         pos = self.backend_name.size(backend_name, pos, ctx)
         codec = _codec(descriptor.__msgtype__)
         nbytes = _descriptor_size(codec, descriptor)
@@ -409,18 +430,29 @@ class _BufferField(_Field):
         if decision.host is not None:
             return _write_array(decision.host, out, pos, True, 1)
         pos = _pad(out, pos, 4)
-        _U32.pack_into(out, pos, BUFFER_DESCRIPTOR_MARKER)
-        pos = self.backend_name.write(decision.backend_name, out, pos + 4, decisions)
+        _MARKERS.pack_into(out, pos, BUFFER_DESCRIPTOR_MARKER, BUFFER_DESCRIPTOR_MARKER_2)
+        pos = self.backend_name.write(decision.backend_name, out, pos + 8, decisions)
         codec = _codec(decision.descriptor.__msgtype__)
         return codec.write(decision.descriptor, out, pos, decision.descriptor_decisions)
 
+    @staticmethod
+    def _second_marker(ctx: _ReadContext, pos: int) -> bool:
+        """Is the word after a first marker the second one? (Upstream reads it only then: an
+        empty stream end after 0xFFFFFFFF is a too-long sequence, not a short read.)"""
+        data = ctx.data
+        return pos + 4 <= len(data) and _U32.unpack_from(data, pos)[0] == BUFFER_DESCRIPTOR_MARKER_2
+
     def read(self, ctx: _ReadContext, pos: int) -> tuple[Any, int]:
         n, pos = _read_count(ctx, pos, self.name)
-        if n != BUFFER_DESCRIPTOR_MARKER:
+        if n != BUFFER_DESCRIPTOR_MARKER or not self._second_marker(ctx, pos):
             _need(ctx, pos, n, self.name)
             view = np.frombuffer(ctx.owner, dtype=np.uint8, count=n, offset=pos)
             return Buffer._of(CpuBufferImpl.wrap(view)), pos + n
-        backend_name, pos = _read_string(ctx, pos, self.name)
+        if not ctx.top_level:
+            raise DeserializationError(
+                f"field {self.name!r}: a backend descriptor in a nested message (only top-level "
+                "uint8[] fields travel in backend form)")
+        backend_name, pos = _read_string(ctx, pos + 4, self.name)
         backend = (ctx.backends or {}).get(backend_name)
         if backend is None:
             raise DeserializationError(
@@ -607,9 +639,10 @@ def _codec_source(steps: list[Any]) -> str:
                      *(f"        set_{name}(m, v_{name})" for name in step.names),
                      "        pos += length"]
         elif kind is _Nested:
-            size.append(f"    pos = CS{i}({_get(step.name)}, pos, ctx)")
+            # a nested message's buffers never travel as descriptors (see the module doc)
+            size.append(f"    pos = CS{i}({_get(step.name)}, pos, ctx.inner())")
             write.append(f"    pos = CW{i}({_get(step.name)}, out, pos, decisions)")
-            read += [f"    value, pos = CR{i}(ctx, pos)", f"    set_{step.name}(m, value)"]
+            read += [f"    value, pos = CR{i}(ctx.inner(), pos)", f"    set_{step.name}(m, value)"]
         else:
             size.append(f"    pos = S{i}.size({_get(step.name)}, pos, ctx)")
             write.append(f"    pos = S{i}.write({_get(step.name)}, out, pos, decisions)")
