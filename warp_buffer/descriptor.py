@@ -4,8 +4,9 @@ The message (``warp_buffer_backend_msgs/msg/WarpBufferDescriptor``, shipped by t
 package) has fixed-size fields only, so its CDR encoding is one fixed struct, :data:`LAYOUT`
 (little endian, the natural alignment needs no padding at an 8-byte boundary): the generic CDR
 codec writes and reads it as one primitive run, and a transport that carries descriptors outside
-CDR (a shared-memory lane) can :func:`pack` and :func:`unpack` it directly. Tests check that the
-bytes are those of the generic codec.
+CDR (a shared-memory lane) can :func:`pack` and :func:`unpack` it directly, through the native
+core (:mod:`warp_buffer._core`, which checks each field's width). Tests check that the bytes are
+those of the generic codec.
 """
 
 from __future__ import annotations
@@ -16,8 +17,12 @@ import struct
 from typing import Any
 
 from rosidl_buffer.messages import get_message_type
+from rosidl_buffer.native import load_extension
 
 from .errors import DescriptorError
+
+_core = load_extension("warp_buffer._core")
+_core.set_error_class(DescriptorError)
 
 __all__ = [
     "DESCRIPTOR_TYPE",
@@ -104,25 +109,24 @@ def values_of(descriptor: Any) -> tuple[int, ...]:
     :class:`DescriptorError`. The check is the layout itself (one C call)."""
     try:
         values = _get_fields(descriptor)
-        LAYOUT.pack(*values)
     except AttributeError as exc:
         raise DescriptorError(f"not a {DESCRIPTOR_TYPE}: {exc}") from None
-    except struct.error as exc:
-        raise DescriptorError(f"a descriptor field the wire cannot carry: {exc}") from None
+    _core.pack(values)  # DescriptorError: a field the wire cannot carry
     return values
 
 
 def pack(descriptor: Any) -> bytes:
     """The descriptor's CDR bytes (as at an 8-byte boundary of a CDR stream)."""
-    values = values_of(descriptor)
-    return LAYOUT.pack(*values)
+    try:
+        values = _get_fields(descriptor)
+    except AttributeError as exc:
+        raise DescriptorError(f"not a {DESCRIPTOR_TYPE}: {exc}") from None
+    return _core.pack(values)
 
 
 def unpack(data: bytes | bytearray | memoryview) -> Any:
     """Inverse of :func:`pack`."""
-    if len(data) != LAYOUT.size:
-        raise DescriptorError(f"a descriptor is {LAYOUT.size} bytes, not {len(data)}")
-    return make(LAYOUT.unpack(data))
+    return make(_core.unpack(data))
 
 
 def handle_words(handle: bytes) -> tuple[int, ...]:

@@ -1,0 +1,193 @@
+/* warp_buffer._core: the per-message native core of warp_buffer.
+ *
+ * The descriptor (warp_buffer.descriptor: the fixed struct LAYOUT "<BBHIQQQQQQQ" + 16 "Q", 192
+ * bytes, little endian) packed from and unpacked into its 27 field values, each checked against
+ * its field's width (a forged or hand-made descriptor may hold anything). The generic CDR codec
+ * is the reference for these bytes in the tests.
+ */
+#define PY_SSIZE_T_CLEAN
+#define _GNU_SOURCE
+#include <Python.h>
+
+#include <stdint.h>
+#include <string.h>
+
+#include "_core.h"
+
+static PyObject *DescriptorError;  /* warp_buffer.errors.DescriptorError, set at import */
+
+static PyObject *descriptor_error(const char *fmt, ...) {
+    va_list args;
+    va_start(args, fmt);
+    PyObject *text = PyUnicode_FromFormatV(fmt, args);
+    va_end(args);
+    if (text != NULL) {
+        PyErr_SetObject(DescriptorError ? DescriptorError : PyExc_ValueError, text);
+        Py_DECREF(text);
+    }
+    return NULL;
+}
+
+/* The value of field i of values (a tuple or list), checked to fit its width. */
+static int field_value(PyObject *item, int i, uint64_t *out) {
+    if (!PyLong_Check(item)) {
+        descriptor_error("descriptor field %s is a %s, not an int", DESC_FIELD_NAMES[i],
+                         Py_TYPE(item)->tp_name);
+        return -1;
+    }
+    int overflow = 0;
+    unsigned long long v = PyLong_AsUnsignedLongLong(item);
+    if (v == (unsigned long long)-1 && PyErr_Occurred()) {
+        PyErr_Clear();
+        overflow = 1;
+    }
+    if (overflow || (DESC_FIELD_WIDTHS[i] < 8 && v >> (8 * DESC_FIELD_WIDTHS[i]))) {
+        descriptor_error("a descriptor field the wire cannot carry: %s = %R",
+                         DESC_FIELD_NAMES[i], item);
+        return -1;
+    }
+    *out = (uint64_t)v;
+    return 0;
+}
+
+static int fill(PyObject *values, unsigned char *out) {
+    PyObject *seq = PySequence_Fast(values, "descriptor values must be a sequence");
+    if (seq == NULL)
+        return -1;
+    if (PySequence_Fast_GET_SIZE(seq) != DESC_FIELDS) {
+        descriptor_error("a descriptor has %d fields, not %zd", DESC_FIELDS,
+                         PySequence_Fast_GET_SIZE(seq));
+        Py_DECREF(seq);
+        return -1;
+    }
+    uint64_t v[DESC_FIELDS];
+    for (int i = 0; i < DESC_FIELDS; i++) {
+        if (field_value(PySequence_Fast_GET_ITEM(seq, i), i, &v[i]) != 0) {
+            Py_DECREF(seq);
+            return -1;
+        }
+    }
+    Py_DECREF(seq);
+    desc_pack(v, out);
+    return 0;
+}
+
+/* pack(values) -> bytes: the 192 bytes of a descriptor's 27 field values. */
+static PyObject *core_pack(PyObject *module, PyObject *values) {
+    PyObject *out = PyBytes_FromStringAndSize(NULL, DESC_BYTES);
+    if (out == NULL)
+        return NULL;
+    if (fill(values, (unsigned char *)PyBytes_AS_STRING(out)) != 0) {
+        Py_DECREF(out);
+        return NULL;
+    }
+    return out;
+}
+
+/* pack_into(buffer, offset, values): write them at offset of a writable buffer. */
+static PyObject *core_pack_into(PyObject *module, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "pack_into(buffer, offset, values)");
+        return NULL;
+    }
+    Py_ssize_t offset = PyLong_AsSsize_t(args[1]);
+    if (offset == -1 && PyErr_Occurred())
+        return NULL;
+    Py_buffer view;
+    if (PyObject_GetBuffer(args[0], &view, PyBUF_WRITABLE) != 0)
+        return NULL;
+    PyObject *result = NULL;
+    if (offset < 0 || view.len - offset < DESC_BYTES)
+        descriptor_error("no room for a %d-byte descriptor at offset %zd of %zd bytes",
+                         DESC_BYTES, offset, view.len);
+    else if (fill(args[2], (unsigned char *)view.buf + offset) == 0)
+        result = Py_NewRef(Py_None);
+    PyBuffer_Release(&view);
+    return result;
+}
+
+static PyObject *values_tuple(const unsigned char *in) {
+    uint64_t v[DESC_FIELDS];
+    desc_unpack(in, v);
+    PyObject *out = PyTuple_New(DESC_FIELDS);
+    if (out == NULL)
+        return NULL;
+    for (int i = 0; i < DESC_FIELDS; i++) {
+        PyObject *item = PyLong_FromUnsignedLongLong(v[i]);
+        if (item == NULL) {
+            Py_DECREF(out);
+            return NULL;
+        }
+        PyTuple_SET_ITEM(out, i, item);
+    }
+    return out;
+}
+
+/* unpack(data, offset=0) -> tuple: the 27 field values of the descriptor at offset. Without an
+ * offset, data must be exactly one descriptor. */
+static PyObject *core_unpack(PyObject *module, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs < 1 || nargs > 2) {
+        PyErr_SetString(PyExc_TypeError, "unpack(data, offset=0)");
+        return NULL;
+    }
+    Py_ssize_t offset = 0;
+    if (nargs == 2) {
+        offset = PyLong_AsSsize_t(args[1]);
+        if (offset == -1 && PyErr_Occurred())
+            return NULL;
+    }
+    Py_buffer view;
+    if (PyObject_GetBuffer(args[0], &view, PyBUF_SIMPLE) != 0)
+        return NULL;
+    PyObject *result = NULL;
+    if (nargs == 1 && view.len != DESC_BYTES)
+        descriptor_error("a descriptor is %d bytes, not %zd", DESC_BYTES, view.len);
+    else if (offset < 0 || view.len - offset < DESC_BYTES)
+        descriptor_error("no %d-byte descriptor at offset %zd of %zd bytes", DESC_BYTES, offset,
+                         view.len);
+    else
+        result = values_tuple((const unsigned char *)view.buf + offset);
+    PyBuffer_Release(&view);
+    return result;
+}
+
+static PyObject *set_error_class(PyObject *module, PyObject *cls) {
+    if (!PyType_Check(cls) || !PyType_IsSubtype((PyTypeObject *)cls,
+                                                (PyTypeObject *)PyExc_Exception)) {
+        PyErr_SetString(PyExc_TypeError, "an exception class");
+        return NULL;
+    }
+    Py_INCREF(cls);
+    Py_XSETREF(DescriptorError, cls);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef core_methods[] = {
+    {"pack", (PyCFunction)core_pack, METH_O,
+     "pack(values) -> bytes: a descriptor's 27 field values as its 192 bytes (each checked)."},
+    {"pack_into", (PyCFunction)(void (*)(void))core_pack_into, METH_FASTCALL,
+     "pack_into(buffer, offset, values): the same, written into a writable buffer."},
+    {"unpack", (PyCFunction)(void (*)(void))core_unpack, METH_FASTCALL,
+     "unpack(data, offset=0) -> tuple: the 27 field values of the descriptor at offset."},
+    {"set_error_class", set_error_class, METH_O,
+     "The exception class for malformed descriptors (warp_buffer.errors.DescriptorError)."},
+    {NULL}
+};
+
+static struct PyModuleDef core_module = {
+    PyModuleDef_HEAD_INIT, "warp_buffer._core",
+    "warp_buffer's per-message native core: the descriptor's fixed layout.",
+    -1, core_methods,
+};
+
+PyMODINIT_FUNC PyInit__core(void) {
+    PyObject *m = PyModule_Create(&core_module);
+    if (m == NULL)
+        return NULL;
+    if (PyModule_AddIntConstant(m, "DESCRIPTOR_BYTES", DESC_BYTES) < 0
+            || PyModule_AddIntConstant(m, "DESCRIPTOR_FIELDS", DESC_FIELDS) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}

@@ -1,0 +1,58 @@
+/* The descriptor's fixed layout (warp_buffer.descriptor.LAYOUT), shared by the module and the
+ * C tests: 27 little-endian fields, natural alignment, 192 bytes. */
+#ifndef WARP_BUFFER_CORE_H
+#define WARP_BUFFER_CORE_H
+
+#include <stdint.h>
+#include <string.h>
+
+#define DESC_FIELDS 27
+#define DESC_BYTES 192
+#define DESC_HANDLE_WORDS 8
+
+/* bytes per field, in FIELDS order: version, kind, peer_slot, owner_pid, session, offset,
+ * capacity, size, generation, sequence, device_uuid, mem_handle_0..7, event_handle_0..7 */
+static const int DESC_FIELD_WIDTHS[DESC_FIELDS] = {
+    1, 1, 2, 4, 8, 8, 8, 8, 8, 8, 8,
+    8, 8, 8, 8, 8, 8, 8, 8,
+    8, 8, 8, 8, 8, 8, 8, 8,
+};
+
+static const char *const DESC_FIELD_NAMES[DESC_FIELDS] = {
+    "version", "kind", "peer_slot", "owner_pid", "session", "offset", "capacity", "size",
+    "generation", "sequence", "device_uuid",
+    "mem_handle_0", "mem_handle_1", "mem_handle_2", "mem_handle_3",
+    "mem_handle_4", "mem_handle_5", "mem_handle_6", "mem_handle_7",
+    "event_handle_0", "event_handle_1", "event_handle_2", "event_handle_3",
+    "event_handle_4", "event_handle_5", "event_handle_6", "event_handle_7",
+};
+
+static inline void desc_put(unsigned char *out, uint64_t v, int width) {
+    for (int b = 0; b < width; b++)
+        out[b] = (unsigned char)(v >> (8 * b));
+}
+
+static inline uint64_t desc_get(const unsigned char *in, int width) {
+    uint64_t v = 0;
+    for (int b = 0; b < width; b++)
+        v |= (uint64_t)in[b] << (8 * b);
+    return v;
+}
+
+static inline void desc_pack(const uint64_t *v, unsigned char *out) {
+    int at = 0;
+    for (int i = 0; i < DESC_FIELDS; i++) {
+        desc_put(out + at, v[i], DESC_FIELD_WIDTHS[i]);
+        at += DESC_FIELD_WIDTHS[i];
+    }
+}
+
+static inline void desc_unpack(const unsigned char *in, uint64_t *v) {
+    int at = 0;
+    for (int i = 0; i < DESC_FIELDS; i++) {
+        v[i] = desc_get(in + at, DESC_FIELD_WIDTHS[i]);
+        at += DESC_FIELD_WIDTHS[i];
+    }
+}
+
+#endif
