@@ -35,6 +35,7 @@
 #include <fcntl.h>
 #include <poll.h>
 #include <stdint.h>
+#include <stdio.h>
 #include <string.h>
 #include <sys/eventfd.h>
 #include <sys/mman.h>
@@ -47,15 +48,14 @@
 /* ----------------------------------------------------------------------------- errors */
 static PyObject *RingError;  /* set by the module init from buffer_pubsub.fast_lane's class */
 
+/* Raise the lane's error class with a message formatted by C's printf. */
 static PyObject *ring_error(const char *fmt, ...) {
+    char text[512];
     va_list args;
     va_start(args, fmt);
-    PyObject *text = PyUnicode_FromFormatV(fmt, args);
+    vsnprintf(text, sizeof text, fmt, args);
     va_end(args);
-    if (text != NULL) {
-        PyErr_SetObject(RingError ? RingError : PyExc_RuntimeError, text);
-        Py_DECREF(text);
-    }
+    PyErr_SetString(RingError ? RingError : PyExc_RuntimeError, text);
     return NULL;
 }
 

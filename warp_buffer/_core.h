@@ -56,3 +56,25 @@ static inline void desc_unpack(const unsigned char *in, uint64_t *v) {
 }
 
 #endif
+
+/* ----------------------------------------------------------------------------- the arena file
+ * (warp_buffer.arena): header page, one 64-byte acknowledgement slot per peer subscription,
+ * one generation word per 4 KiB of data, then the blocks. */
+#define ARENA_MIN_BLOCK 4096ULL
+#define ARENA_LOCK_SPAN 4096ULL
+#define ARENA_MAX_PEERS 1024
+#define ARENA_SLOT_STRIDE 64
+#define ARENA_NO_PEER 0xFFFF
+#define ARENA_ACKS_OFFSET 4096ULL
+#define ARENA_GENS_OFFSET (ARENA_ACKS_OFFSET + ARENA_MAX_PEERS * ARENA_SLOT_STRIDE)
+#define ARENA_GENERATION_ORDER_BITS 6
+#define DESC_VERSION 2
+#define DESC_KIND_HOST 0
+#define DESC_KIND_CUDA_IPC 1
+#define DESC_KIND_CUDA_STAGING 2
+#define DESC_KIND_CUDA_VMM 3
+#define PID_MAX (1u << 22)
+
+/* field indexes of the descriptor */
+enum { F_VERSION, F_KIND, F_SLOT, F_PID, F_SESSION, F_OFFSET, F_CAPACITY, F_SIZE,
+       F_GENERATION, F_SEQUENCE, F_DEVICE };

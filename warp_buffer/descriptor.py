@@ -19,10 +19,10 @@ from typing import Any
 from rosidl_buffer.messages import get_message_type
 from rosidl_buffer.native import load_extension
 
-from .errors import DescriptorError
+from .errors import DescriptorError, ExportBoundsError, ExportError, StaleBufferError
 
 _core = load_extension("warp_buffer._core")
-_core.set_error_class(DescriptorError)
+_core.set_error_classes(DescriptorError, ExportBoundsError, StaleBufferError, ExportError)
 
 __all__ = [
     "DESCRIPTOR_TYPE",
