@@ -14,7 +14,8 @@ if os.environ.get("WARP_BUFFER_ASAN") == "1":
     LDFLAGS += ["-fsanitize=address"]
 
 setup(ext_modules=[
-    Extension("warp_buffer._core", sources=["warp_buffer/_core.c"],
+    Extension("warp_buffer._core", sources=["warp_buffer/_core.c", "warp_buffer/_core_import.c",
+                       "warp_buffer/_core_lease.c"],
               depends=["warp_buffer/_core.h"], extra_compile_args=CFLAGS,
               extra_link_args=LDFLAGS),
     Extension("buffer_pubsub._ring", sources=["buffer_pubsub/_ring.c"],

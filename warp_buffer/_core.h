@@ -55,7 +55,6 @@ static inline void desc_unpack(const unsigned char *in, uint64_t *v) {
     }
 }
 
-#endif
 
 /* ----------------------------------------------------------------------------- the arena file
  * (warp_buffer.arena): header page, one 64-byte acknowledgement slot per peer subscription,
@@ -78,3 +77,21 @@ static inline void desc_unpack(const unsigned char *in, uint64_t *v) {
 /* field indexes of the descriptor */
 enum { F_VERSION, F_KIND, F_SLOT, F_PID, F_SESSION, F_OFFSET, F_CAPACITY, F_SIZE,
        F_GENERATION, F_SEQUENCE, F_DEVICE };
+
+/* ----------------------------------------------------------------------------- shared */
+#include <Python.h>
+
+#define DESC_FIELD_COUNT_USED 11  /* the import reads the fields up to device_uuid */
+
+extern PyObject *DescriptorError, *ExportBoundsError, *StaleBufferError, *ExportError;
+extern PyTypeObject SessionType, HoldType;
+
+/* Raise cls (fallback until set) with a message formatted by printf: numbers only. */
+PyObject *raise_as(PyObject *cls, PyObject *fallback, const char *fmt, ...);
+PyObject *descriptor_error(const char *fmt, ...);
+int field_value(PyObject *item, int i, uint64_t *out);
+int lock_range(int fd, short kind, uint64_t offset, uint64_t length);
+PyObject *lease_configure(PyObject *module, PyObject *args);
+int lease_module_init(PyObject *module);
+
+#endif
