@@ -471,6 +471,116 @@ PyTypeObject ExportsType = {
     .tp_weaklistoffset = offsetof(Exports, weakrefs),
 };
 
+/* ============================================================================= fences */
+/* The pages a loan protects (warp_buffer.loan): read-only in this process between publish and
+ * the next loan, so a write through a stale view faults instead of changing what readers see. */
+typedef struct {
+    PyObject_HEAD
+    unsigned char *addr;
+    size_t nbytes;
+    int window;      /* a mapping of our own (unmapped at close), else the block's own pages */
+    int protected;
+} Fence;
+
+PyTypeObject FenceType;
+
+static int fence_protect_c(Fence *self, int writable) {
+    if (self->addr == NULL)
+        return 0;
+    if (mprotect(self->addr, self->nbytes, writable ? PROT_READ | PROT_WRITE : PROT_READ) != 0) {
+        PyErr_Format(PyExc_OSError, "mprotect of a loaned block failed: %s", strerror(errno));
+        return -1;
+    }
+    self->protected = !writable;
+    return 0;
+}
+
+/* Fence(addr, nbytes, window) */
+static int fence_init(Fence *self, PyObject *args, PyObject *kwds) {
+    static char *kwlist[] = {"addr", "nbytes", "window", NULL};
+    unsigned long long addr, nbytes;
+    int window;
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "KKp", kwlist, &addr, &nbytes, &window))
+        return -1;
+    self->addr = (unsigned char *)(uintptr_t)addr;
+    self->nbytes = (size_t)nbytes;
+    self->window = window;
+    self->protected = 0;
+    return 0;
+}
+
+/* Writable again whatever the last loan left: a window is unmapped, pages protected in place
+ * are made writable. Idempotent. */
+static void fence_close_c(Fence *self) {
+    if (self->addr == NULL)
+        return;
+    if (self->window)
+        munmap(self->addr, self->nbytes);
+    else if (self->protected)
+        mprotect(self->addr, self->nbytes, PROT_READ | PROT_WRITE);
+    self->addr = NULL;
+    self->protected = 0;
+}
+
+static void fence_dealloc(Fence *self) {
+    fence_close_c(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static PyObject *fence_protect(Fence *self, PyObject *args, PyObject *kwds) {
+    static char *kwlist[] = {"writable", NULL};
+    int writable = 0;
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "|p", kwlist, &writable))
+        return NULL;
+    if (fence_protect_c(self, writable) != 0)
+        return NULL;
+    Py_RETURN_NONE;
+}
+
+static PyObject *fence_close(Fence *self, PyObject *unused) {
+    fence_close_c(self);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef fence_methods[] = {
+    {"protect", (PyCFunction)(void (*)(void))fence_protect, METH_VARARGS | METH_KEYWORDS,
+     "protect(writable=False): read-only in this process (writable=True: writable again)."},
+    {"close", (PyCFunction)fence_close, METH_NOARGS,
+     "Writable again, or the window unmapped (idempotent)."},
+    {NULL}
+};
+
+static PyMemberDef fence_members[] = {
+    {"protected", T_BOOL, offsetof(Fence, protected), READONLY, "read-only now"},
+    {"window", T_BOOL, offsetof(Fence, window), READONLY, "a mapping of the fence's own"},
+    {"nbytes", T_ULONGLONG, offsetof(Fence, nbytes), READONLY, "bytes protected"},
+    {NULL}
+};
+
+static PyObject *fence_get_addr(Fence *self, void *closure) {
+    return PyLong_FromVoidPtr(self->addr);
+}
+
+static PyGetSetDef fence_getset[] = {
+    {"addr", (getter)fence_get_addr, NULL, "the first page (0 once closed)", NULL},
+    {NULL}
+};
+
+PyTypeObject FenceType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "warp_buffer._core.Fence",
+    .tp_doc = "Fence(addr, nbytes, window): the pages a loan protects between publish and its "
+              "next loan.",
+    .tp_basicsize = sizeof(Fence),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)fence_init,
+    .tp_dealloc = (destructor)fence_dealloc,
+    .tp_methods = fence_methods,
+    .tp_members = fence_members,
+    .tp_getset = fence_getset,
+};
+
 /* ============================================================================= leases */
 typedef struct {
     PyObject_HEAD
@@ -571,7 +681,9 @@ static void lease_finalize(Lease *self) {
     PyErr_Fetch(&type, &value, &tb);
     self->state = FREE;
     PyObject *fence = self->fence;
-    if (fence != NULL && fence != Py_None) {
+    if (fence != NULL && Py_IS_TYPE(fence, &FenceType)) {
+        fence_close_c((Fence *)fence);
+    } else if (fence != NULL && fence != Py_None) {
         self->fence = Py_NewRef(Py_None);
         PyObject *r = PyObject_CallMethodNoArgs(fence, str_close);
         if (r == NULL)
@@ -838,6 +950,18 @@ static PyObject *lease_end_publish(Lease *self, PyObject *unused) {
     PyObject *fence = self->fence;
     if (fence == Py_None)
         Py_RETURN_NONE;
+    if (Py_IS_TYPE(fence, &FenceType)) {
+        if (((Fence *)fence)->protected)
+            Py_RETURN_NONE;
+        lease_lock(self);
+        int rc = 0;
+        if (self->state == PUBLISHED && self->fence == fence && !((Fence *)fence)->protected)
+            rc = fence_protect_c((Fence *)fence, 0);
+        lease_unlock(self);
+        if (rc < 0)
+            return NULL;
+        Py_RETURN_NONE;
+    }
     int protected = attr_true(fence, str_protected);
     if (protected != 0)
         return protected < 0 ? NULL : Py_NewRef(Py_None);
@@ -890,7 +1014,10 @@ static PyObject *lease_reclaim(Lease *self, PyObject *unused) {
             goto done;
         }
     }
-    if (self->fence != Py_None) {
+    if (Py_IS_TYPE(self->fence, &FenceType)) {
+        if (((Fence *)self->fence)->protected && fence_protect_c((Fence *)self->fence, 1) != 0)
+            goto done;
+    } else if (self->fence != Py_None) {
         int protected = attr_true(self->fence, str_protected);
         if (protected < 0)
             goto done;
@@ -1058,9 +1185,9 @@ int lease_module_init(PyObject *m) {
         if (*names[i].slot == NULL)
             return -1;
     }
-    PyTypeObject *types[] = {&PeerSlotType, &ArenaCoreType, &ExportsType, &LeaseType,
-                             &TokenType};
-    const char *type_names[] = {"PeerSlot", "ArenaCore", "Exports", "Lease", "Token"};
+    PyTypeObject *types[] = {&PeerSlotType, &ArenaCoreType, &ExportsType, &FenceType,
+                             &LeaseType, &TokenType};
+    const char *type_names[] = {"PeerSlot", "ArenaCore", "Exports", "Fence", "Lease", "Token"};
     for (size_t i = 0; i < sizeof types / sizeof *types; i++) {
         if (PyType_Ready(types[i]) < 0
                 || PyModule_AddObjectRef(m, type_names[i], (PyObject *)types[i]) < 0)
