@@ -48,7 +48,7 @@ class Runnable(Protocol):
 
 
 class Target(Protocol):
-    """A user's executor as a node's executor sees it (:class:`buffer_pubsub.executors.Executor`)."""
+    """A user's executor as a node sees it (:class:`buffer_pubsub.executors.Executor`)."""
 
     def _schedule(self, item: Runnable) -> None:
         """Queue ``item``, ready to run on the executor's threads."""
