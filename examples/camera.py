@@ -40,7 +40,7 @@ def main() -> int:
                                            "frame (up to 30 s)"))
     stop_on_sigterm()
     device = args.device or default_device()
-    # Made once, outside the loop: the loan pool is keyed by the factory.
+    # Made once, outside the loop: every loan then draws from one pool (keyed by the factory).
     new_frame = functools.partial(tw.allocate_image_msg, HEIGHT, WIDTH, "rgb8",
                                   backend="warp", device=device)
     published = 0
