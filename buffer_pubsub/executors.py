@@ -39,7 +39,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from ._executor import NodeExecutor, Runnable, user_spin, wait_seconds
-from .errors import ExecutorModeError
+from .errors import ExecutorModeError, NodeClosedError
 
 if TYPE_CHECKING:
     from .node import Node
@@ -98,6 +98,9 @@ class Executor:
                                         name=f"buffer_pubsub:{node.name}:receive", daemon=True)
             self._receivers[id(node)] = (receiver, until)
             receiver.start()
+        if node.closed:  # closed meanwhile: its close() found it in no executor yet
+            self.remove_node(node)
+            raise NodeClosedError(f"node {node.name!r} is closed")
         return True
 
     def remove_node(self, node: Node) -> None:
