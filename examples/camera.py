@@ -23,8 +23,8 @@ import warp as wp
 
 import pipeline_kernels
 from pipeline_common import (
-    IMAGE_TOPIC, Stopwatch, default_device, image_phase, node_options, parse_args, stamp,
-    stop_on_sigterm, summary,
+    IMAGE_TOPIC, default_device, image_phase, node_options, paced, parse_args, stamp,
+    stop_on_sigterm, summary, until_interrupted,
 )
 from buffer_pubsub import Node
 from tensor_conversions import warp as tw
@@ -49,11 +49,9 @@ def main() -> int:
         matched = images.wait_for_subscriptions(args.subscribers, timeout=30)
         print(f"camera: {HEIGHT}x{WIDTH} rgb8 at {args.rate:g} Hz on {device}; "
               f"{'subscribers matched' if matched else 'no subscriber yet'}", flush=True)
-        clock = Stopwatch(args.duration)
-        next_frame = time.monotonic()
-        try:
-            while not clock.over():
-                with images.loan(new_frame) as frame:
+        with until_interrupted():
+            for _ in paced(args.rate, args.duration):
+                with images.loan(new_frame) as frame:  # published at the end of the block
                     captured = time.time_ns()
                     stamp(frame.header, captured)
                     frame.header.frame_id = "camera"
@@ -61,10 +59,6 @@ def main() -> int:
                               inputs=[tw.from_output_image_msg(frame), image_phase(captured)],
                               device=device)
                 published += 1
-                next_frame += 1.0 / args.rate
-                time.sleep(max(0.0, next_frame - time.monotonic()))
-        except KeyboardInterrupt:
-            pass
     summary("camera", published=published, device=device)
     return 0
 

@@ -20,8 +20,8 @@ import torch
 import torch.nn.functional as F
 
 from pipeline_common import (
-    FEATURES_TOPIC, IMAGE_TOPIC, POOL, Stopwatch, expected_pixels, image_phase, node_options,
-    parse_args, percentile_ms, ready, stamp_ns, stop_on_sigterm, summary,
+    FEATURES_TOPIC, IMAGE_TOPIC, POOL, expected_pixels, image_phase, node_options, parse_args,
+    percentile_ms, ready, run_for, stamp_ns, stop_on_sigterm, summary, until_interrupted,
 )
 from buffer_pubsub import Node
 from rosidl_buffer.messages import get_message_type
@@ -71,11 +71,8 @@ def main() -> int:
         node.create_subscription("sensor_msgs/msg/Image", IMAGE_TOPIC, inference.on_image,
                                  depth=2, acceptable_buffer_backends="warp")
         ready("infer")
-        clock = Stopwatch(args.duration)
-        try:
-            node.spin(timeout=clock.left())  # callbacks run here, on this thread
-        except KeyboardInterrupt:
-            pass
+        with until_interrupted():
+            node.spin(timeout=run_for(args.duration))  # callbacks run here, on this thread
     summary("infer", frames=inference.frames, wrong=inference.wrong, storage=inference.storage,
             capture_to_features_p50_ms=percentile_ms(inference.latencies_ns, 50))
     return 0

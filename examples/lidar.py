@@ -20,8 +20,8 @@ import warp as wp
 
 import pipeline_kernels
 from pipeline_common import (
-    AZIMUTHS, RANGE_M, RING_SPACING_M, RINGS, SCAN_TOPIC, Stopwatch, default_device,
-    node_options, parse_args, scan_rotation, stamp, stop_on_sigterm, summary,
+    AZIMUTHS, RANGE_M, RING_SPACING_M, RINGS, SCAN_TOPIC, default_device, node_options, paced,
+    parse_args, scan_rotation, stamp, stop_on_sigterm, summary, until_interrupted,
 )
 import warp_buffer
 from buffer_pubsub import Node
@@ -55,11 +55,9 @@ def main() -> int:
         scans = node.create_publisher(PointCloud2, SCAN_TOPIC, depth=2)
         scans.wait_for_subscriptions(args.subscribers, timeout=30)
         print(f"lidar: {POINTS} points at {args.rate:g} Hz on {device}", flush=True)
-        clock = Stopwatch(args.duration)
-        next_scan = time.monotonic()
-        try:
-            while not clock.over():
-                with scans.loan(factory) as scan:
+        with until_interrupted():
+            for _ in paced(args.rate, args.duration):
+                with scans.loan(factory) as scan:  # published at the end of the block
                     started = time.time_ns()
                     stamp(scan.header, started)
                     scan.header.frame_id = "lidar"
@@ -68,10 +66,6 @@ def main() -> int:
                                   inputs=[out.view(wp.vec4f), AZIMUTHS, scan_rotation(started),
                                           RANGE_M, RING_SPACING_M])
                 published += 1
-                next_scan += 1.0 / args.rate
-                time.sleep(max(0.0, next_scan - time.monotonic()))
-        except KeyboardInterrupt:
-            pass
     summary("lidar", published=published, points=POINTS, device=device)
     return 0
 

@@ -10,10 +10,13 @@ stamps.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import itertools
 import json
 import math
 import signal
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -107,20 +110,34 @@ def scan_rotation(nanoseconds: int) -> float:
     return (nanoseconds // 1_000_000) % 1000 * 2 * math.pi / 1000
 
 
+# -- running ------------------------------------------------------------------------------------
+def run_for(duration: float) -> float | None:
+    """``--duration`` as a spin timeout: None (no limit) for 0."""
+    return duration if duration > 0 else None
+
+
+def paced(rate: float, duration: float) -> Iterator[int]:
+    """Frame numbers at ``rate`` a second, for ``duration`` seconds (0: for ever)."""
+    end = time.monotonic() + duration if duration > 0 else math.inf
+    due = time.monotonic()
+    for number in itertools.count():
+        if time.monotonic() >= end:
+            return
+        yield number
+        due += 1.0 / rate
+        time.sleep(max(0.0, due - time.monotonic()))
+
+
+@contextlib.contextmanager
+def until_interrupted() -> Iterator[None]:
+    """Run the block until it ends or Ctrl-C (or SIGTERM, see :func:`stop_on_sigterm`)."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        pass
+
+
 # -- reporting ----------------------------------------------------------------------------------
-class Stopwatch:
-    """Whether a stage's ``--duration`` is over (never, for 0)."""
-
-    def __init__(self, duration: float) -> None:
-        self.end = time.monotonic() + duration if duration > 0 else math.inf
-
-    def left(self) -> float | None:
-        """Seconds left (None: no limit)."""
-        return None if self.end == math.inf else max(0.0, self.end - time.monotonic())
-
-    def over(self) -> bool:
-        return time.monotonic() >= self.end
-
 
 def percentile_ms(values_ns: list[int], q: float) -> float | None:
     """The ``q`` percentile of ``values_ns``, in milliseconds (None when empty)."""

@@ -17,8 +17,8 @@ import time
 import torch
 
 from pipeline_common import (
-    RANGE_M, RING_SPACING_M, SCAN_TOPIC, Stopwatch, node_options, parse_args, percentile_ms,
-    ready, scan_rotation, stamp_ns, stop_on_sigterm, summary,
+    RANGE_M, RING_SPACING_M, SCAN_TOPIC, node_options, parse_args, percentile_ms, ready,
+    run_for, scan_rotation, stamp_ns, stop_on_sigterm, summary, until_interrupted,
 )
 from buffer_pubsub import Node
 from tensor_conversions import torch as tc
@@ -54,11 +54,8 @@ def main() -> int:
         node.create_subscription("sensor_msgs/msg/PointCloud2", SCAN_TOPIC, ranges.on_scan,
                                  depth=2, acceptable_buffer_backends="warp")
         ready("ranges")
-        clock = Stopwatch(args.duration)
-        try:
-            node.spin(timeout=clock.left())
-        except KeyboardInterrupt:
-            pass
+        with until_interrupted():
+            node.spin(timeout=run_for(args.duration))
     summary("ranges", scans=ranges.scans, wrong=ranges.wrong, nearest_m=ranges.nearest_m,
             scan_to_result_p50_ms=percentile_ms(ranges.latencies_ns, 50))
     return 0

@@ -19,9 +19,9 @@ import time
 import numpy as np
 
 from pipeline_common import (
-    FEATURES_TOPIC, IMAGE_TOPIC, POOL, Stopwatch, expected_feature_rows, expected_pixels,
-    image_phase, node_options, parse_args, percentile_ms, ready, stamp_ns, stop_on_sigterm,
-    summary,
+    FEATURES_TOPIC, IMAGE_TOPIC, POOL, expected_feature_rows, expected_pixels, image_phase,
+    node_options, parse_args, percentile_ms, ready, stamp_ns, stop_on_sigterm, summary,
+    until_interrupted,
 )
 from buffer_pubsub import Node
 from buffer_pubsub.callback_groups import MutuallyExclusiveCallbackGroup
@@ -85,17 +85,12 @@ def main() -> int:
                                      depth=1, callback_group=MutuallyExclusiveCallbackGroup())
         executor.add_node(node)
         ready("viewer")
-        clock = Stopwatch(args.duration)
-        timer = threading.Timer(clock.left() or 0.0, executor.shutdown)
-        timer.daemon = True
-        if clock.left() is not None:
-            timer.start()
-        try:
-            executor.spin()  # until the duration is over, or Ctrl-C
-        except KeyboardInterrupt:
-            pass
-        finally:
-            timer.cancel()
+        if args.duration > 0:
+            stop = threading.Timer(args.duration, executor.shutdown)
+            stop.daemon = True
+            stop.start()
+        with until_interrupted():
+            executor.spin()  # until executor.shutdown() (the duration is over), or Ctrl-C
     summary("viewer", **viewer.report())
     return 0
 

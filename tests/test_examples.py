@@ -11,18 +11,16 @@ from __future__ import annotations
 import ast
 import json
 import os
-import queue
 import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Iterator
 
 import pytest
 
-from tests._pubsub_helpers import ROOT, child_env
+from tests._pubsub_helpers import ROOT, Child, child_env
 
 pytestmark = pytest.mark.multiprocess
 
@@ -31,57 +29,29 @@ EXAMPLES = ROOT / "examples"
 START_S, FINISH_S = 120.0, 60.0
 
 
-class Stage:
-    """One example process; its stdout lines are collected by a reader thread."""
+class Stage(Child):
+    """One example process, reaped by ``close``; reads its ``<stage> <word> ...`` lines."""
 
-    def __init__(self, argv: list[str], env: dict[str, str]) -> None:
-        self.argv = argv
-        self.proc = subprocess.Popen(argv, cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True)
-        self.lines: queue.Queue[str | None] = queue.Queue()
-        self.seen: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.put(line.rstrip("\n"))
-        self.lines.put(None)
+    def __init__(self, script: str, argv: list[str], env: dict[str, str]) -> None:
+        self.stage = script.removesuffix(".py")
+        self._start(script, argv, env, stderr=subprocess.PIPE)
 
     def expect(self, word: str, timeout: float) -> str:
-        """The first line (from now) whose second word is ``word``."""
-        deadline = time.monotonic() + timeout
-        while True:
-            try:
-                line = self.lines.get(timeout=max(0.01, deadline - time.monotonic()))
-            except queue.Empty:
-                raise TimeoutError(f"{self.argv[1]} printed no {word!r}: {self.seen}") from None
-            if line is None:
-                raise RuntimeError(f"{self.argv[1]} exited ({self.proc.wait()}) before {word!r}:"
-                                   f" {self.seen} {self.proc.stderr.read() if self.proc.stderr else ''}")
-            self.seen.append(line)
-            if line.split(" ", 2)[1:2] == [word]:
-                return line
+        """The next line ``<stage> <word> ...``."""
+        return self._expect(f"{self.stage} {word}", timeout)
 
     def finish(self, stop: bool = True) -> dict:
-        """Stop (SIGTERM, taken as Ctrl-C) unless it ends by itself; its summary."""
+        """Stop it (SIGTERM, which the examples take as Ctrl-C) unless it ends by itself; its
+        summary, once it exited cleanly."""
         if stop and self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
         line = self.expect("summary", FINISH_S)
         self.proc.wait(timeout=FINISH_S)
         assert self.proc.stderr is not None
         err = self.proc.stderr.read()
-        assert self.proc.returncode == 0, (self.argv, self.proc.returncode, err[-3000:])
+        assert self.proc.returncode == 0, (self.name, self.proc.returncode, err[-3000:])
         assert "Traceback" not in err, err[-3000:]
         return json.loads(line.split(" ", 2)[2])
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(timeout=30)
-        for stream in (self.proc.stdout, self.proc.stderr):
-            if stream is not None:
-                stream.close()
 
 
 class Pipeline:
@@ -97,13 +67,14 @@ class Pipeline:
         # fight over the cores (100x slower tensor ops here); one thread a stage.
         environment["OMP_NUM_THREADS"] = "1"
         environment.update(env)
-        stage = Stage([sys.executable, str(EXAMPLES / script), *self.common, *args], environment)
+        stage = Stage(script, [sys.executable, str(EXAMPLES / script), *self.common, *args],
+                      environment)
         self.stages.append(stage)
         return stage
 
     def kill_all(self) -> None:
         for stage in self.stages:
-            stage.kill()
+            stage.close()
 
 
 @pytest.fixture

@@ -60,41 +60,21 @@ class _Spinning:
         assert self.error is None, self.error
 
 
-def test_a_slow_callback_does_not_delay_another_groups_callback(domain, topic):
+def _fast_ran_during_slow(domain: int, topic: str, own_group: bool, wait_s: float) -> bool:
+    """A slow image callback waits up to ``wait_s`` for the features callback, published while
+    it runs: whether that ran meanwhile (the image callback in a group of its own, or not)."""
     fast_ran = threading.Event()
     slow_started = threading.Event()
     seen: dict[str, bool] = {}
 
     def slow(msg) -> None:
         slow_started.set()
-        seen["slow"] = fast_ran.wait(PARTNER_WAIT_S)
+        seen["slow"] = fast_ran.wait(wait_s)
 
     with Node("exec_groups", domain_id=domain) as node:
         node.create_subscription(STRING, f"{topic}/image", slow,
-                                 callback_group=MutuallyExclusiveCallbackGroup())
-        node.create_subscription(STRING, f"{topic}/features", lambda m: fast_ran.set())
-        executor = MultiThreadedExecutor(num_threads=2)
-        executor.add_node(node)
-        with _Spinning(executor):
-            _publish(node, f"{topic}/image", "frame")
-            assert slow_started.wait(10)
-            _publish(node, f"{topic}/features", "f")
-            assert wait_until(lambda: "slow" in seen, timeout=PARTNER_WAIT_S + 10)
-    assert seen["slow"], "the features callback waited for the slow image callback"
-
-
-def test_callbacks_of_the_default_group_wait_for_each_other(domain, topic):
-    """The default (one group per node): the other callback runs only after the slow one."""
-    fast_ran = threading.Event()
-    slow_started = threading.Event()
-    seen: dict[str, bool] = {}
-
-    def slow(msg) -> None:
-        slow_started.set()
-        seen["slow"] = fast_ran.wait(SERIAL_WAIT_S)
-
-    with Node("exec_default", domain_id=domain) as node:
-        node.create_subscription(STRING, f"{topic}/image", slow)
+                                 callback_group=MutuallyExclusiveCallbackGroup() if own_group
+                                 else None)
         node.create_subscription(STRING, f"{topic}/features", lambda m: fast_ran.set())
         executor = MultiThreadedExecutor(num_threads=4)
         executor.add_node(node)
@@ -102,26 +82,42 @@ def test_callbacks_of_the_default_group_wait_for_each_other(domain, topic):
             _publish(node, f"{topic}/image", "frame")
             assert slow_started.wait(10)
             _publish(node, f"{topic}/features", "f")
-            assert wait_until(fast_ran.is_set, timeout=10)
-    assert seen["slow"] is False
+            assert wait_until(lambda: "slow" in seen and fast_ran.is_set(),
+                              timeout=wait_s + 10)
+    return seen["slow"]
+
+
+def test_a_slow_callback_does_not_delay_another_groups_callback(domain, topic):
+    assert _fast_ran_during_slow(domain, topic, own_group=True, wait_s=PARTNER_WAIT_S), \
+        "the features callback waited for the slow image callback"
+
+
+def test_callbacks_of_the_default_group_wait_for_each_other(domain, topic):
+    """The default (one group per node): the other callback runs only after the slow one."""
+    assert not _fast_ran_during_slow(domain, topic, own_group=False, wait_s=SERIAL_WAIT_S)
+
+
+class _Overlap:
+    """A callback that records how many of its calls ran at once, and what it got."""
+
+    def __init__(self) -> None:
+        self.running = self.peak = 0
+        self.done: list[str] = []
+        self._lock = threading.Lock()
+
+    def __call__(self, msg) -> None:
+        with self._lock:
+            self.running += 1
+            self.peak = max(self.peak, self.running)
+        time.sleep(0.002)  # room for another thread to start beside it, if it could
+        with self._lock:
+            self.running -= 1
+            self.done.append(msg.data)
 
 
 def test_a_mutually_exclusive_group_never_overlaps(domain, topic):
     group = MutuallyExclusiveCallbackGroup()
-    running = [0]
-    peak = [0]
-    done: list[str] = []
-    lock = threading.Lock()
-
-    def callback(msg) -> None:
-        with lock:
-            running[0] += 1
-            peak[0] = max(peak[0], running[0])
-        time.sleep(0.002)  # room for another thread to start beside it, if it could
-        with lock:
-            running[0] -= 1
-            done.append(msg.data)
-
+    callback = _Overlap()
     with Node("exec_mutex", domain_id=domain) as node:
         for i in range(3):
             node.create_subscription(STRING, f"{topic}/s{i}", callback, depth=100,
@@ -131,10 +127,10 @@ def test_a_mutually_exclusive_group_never_overlaps(domain, topic):
         with _Spinning(executor):
             for i in range(3):
                 _publish(node, f"{topic}/s{i}", *(f"{i}:{k}" for k in range(20)))
-            assert wait_until(lambda: len(done) == 60, timeout=30), len(done)
-    assert peak[0] == 1
+            assert wait_until(lambda: len(callback.done) == 60, timeout=30), len(callback.done)
+    assert callback.peak == 1
     for i in range(3):  # each subscription's messages in order
-        mine = [d for d in done if d.startswith(f"{i}:")]
+        mine = [d for d in callback.done if d.startswith(f"{i}:")]
         assert mine == [f"{i}:{k}" for k in range(20)]
 
 
@@ -171,20 +167,7 @@ def test_a_reentrant_group_runs_callbacks_together(domain, topic, same_subscript
 def test_a_callback_group_is_honoured_across_nodes(domain, topic):
     """One group shared by subscriptions of two nodes in one executor."""
     group = MutuallyExclusiveCallbackGroup()
-    running = [0]
-    peak = [0]
-    done: list[str] = []
-    lock = threading.Lock()
-
-    def callback(msg) -> None:
-        with lock:
-            running[0] += 1
-            peak[0] = max(peak[0], running[0])
-        time.sleep(0.002)
-        with lock:
-            running[0] -= 1
-            done.append(msg.data)
-
+    callback = _Overlap()
     with Node("exec_a", domain_id=domain) as a, Node("exec_b", domain_id=domain,
                                                         executor="manual") as b:
         a.create_subscription(STRING, f"{topic}/a", callback, depth=50, callback_group=group)
@@ -195,8 +178,8 @@ def test_a_callback_group_is_honoured_across_nodes(domain, topic):
         with _Spinning(executor):
             _publish(a, f"{topic}/a", *(f"a{k}" for k in range(15)))
             _publish(b, f"{topic}/b", *(f"b{k}" for k in range(15)))
-            assert wait_until(lambda: len(done) == 30, timeout=30), len(done)
-    assert peak[0] == 1
+            assert wait_until(lambda: len(callback.done) == 30, timeout=30), len(callback.done)
+    assert callback.peak == 1
 
 
 def test_single_threaded_executor_runs_several_nodes_on_the_calling_thread(domain, topic):
