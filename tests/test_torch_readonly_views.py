@@ -189,3 +189,15 @@ def test_a_point_cloud_copy_is_writable_when_a_clone_was_asked(framework):
     view = module.from_input_pointcloud_msg(msg, ("x", "intensity"), clone=False)
     with pytest.raises((RuntimeError, ValueError)):  # torch's refusal, NumPy's read-only flag
         view[0, 0] = 5.0
+
+
+@pytest.mark.cuda
+def test_a_cuda_input_view_refuses_writes_too():
+    """Warp storage on a GPU: the torch view is on the GPU and refuses writes the same way."""
+    value = torch.arange(8, dtype=torch.float32, device="cuda")
+    msg = tc.to_tensor_msg(value)
+    view = tc.from_input_tensor_msg(msg, clone=False)
+    assert view.is_cuda and float(view.sum()) == 28.0
+    with pytest.raises(RuntimeError):
+        view.add_(1)
+    assert torch.equal(tc.from_input_tensor_msg(msg), value)
