@@ -47,13 +47,15 @@ from rosidl_buffer.messages import (
 
 from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info, unknown_publisher_info
+from ._executor import spinning_here
 from ._inline import InlinePolicy
 from ._rate import RateLimit
 from ._sequence import Deduplicator, SequenceTracker
 from ._zenoh import undeclare_quietly
-from .errors import PubSubError
+from .errors import NodeClosedError, PubSubError
 
 if TYPE_CHECKING:
+    from .callback_groups import CallbackGroup
     from .node import Node
 
 __all__ = ["MessageInfo", "Subscription", "SubscriptionCounters"]
@@ -111,8 +113,12 @@ class Subscription:
 
     def __init__(self, node: Node, msg_type: type[Message], token: wire.EndpointToken,
                  callback: Callable[..., Any], depth: int, accepted: list[str],
-                 with_info: bool, history: str = wire.KEEP_LAST, *, raw: bool = False) -> None:
+                 with_info: bool, history: str = wire.KEEP_LAST,
+                 callback_group: CallbackGroup | None = None, *, raw: bool = False) -> None:
         self.node = node
+        #: Which callbacks may run beside this one on a multi-threaded executor.
+        self.callback_group = (node.default_callback_group if callback_group is None
+                               else callback_group)
         self.msg_type = msg_type
         self.raw = raw  # callbacks get the serialized CDR bytes (rclpy's raw=True)
         # At most max_rate_hz messages a second from each publisher (0: all). Our publishers
@@ -445,12 +451,15 @@ class Subscription:
             except Exception as exc:  # typed errors expected; a backend bug is counted too
                 self._count_error(exc, attachment)
                 return False
-        if self._closed:
+        node = self.node
+        if self._closed or node._closed:  # a closing node starts no callback
             if owned:
                 release_buffers(msg)  # imported for us alone, and nobody will read it
             return False
         with self._lock:
             self.counters.received += 1
+        in_flight = node._in_flight  # what close() waits for
+        thread = in_flight.enter()
         start = time.perf_counter()
         try:
             if self._with_info:
@@ -462,11 +471,13 @@ class Subscription:
         except Exception as exc:
             self._callback_failed(exc)
         except BaseException as exc:  # SystemExit, say: the user's own thread gets it (rclpy)
-            if self.node.executor_mode == "manual":
+            if spinning_here():
                 raise
-            # On the node's threads it would end the executor thread silently (and with it
+            # On the library's threads it would end the executor thread silently (and with it
             # every later delivery) or unwind Zenoh's: counted and logged, delivery goes on.
             self._callback_failed(exc)
+        finally:
+            in_flight.leave(thread)
         self._policy.ran(time.perf_counter() - start, inline)
         return True
 
@@ -474,6 +485,11 @@ class Subscription:
         with self._lock:
             self.counters.callback_errors += 1
         self.last_error = exc
+        if isinstance(exc, NodeClosedError) and self.node._closed:
+            # A callback that outlived close()'s wait published on its closed node: the end of
+            # the program (Ctrl-C), not an error to show.
+            _log.debug("%r: callback ran past its node's close: %s", self, exc)
+            return
         _log.error("%r: callback raised %s", self, type(exc).__name__,
                    exc_info=(type(exc), exc, exc.__traceback__))
 

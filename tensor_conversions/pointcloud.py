@@ -136,6 +136,8 @@ def from_input_pointcloud_msg(adapter: _api.Adapter[Any], msg: Any,
         table[:, start:start + column.shape[1]] = column
         start += column.shape[1]
     carrier = _CopyMsg(table)
+    if clone:  # the copy asked for is this one: the caller's, writable
+        return _api.output_native(adapter, carrier, carrier.layout)
     return _api.input_native(adapter, carrier, carrier.layout, clone=False)
 
 
