@@ -274,8 +274,11 @@ class Publisher:
         info = endpoint_info(token)
         stream = (wire.subscription_channel(token) if self._aware
                   else wire.SubscriptionChannel.BASE)
-        if stream == wire.SubscriptionChannel.CPU and token.is_ours and token.max_rate_hz:
-            stream = wire.SubscriptionChannel.OWN  # it listens there too, for its rate
+        if token.is_ours and (stream == wire.SubscriptionChannel.BASE and self._aware
+                              or stream == wire.SubscriptionChannel.CPU and token.max_rate_hz):
+            # Ours listen on their own stream too: one that advertises no backend ("any" with
+            # none installed) always, a CPU-only one that asked for a rate to get it there.
+            stream = wire.SubscriptionChannel.OWN
         peer = _Peer(token, info, stream)
         with self._lock:
             if self._closed or gid in self._peers:
