@@ -60,6 +60,7 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
+_SETLK, _request = memory.F_OFD_SETLK, memory.lock_request
 
 MIN_BLOCK = 4096
 #: The bytes of a block's lock range (at the block's file offset; a CUDA block's is a range of
@@ -243,20 +244,24 @@ class Arena:
         """Start an export of the ``capacity``-byte block at ``offset``: a generation never used
         before, whose low bits hold log2(capacity) (see :func:`generation_fits`)."""
         generation = next(self._generations) << GENERATION_ORDER_BITS | capacity.bit_length() - 1
-        self.gens[self.geometry.gen_index(offset)] = generation
+        self.gens[(offset - self.data_offset) // MIN_BLOCK] = generation  # (gen_index, inline)
         return generation
 
     def try_retire(self, offset: int) -> bool:
         """End the export of the block at ``offset`` if no reader holds it (a write-lock probe
-        on its lock range); later imports of it then find generation 0 and fail as stale."""
+        on its lock range); later imports of it then find generation 0 and fail as stale.
+        (memory.try_lock and unlock, inline: once per reuse of a block.)"""
+        fd = self.fd
         try:
-            memory.try_lock(self.fd, offset, exclusive=True, length=LOCK_SPAN)
-        except memory.LockBusy:
-            return False
+            fcntl.fcntl(fd, _SETLK, _request(fcntl.F_WRLCK, os.SEEK_SET, offset, LOCK_SPAN, 0))
+        except OSError as exc:
+            if exc.errno in memory.BUSY:
+                return False
+            raise
         try:
-            self.gens[self.geometry.gen_index(offset)] = 0
+            self.gens[(offset - self.data_offset) // MIN_BLOCK] = 0
         finally:
-            memory.unlock(self.fd, offset, LOCK_SPAN)
+            fcntl.fcntl(fd, _SETLK, _request(fcntl.F_UNLCK, os.SEEK_SET, offset, LOCK_SPAN, 0))
         return True
 
     # -- peers ------------------------------------------------------------------------------

@@ -23,6 +23,7 @@ drops the locks if the process dies.
 from __future__ import annotations
 
 import ctypes
+import fcntl
 import itertools
 import os
 import threading
@@ -44,7 +45,9 @@ from .arena import (
 )
 from .errors import ExportError, StaleBufferError
 
-__all__ = ["AttachedArena", "Hold", "attach", "attached_sessions", "forget_idle"]
+__all__ = ["AttachedArena", "Hold", "attach", "attached", "attached_sessions", "forget_idle"]
+
+_SETLK, _request = memory.F_OFD_SETLK, memory.lock_request
 
 
 class _DataMapping:
@@ -84,11 +87,11 @@ class AttachedArena:
         # ``owned``: the mappings are ours to unmap (False for our own arena, imported here)
         self._head = (base, geometry.data_offset) if owned else None
         self.data_offset = geometry.data_offset
+        self.data_base = data_base  # where file offset data_offset is mapped here
         self.gens = (ctypes.c_uint64 * (geometry.data_bytes // 4096)).from_address(
             base + GENS_OFFSET)
         self.acks = (ctypes.c_uint64 * (MAX_PEERS * SLOT_STRIDE // 8)).from_address(
             base + ACKS_OFFSET)
-        self._data_base = data_base
         # Views of imports are read-only slices of this array (their base): while one lives,
         # the data stays mapped (_DataMapping).
         self.data = np.asarray(_DataMapping(data_base, geometry.data_bytes, owned))
@@ -132,7 +135,7 @@ class AttachedArena:
 
     def address(self, offset: int) -> int:
         """Address of file offset ``offset`` (in the data region) in this process."""
-        return self._data_base + (offset - self.data_offset)
+        return self.data_base + (offset - self.data_offset)
 
     # -- holds ------------------------------------------------------------------------------
     def hold(self, offset: int, slot: int = -1, sequence: int = 0) -> Hold:
@@ -147,9 +150,12 @@ class AttachedArena:
                 key = next(self._keys) % LOCK_SPAN
                 while (offset, key) in live:  # (only when LOCK_SPAN holds of one block live here)
                     key = next(self._keys) % LOCK_SPAN
-                try:
-                    memory.try_lock(self.fd, offset + key, exclusive=False)
-                except memory.LockBusy:
+                try:  # (memory.try_lock, inline: once per import)
+                    fcntl.fcntl(self.fd, _SETLK, _request(fcntl.F_RDLCK, os.SEEK_SET,
+                                                          offset + key, 1, 0))
+                except OSError as exc:
+                    if exc.errno not in memory.BUSY:
+                        raise
                     raise StaleBufferError(f"block {offset:#x} of process {self.owner_pid} "
                                            "is being recycled") from None
                 live.add((offset, key))
@@ -158,7 +164,9 @@ class AttachedArena:
                     index = slot * (SLOT_STRIDE // 8)
                     if self.acks[index] < sequence:
                         self.acks[index] = sequence
-        return Hold(self, offset, key)
+        hold = _new_hold(Hold)  # (Hold's __init__, inline: once per import)
+        hold.arena, hold.offset, hold._key = self, offset, [key]
+        return hold
 
     def drop(self, offset: int, key: int) -> None:
         """End the hold on lock byte ``key`` of the block at ``offset``: one unlock, no Python
@@ -166,8 +174,8 @@ class AttachedArena:
         description, nor on a closed one (its locks went with it; the number may be another
         file's now). The byte becomes free for a new hold only after the unlock."""
         fd = self.fd
-        if fd >= 0 and self._pid == os.getpid():
-            memory.unlock(fd, offset + key)
+        if fd >= 0 and self._pid == os.getpid():  # (memory.unlock, inline: once per import)
+            fcntl.fcntl(fd, _SETLK, _request(fcntl.F_UNLCK, os.SEEK_SET, offset + key, 1, 0))
         self._live.discard((offset, key))
 
     @property
@@ -240,13 +248,17 @@ class Hold:
 
     def __del__(self) -> None:
         try:
-            self.release()
+            if self._key:  # (release, inline: every import ends here)
+                self.arena.drop(self.offset, self._key.pop())
         except Exception:  # pragma: no cover - interpreter shutdown
             pass
 
 
+_new_hold = object.__new__
 _sessions: dict[tuple[int, int], AttachedArena] = {}
 _sessions_lock = threading.Lock()
+#: The arena of a session attached already (None otherwise): one dict lookup per import.
+attached = _sessions.get
 
 
 def attach(owner_pid: int, session: int) -> AttachedArena:

@@ -295,7 +295,23 @@ class WarpBufferImpl(BufferImplBase):
         lease = self._lease
         return self._hold if lease is None else lease.hold()
 
+    def owner_view(self) -> Any:
+        """The owner's own view of the bytes, for a loan's cached writable views (the owner
+        writes without a handle): host memory as a 1-D uint8 NumPy array that keeps this impl
+        (and so its lease and block) alive, device memory as this impl's ``wp.array``. Not a
+        reader's token: it does not keep a published loan from its next loan."""
+        host = self._host
+        if host is not None:
+            return array_at(self._ptr or host.ctypes.data, self._size, self)
+        return self._array
+
     # -- public properties ---------------------------------------------------------------------
+    @property
+    def lease(self) -> Lease | None:
+        """The lease of local memory (its write, its seal, its readers' tokens); None for an
+        import (whose token is its hold on the publisher's block)."""
+        return self._lease
+
     @property
     def array(self) -> wp.array:
         """The storage: a 1-D ``wp.array`` of uint8, ``size()`` long (no synchronisation)."""

@@ -78,6 +78,7 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 _PID_MAX = 1 << 22  # Linux's pid_max ceiling
+_ORDER_MASK = (1 << _arena.GENERATION_ORDER_BITS) - 1
 _server_lock = threading.Lock()
 # Local copies made once per buffer (a clone moved into a block, an import's re-export copy, a
 # CUDA buffer's staging copy): made under this lock, so two exports never make two.
@@ -164,7 +165,7 @@ def _local_copy(impl: WarpBufferImpl) -> WarpBufferImpl:
 def _export_local(impl: WarpBufferImpl, kind: int | None, peer_uuids: frozenset[str] | set[str],
                   peer: PeerSlot | None) -> Any:
     block = impl._block
-    if block is not None and block.host is not None:  # cpu, a block of the arena (or private)
+    if block is not None and impl._host is not None:  # cpu, a block of the arena (or private)
         if kind is not None and kind != _desc.KIND_HOST:
             raise ExportUnavailableError(f"a cpu buffer cannot be exported as kind {kind!r}")
         if not block.shared:
@@ -281,7 +282,7 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
     unsealed arena), :class:`ExportBoundsError` (oversize), :class:`DescriptorError` (malformed)
     or :class:`ExportUnavailableError` (no such GPU here).
     """
-    if type(descriptor) is not _desc.descriptor_type():
+    if type(descriptor) is not (_desc._type or _desc.descriptor_type()):
         raise DescriptorError(f"expected a {_desc.DESCRIPTOR_TYPE}, got "
                               f"{type(descriptor).__name__}")
     values = _desc.fields_of(descriptor)
@@ -300,7 +301,7 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
                               f"{session:#x}, generation {generation})")
     if slot != NO_PEER and not 0 <= slot < MAX_PEERS:
         raise DescriptorError(f"peer slot {slot}")
-    arena = _attach.attach(owner_pid, session)
+    arena = _attach.attached((owner_pid, session)) or _attach.attach(owner_pid, session)
     cuda = kind in _desc.CUDA_ZERO_COPY
     problem = arena.geometry.check_block(offset, MIN_BLOCK if cuda else capacity)
     if problem is not None:
@@ -312,15 +313,15 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
         if arena.gens[(offset - arena.data_offset) // MIN_BLOCK] != generation:
             raise StaleBufferError(f"block {offset:#x} of process {owner_pid} was recycled "
                                    "(a later publish reuses it)")
-        if not _arena.generation_fits(generation, capacity):
+        if generation & _ORDER_MASK != capacity.bit_length() - 1:  # (generation_fits)
             raise ExportBoundsError(f"descriptor of process {owner_pid}: capacity {capacity} "
                                     f"is not that of block {offset:#x}")
         if cuda:
             return _import_cuda(descriptor, kind, capacity, size, device_word, handles, hold)
-        address = arena.address(offset)
+        address = arena.data_base + (offset - arena.data_offset)
         # The host view holds the token (and through it the arena's mapping): every view of
         # the import made from it keeps the block held and mapped.
-        return WarpBufferImpl.imported(address, size, _cpu_device(), hold, descriptor,
+        return WarpBufferImpl.imported(address, size, _cpu or _cpu_device(), hold, descriptor,
                                        array_at(address, size, hold))
     except BaseException:
         hold.release()

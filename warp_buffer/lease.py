@@ -27,8 +27,8 @@ finalizer runs. A token keeps the lease, and so the block, alive. A lease that i
 never written after the seal.
 
 **Exports.** The block's part (:class:`Exports`, a base of every pool block) outlives one owner:
-the generation of its current export, the peers it was sent to with their delivery numbers, and
-the probe that ends the export when no peer can still read it (the arena's delivery accounting and
+the generation of its current export (started by :meth:`Lease.export`), the peers it was sent to
+with their delivery numbers, and the probe that ends the export when no peer can still read it (the arena's delivery accounting and
 its write-lock probe on the block's lock range; CUDA blocks add their readers' last-use events).
 
 Nothing here waits, sleeps or runs on a timer; a finalizer (the owner's give-back) only appends to
@@ -41,7 +41,7 @@ import threading
 import weakref
 from typing import Any
 
-from .arena import NO_PEER
+from .arena import NO_PEER, SEQ_BITS
 from .errors import WriteHandleError
 
 __all__ = [
@@ -105,21 +105,6 @@ class Exports:
     def ensure_arena_range(self) -> None:
         """Give the block its arena range (host blocks have one from the start)."""
 
-    def begin_export(self) -> int:
-        """The generation of the current export, started on the first export since the block
-        was free (call with the owning lease's lock held, or before anyone else can see it)."""
-        if self.generation == 0:
-            self.ensure_arena_range()
-            self.generation = self.arena.new_generation(self.offset, self.capacity)
-        return self.generation
-
-    def issue(self, peer: Any) -> tuple[int, int]:
-        """``(slot, sequence)`` of a descriptor of the current export for ``peer`` (a
-        :class:`warp_buffer.arena.PeerSlot`): the block now waits for that peer's delivery."""
-        slot, sequence = peer.index, peer.next_sequence()
-        self.pending[slot] = sequence
-        return slot, sequence
-
     def try_reclaim(self) -> bool:
         """May the block be written again or freed now? Ends its export if so: every peer it
         was sent to imported it (or a later descriptor: keep-last), or is gone, and no reader in
@@ -147,7 +132,7 @@ class Lease:
     """
 
     __slots__ = ("pool", "block", "device", "on_cpu", "state", "writer", "event", "rearmable",
-                 "fence", "_readers", "_lock", "__weakref__")
+                 "fence", "write_stream", "_readers", "_lock", "__weakref__")
 
     def __init__(self, pool: Any, block: Any, device: Any, rearmable: bool = False) -> None:
         self.pool = pool
@@ -160,8 +145,10 @@ class Lease:
         self.rearmable = rearmable
         # What fences a published re-armable lease off from stale writes (a loan's pages, made
         # read-only at end_publish and writable at reclaim; closed before the block goes
-        # back): ``protect()``, ``unprotect()``, ``close()``. None: nothing fences it.
+        # back): ``protected``, ``protect(writable=False)``, ``close()``. None: nothing does.
         self.fence: Any = None
+        # CUDA: the stream a loan's views write on (no handle); the seal records there
+        self.write_stream: Any = None
         self._readers: list[weakref.ref[Token]] = []
         self._lock = threading.Lock()
 
@@ -226,11 +213,11 @@ class Lease:
         writer.closed = True
         self._complete(writer.stream)
 
-    def seal(self, stream: Any = None) -> None:
+    def seal(self) -> None:
         """-> PUBLISHED, once per publish (idempotent; the transport calls it once): an open
         write is ended and its completion recorded. CUDA: an event on the write's stream; for
-        bytes written without a handle (a loan's views) on ``stream``, the stream those views
-        write on (None: the current streams)."""
+        bytes written without a handle (a loan's views) on :attr:`write_stream` (None: the
+        current streams)."""
         if self.state == PUBLISHED and self.writer is None:
             return  # sealed already: only reclaim (the owner's, never concurrent) changes it
         with self._lock:
@@ -239,7 +226,7 @@ class Lease:
                 writer.sealed = "published"
                 self._complete(writer.stream)
             elif self.state == WRITABLE and not self.on_cpu:
-                self._complete(stream)  # written without a handle, or not at all
+                self._complete(self.write_stream)  # written without a handle, or not at all
             self.state = PUBLISHED
 
     def mark_read(self) -> None:
@@ -321,10 +308,20 @@ class Lease:
         OSError when the block gets no lock range (a CUDA block in a full arena)."""
         block = self.block
         with self._lock:
-            generation = block.begin_export()
+            generation = block.generation
+            if not generation:  # the first export since the block was free: a new generation
+                if block.arena is None:
+                    block.ensure_arena_range()
+                generation = block.generation = block.arena.new_generation(block.offset,
+                                                                            block.capacity)
             if peer is None:
                 return generation, NO_PEER, 0
-            slot, sequence = block.issue(peer)
+            # (PeerSlot.next_sequence, inline: once per descriptor)
+            number = next(peer.numbers)  # atomic under the GIL, unlike += on an attribute
+            if number > peer.issued:
+                peer.issued = number
+            slot, sequence = peer.index, peer.epoch << SEQ_BITS | number
+            block.pending[slot] = sequence
             return generation, slot, sequence
 
     def end_publish(self) -> None:
@@ -352,8 +349,8 @@ class Lease:
                 return False
             fence = self.fence
             if fence is not None and fence.protected:
-                fence.unprotect()
-            self.state, self.writer, self.event = WRITABLE, None, None
+                fence.protect(writable=True)
+            self.state, self.writer, self.event, self.write_stream = WRITABLE, None, None, None
             return True
 
     def adopt(self, block: Any, pool: Any) -> None:
