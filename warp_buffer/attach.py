@@ -168,16 +168,6 @@ class AttachedArena:
         hold.arena, hold.offset, hold._key = self, offset, [key]
         return hold
 
-    def drop(self, offset: int, key: int) -> None:
-        """End the hold on lock byte ``key`` of the block at ``offset``: one unlock, no Python
-        lock (hold finalizers call it). Not in a forked child that kept its parent's
-        description, nor on a closed one (its locks went with it; the number may be another
-        file's now). The byte becomes free for a new hold only after the unlock."""
-        fd = self.fd
-        if fd >= 0 and self._pid == os.getpid():  # (memory.unlock, inline: once per import)
-            fcntl.fcntl(fd, _SETLK, _request(fcntl.F_UNLCK, os.SEEK_SET, offset + key, 1, 0))
-        self._live.discard((offset, key))
-
     @property
     def held(self) -> int:
         """Holds alive in this process."""
@@ -235,23 +225,29 @@ class Hold:
         return bool(self._key)
 
     def release(self) -> None:
-        """End the hold now (idempotent, lock-free). Whatever still uses the import's memory
-        then reads bytes the publisher may recycle: drop the token instead where you can."""
+        """End the hold now (idempotent): one unlock, no Python lock (it is also the token's
+        finalizer). Not in a forked child that kept its parent's description, nor on a closed
+        one (its locks went with it; the number may be another file's now). The byte is free
+        for a new hold of this process only after the unlock. Whatever still uses the import's
+        memory then reads bytes the publisher may recycle: drop the token instead if you can."""
         try:
             key = self._key.pop()
         except IndexError:
             return
-        self.arena.drop(self.offset, key)
+        arena = self.arena
+        fd, offset = arena.fd, self.offset
+        try:
+            if fd >= 0 and arena._pid == os.getpid():  # (memory.unlock, inline)
+                fcntl.fcntl(fd, _SETLK, _request(fcntl.F_UNLCK, os.SEEK_SET, offset + key, 1, 0))
+        except Exception:  # pragma: no cover - interpreter shutdown: nothing left to unlock
+            pass
+        finally:
+            arena._live.discard((offset, key))
 
     def __call__(self, ptr: int = 0, size: int = 0) -> None:
         """As the ``deleter`` of an array over the import: it only keeps the hold alive."""
 
-    def __del__(self) -> None:
-        try:
-            if self._key:  # (release, inline: every import ends here)
-                self.arena.drop(self.offset, self._key.pop())
-        except Exception:  # pragma: no cover - interpreter shutdown
-            pass
+    __del__ = release  # every import ends here: the token is gone
 
 
 _new_hold = object.__new__

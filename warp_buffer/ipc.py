@@ -143,11 +143,15 @@ def export_buffer(buffer: Buffer | WarpBufferImpl, kind: int | None = None, *,
     """
     impl = buffer.get_impl() if type(buffer) is Buffer else buffer
     lease = getattr(impl, "_lease", None)
-    if lease is None or lease.block is not None and lease.block.arena is not None \
-            and lease.block.arena.pid != os.getpid():
+    block = None if lease is None else lease.block
+    if lease is None or block is not None and block.arena is not None \
+            and block.arena.pid != os.getpid():
         impl = _local_copy(_impl_of(impl))  # an import, or memory inherited at a fork
-    elif lease.state != PUBLISHED or lease.writer is not None:
-        lease.seal()
+    else:
+        if lease.state != PUBLISHED or lease.writer is not None:
+            lease.seal()
+        if kind is None and block is not None and block.shared and impl._host is not None:
+            return _describe(_desc.KIND_HOST, impl, block, peer)  # (the common case, inline)
     return _export_local(impl, kind, peer_device_uuids, peer)
 
 
