@@ -126,18 +126,24 @@ def _zero_copy_layout(msg: Any, names: Sequence[str]) -> TensorLayout | None:
     return TensorLayout(dtype, (height * width, len(chosen)), (point_step // itemsize, 1), first)
 
 
-def from_input_pointcloud_msg(adapter: _api.Adapter[Any], msg: Any,
-                              fields: Sequence[str] = ("x", "y", "z"), clone: bool = True) -> Any:
+def _chosen(msg: Any, fields: Sequence[str] | None) -> tuple[list[str], TensorLayout | None]:
+    """The field names asked (all for None), checked against the cloud, and their zero-copy
+    ``(N, F)`` layout (None: they take a copy)."""
     _check(msg)
-    names = list(fields)
     known = [f.name for f in msg.fields]
+    names = known if fields is None else list(fields)
     missing = [n for n in names if n not in known]
     if not names or missing:
         raise InvalidTensorMetadataError(
             f"PointCloud2 has no field(s) {missing or '(none asked)'}; it has {known}")
     field_dtype(msg)  # validates datatypes and point_step
     _check_size(msg)
-    layout = _zero_copy_layout(msg, names)
+    return names, _zero_copy_layout(msg, names)
+
+
+def from_input_pointcloud_msg(adapter: _api.Adapter[Any], msg: Any,
+                              fields: Sequence[str] = ("x", "y", "z"), clone: bool = True) -> Any:
+    names, layout = _chosen(msg, fields)
     if layout is not None:
         return _api.input_native(adapter, msg, layout, clone)
     points = structured_view(msg).reshape(-1)
@@ -232,16 +238,7 @@ def allocate_pointcloud_msg(adapter: _api.Adapter[Any], width: int, fields: Sequ
 
 def from_output_pointcloud_msg(adapter: _api.Adapter[Any], msg: Any,
                                fields: Sequence[str] | None = None) -> Any:
-    _check(msg)
-    names = [f.name for f in msg.fields] if fields is None else list(fields)
-    known = [f.name for f in msg.fields]
-    missing = [n for n in names if n not in known]
-    if not names or missing:
-        raise InvalidTensorMetadataError(
-            f"PointCloud2 has no field(s) {missing or '(none asked)'}; it has {known}")
-    field_dtype(msg)  # validates datatypes and point_step
-    _check_size(msg)
-    layout = _zero_copy_layout(msg, names)
+    names, layout = _chosen(msg, fields)
     if layout is None:
         raise InvalidTensorMetadataError(
             f"fields {names} are not one strided view of the points (one dtype, count 1, "

@@ -171,12 +171,9 @@ class PeerSlot:
     # How many of the latest descriptors the peer can still import (its delivery queue, and a
     # few in hand); older ones it can never read: they pin nothing. 0: no limit.
     window: int = 0
+    # The numbers of the descriptors sent to it, handed out by the block's lease
+    # (warp_buffer.lease.Lease.export): ``next(numbers)`` is atomic under the GIL.
     numbers: Any = dataclasses.field(default_factory=lambda: itertools.count(1))
-
-    def next_sequence(self) -> int:
-        number = next(self.numbers)  # atomic under the GIL, unlike += on an attribute
-        self.issued = max(self.issued, number)
-        return self.epoch << SEQ_BITS | number
 
 
 class Arena:

@@ -6,16 +6,21 @@ use changes state; every transition is one method that takes the lease's lock on
 
     FREE --acquire--> WRITABLE --open_write--> WRITING --close_write--> WRITTEN
                          |                        |                        |
-                         +------- seal (publish) or mark_read (a reader) --+
+                         +------ seal (a publish) or mark_read (a reader) -+
                                                v
-                      SEALED (published or read): no write any more; descriptors go to
-                      peers (Exports.begin/issue), readers in this process hold tokens
+                      PUBLISHED (or READ): no write any more; export(peer) sends the
+                      block to peers, readers in this process hold tokens (hold)
                                                |
-                      reclaim: no token alive, every peer delivered, no remote reader,
-                      CUDA last uses complete  ---> WRITABLE again (a loan re-armed)
+                      reclaim: no token alive, every peer delivered, no reader in
+                      another process, CUDA last uses complete --> WRITABLE (a loan)
                                                |
-                      owner gone (the lease is collected, or called as the deleter of the
-                      owner's array) ---> FREE: the pool reuses the block by the same rule
+                      the lease collected (owner, its arrays, every token gone)
+                      --> FREE: the pool reuses the block by the same rule
+
+The operations are few on purpose (a native core replaces this class without changing its
+callers): the pool's ``acquire`` makes a lease; ``open_write`` / ``close_write``, ``seal``,
+``mark_read``, ``export``, ``hold``, ``end_publish`` (a loan's pages turn read-only) and
+``reclaim`` are its transitions; its collection gives the block back.
 
 **Tokens.** A reader of a re-armable lease (a loan) holds a :class:`Token` from :meth:`Lease.hold`
 for as long as anything it made over the bytes lives: the token sits in the base chain of its
@@ -28,11 +33,13 @@ never written after the seal.
 
 **Exports.** The block's part (:class:`Exports`, a base of every pool block) outlives one owner:
 the generation of its current export (started by :meth:`Lease.export`), the peers it was sent to
-with their delivery numbers, and the probe that ends the export when no peer can still read it (the arena's delivery accounting and
-its write-lock probe on the block's lock range; CUDA blocks add their readers' last-use events).
+with their delivery numbers, and the probe that ends the export when no peer can still read it
+(the arena's delivery accounting and its write-lock probe on the block's lock range; CUDA
+blocks add their readers' last-use events).
 
-Nothing here waits, sleeps or runs on a timer; a finalizer (the owner's give-back) only appends to
-the pool's lock-free queue.
+Nothing here waits, sleeps or runs on a timer; the lease's finalizer (its give-back) only
+appends the block to the pool's lock-free queue, and a collected write handle ends its write
+without the lock (:meth:`Lease.end_write_quietly`).
 """
 
 from __future__ import annotations
@@ -172,14 +179,6 @@ class Lease:
             self.pool._give_back(self.block)
 
     # -- writing ------------------------------------------------------------------------------
-    @property
-    def published(self) -> bool:
-        return self.state == PUBLISHED
-
-    @property
-    def read(self) -> bool:
-        return self.state >= READ
-
     def open_write(self, stream: Any) -> WriteState:
         """WRITABLE -> WRITING: the buffer's one write handle (``stream``: the CUDA stream the
         user named, None for the current ones). Raises :class:`WriteHandleError` otherwise."""
@@ -296,11 +295,6 @@ class Lease:
             readers.append(_ref(token))
         return token
 
-    def readers(self) -> int:
-        """Tokens alive now."""
-        with self._lock:
-            return sum(r() is not None for r in self._readers)
-
     def export(self, peer: Any) -> tuple[int, int, int]:
         """Published to a peer: ``(generation, slot, sequence)`` of a descriptor of the block's
         current export for ``peer`` (a :class:`warp_buffer.arena.PeerSlot`; None: no delivery
@@ -316,7 +310,6 @@ class Lease:
                                                                             block.capacity)
             if peer is None:
                 return generation, NO_PEER, 0
-            # (PeerSlot.next_sequence, inline: once per descriptor)
             number = next(peer.numbers)  # atomic under the GIL, unlike += on an attribute
             if number > peer.issued:
                 peer.issued = number
