@@ -1,8 +1,9 @@
 """buffer_pubsub: ROS 2-style publish/subscribe over Eclipse Zenoh with rosidl::Buffer backends.
 
 The RMW role of the rosidl::Buffer guides: each ``uint8[]`` field travels by the backend each
-subscription accepts (negotiated through discovery), falling back to CPU bytes. The wire layout
-follows ROS 2's rmw_zenoh (see :mod:`buffer_pubsub.wire`).
+subscription accepts (negotiated through discovery), falling back to CPU bytes. On the wire it is
+ROS 2's rmw_zenoh 0.10.5 / 0.12.0 (see :mod:`buffer_pubsub.wire`): ROS 2 nodes and ours see and
+talk to each other. ``Node`` exposes the graph as rclpy does (:mod:`buffer_pubsub.graph`).
 
 Quick start::
 
@@ -46,13 +47,18 @@ from .errors import (
     WireFormatError,
 )
 from ._waker import ThreadWaker, Waker
+from .graph import EndpointKind, NodeInfo, TopicEndpointInfo
 from .loan import Loan
 from .node import Node
-from .publisher import Publisher
+from .publisher import Publisher, RouteInfo
 from .subscription import MessageInfo, Subscription, SubscriptionCounters
 
 __all__ = [
     "DEFAULT_CONFIG",
+    "EndpointKind",
+    "NodeInfo",
+    "RouteInfo",
+    "TopicEndpointInfo",
     "ExecutorModeError",
     "ForkedAfterZenohError",
     "InvalidTimeoutError",

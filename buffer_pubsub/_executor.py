@@ -33,7 +33,7 @@ class Runnable(Protocol):
 class Executor:
     """Ready subscriptions, run one message at a time, woken by ``waker``."""
 
-    #: Longest sleep between housekeeping rounds (expiry of parked samples).
+    #: Longest sleep between housekeeping rounds.
     TICK_S = 0.2
     #: How often a wait for the callback gate checks whether the executor was stopped.
     GATE_POLL_S = 0.05

@@ -9,7 +9,7 @@ from rosidl_buffer import BufferBackend, EndpointInfo, EndpointType
 
 from . import wire
 
-__all__ = ["endpoint_gone", "endpoint_info"]
+__all__ = ["endpoint_gone", "endpoint_info", "unknown_publisher_info"]
 
 _log = logging.getLogger(__name__)
 
@@ -28,6 +28,8 @@ def endpoint_info(token: wire.EndpointToken) -> EndpointInfo:
 
 
 def _build(token: wire.EndpointToken) -> EndpointInfo:
+    # An endpoint that is not ours carries no locality: backends see an unknown host ("").
+    locality = token.locality or _UNKNOWN
     return EndpointInfo(
         gid=token.gid,
         node_name=token.node_name,
@@ -35,11 +37,23 @@ def _build(token: wire.EndpointToken) -> EndpointInfo:
         topic_name=token.topic,
         topic_type=token.type_name,
         endpoint_type=EndpointType.PUBLISHER if token.is_publisher else EndpointType.SUBSCRIPTION,
-        host_id=token.locality.host_id,
-        process_id=token.locality.process_id,
-        user_id=token.locality.user_id,
-        supported_backends=token.backends,
+        host_id=locality.host_id,
+        process_id=locality.process_id,
+        user_id=locality.user_id,
+        supported_backends=token.backends or {},
     )
+
+
+_UNKNOWN = wire.Locality()
+
+
+def unknown_publisher_info(gid: bytes, topic: str, type_name: str) -> EndpointInfo:
+    """What backends are told about a publisher known by its gid alone (a sample arrived before
+    its token, or it has none): as rmw_zenoh's minimal endpoint info, the gid and the kind, no
+    locality. A backend judges such a publisher by what its descriptor names."""
+    return EndpointInfo(
+        gid=gid, node_name="", node_namespace="", topic_name=topic, topic_type=type_name,
+        endpoint_type=EndpointType.PUBLISHER, host_id="", process_id=0, user_id=-1)
 
 
 def endpoint_gone(backends: Iterable[BufferBackend], info: EndpointInfo) -> None:

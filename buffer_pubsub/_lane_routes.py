@@ -31,14 +31,14 @@ def serves(local: wire.Locality, peer: wire.EndpointToken, *, individual: bool, 
            keep_all: bool = False) -> bool:
     """Whether the lane should carry a publisher's messages to the subscription ``peer``.
 
-    Only subscriptions with a channel of their own (``individual``: they accept a backend
-    besides CPU) that a backend agreed to serve (``served``), on this host, as this user, in
-    another process (same-process subscriptions are served in-process), keep-last
+    Only subscriptions of ours with a channel of their own (``individual``: they accept a
+    backend besides CPU) that a backend agreed to serve (``served``), on this host, as this
+    user, in another process (same-process subscriptions are served in-process), keep-last
     (``keep_all`` peers stay on Zenoh, whose BLOCK congestion control bounds a stall; iceoryx2's
     retry would block ``publish()`` without bound).
     """
-    theirs = peer.locality
-    return (individual and served and not keep_all and peer.buffer_aware
+    theirs = peer.locality  # None: not one of ours, so it has no lane
+    return (individual and served and not keep_all and theirs is not None
             and theirs.host_id == local.host_id and theirs.user_id == local.user_id
             and theirs.process_id != local.process_id)
 
@@ -47,7 +47,7 @@ def queue_depth(peer: wire.EndpointToken) -> int:
     """How many frames the lane to subscription ``peer`` holds before it overwrites the oldest:
     the reader made its iceoryx2 queue as deep as its keep-last depth (see
     :meth:`Subscription.__init__`, at most :data:`fast_lane.MAX_DEPTH`)."""
-    return min(max(1, wire.qos_depth(peer.qos)), fast_lane.MAX_DEPTH)
+    return min(max(1, peer.qos.depth), fast_lane.MAX_DEPTH)
 
 
 #: File descriptors one lane end costs (iceoryx2's node, service and port files, ~8-10).
@@ -131,7 +131,8 @@ class DeadPeerSweeper:
     def peer_gone(self, token: wire.EndpointToken) -> None:
         """Discovery saw ``token`` vanish (call it from the liveliness DELETE handler)."""
         theirs = token.locality
-        if theirs.host_id != self._local.host_id or theirs.process_id == self._local.process_id:
+        if (theirs is None or theirs.host_id != self._local.host_id
+                or theirs.process_id == self._local.process_id):
             return
         with self._lock:
             now = time.monotonic()

@@ -20,8 +20,10 @@ _log = logging.getLogger(__name__)
 
 def undeclare_quietly(*entities: Any) -> None:
     """Undeclare Zenoh entities (publishers, subscribers, tokens), ignoring ones already gone:
-    teardown runs on close, on destroy and on peer loss, in any order."""
+    teardown runs on close, on destroy and on peer loss, in any order. None is skipped."""
     for entity in entities:
+        if entity is None:
+            continue
         try:
             entity.undeclare()
         except zenoh.ZError:

@@ -246,7 +246,7 @@ class LoanPool:
                 pools.move_to_end(key)
             slots = pool.slots
             for index, slot in enumerate(slots):
-                if not slot.loaned and slot.reusable():
+                if not slot.loaned and slot.reusable():  # (least recently loaned first)
                     slot.loaned = True
                     self.reused += 1
                     # Least recently loaned first next time: the one just published is the

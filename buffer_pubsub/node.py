@@ -15,6 +15,8 @@ vanish on DELETE, which Zenoh also sends when a peer process dies (SIGKILL inclu
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import json
 import logging
 import math
 import os
@@ -36,6 +38,7 @@ from ._waker import Waker
 from ._zenoh import run_bounded, typed_zenoh_errors, undeclare_quietly
 from .config import make_config, resolve_domain_id
 from .connectivity import open_session
+from .graph import NodeInfo, TopicEndpointInfo, node_info
 from .errors import (
     ExecutorModeError,
     InvalidEndpointError,
@@ -112,6 +115,7 @@ class Node:
         # foreign implementation) is the first key's while it lives, then the next one's
         self._keys: dict[str, wire.EndpointToken] = {}
         self._gid_keys: dict[bytes, list[str]] = {}
+        self._nodes: dict[str, wire.NodeToken] = {}  # liveliness key -> node
         self._publishers: list[Publisher] = []
         self._subscriptions: list[Subscription] = []
         self._own_lane = waker is None  # a LaneWaker the user gave stays the user's to close
@@ -121,7 +125,7 @@ class Node:
         self._gate = threading.Lock() if executor == "thread" else None
         self._spin_lock = threading.Lock()  # executor="manual": the one thread that spins
         self._inline_callbacks = executor == "thread" and bool(inline_callbacks)
-        self._executor = Executor(waker, self._housekeeping, self._gate)
+        self._executor = Executor(waker, _nothing_periodic, self._gate)
         self._sweeper = _lane_routes.DeadPeerSweeper(self.locality)
         self._thread: threading.Thread | None = None
 
@@ -145,6 +149,8 @@ class Node:
                 self._graph_subscriber = self.session.liveliness().declare_subscriber(
                     wire.liveliness_domain_selector(self.domain_id), self._on_liveliness,
                     history=True)
+                self._routes_queryable = self.session.declare_queryable(
+                    wire.routes_key(self.domain_id, self.zid), self._on_routes_query)
         except BaseException:
             self._executor.stop()
             run_bounded(self.session.close, CLOSE_TIMEOUT_S, "closing the Zenoh session")
@@ -198,7 +204,7 @@ class Node:
                     endpoint._undeclare()
                 except Exception:
                     _log.exception("undeclaring %r of node %s failed", endpoint, self.name)
-            undeclare_quietly(self._graph_subscriber, self._node_token)
+            undeclare_quietly(self._routes_queryable, self._graph_subscriber, self._node_token)
 
         # Ctrl-C during a step lets the (bounded) steps finish, then propagates: a session left
         # open keeps Zenoh's callback threads, and the interpreter cannot exit past them.
@@ -269,14 +275,6 @@ class Node:
         finally:
             self._spin_lock.release()
 
-    def _housekeeping(self) -> None:
-        """Periodic (executor tick): expire samples parked for a publisher never discovered."""
-        with self._lock:
-            subscriptions = list(self._subscriptions)
-        now = time.monotonic()
-        for subscription in subscriptions:
-            subscription._expire_parked(now)
-
     # -- endpoints -----------------------------------------------------------------------------
     def _resolve_type(self, msg_type: type[Message] | str) -> type[Message]:
         if isinstance(msg_type, str):
@@ -286,13 +284,16 @@ class Node:
         raise InvalidEndpointError(f"msg_type must be a message class or name, got {msg_type!r}")
 
     def _endpoint_token(self, kind: str, topic: str, type_name: str, depth: int, history: str,
-                        backends: dict[str, str]) -> wire.EndpointToken:
+                        backends: dict[str, str] | None) -> wire.EndpointToken:
         return wire.EndpointToken(
             domain_id=self.domain_id, zid=self.zid, node_id=self.node_id,
             entity_id=_process.next_id(), kind=kind, namespace=self.namespace,
             node_name=self.name, topic=topic, type_name=type_name,
-            type_hash=get_type_hash(type_name), qos=wire.qos_segment(depth, history),
-            buffer_aware=True, locality=self.locality, backends=backends)
+            type_hash=get_type_hash(type_name), qos=wire.QoSProfile.of(depth, history),
+            backends=backends, locality=self.locality)
+
+    def _installed_metadata(self, names: Sequence[str]) -> dict[str, str]:
+        return {name: self.backends[name].get_backend_metadata() for name in names}
 
     @staticmethod
     def _check_qos(depth: int, history: str) -> tuple[int, str]:
@@ -318,8 +319,12 @@ class Node:
         cls = self._resolve_type(msg_type)
         depth, history = self._check_qos(depth, history)
         fq_topic = self._topic(topic)
+        # As rmw_zenoh's buffer-aware publishers: cpu plus every installed backend's metadata
+        # (a type without a top-level uint8[] advertises nothing).
+        advertised = ({"cpu": "", **self._installed_metadata(list(self.backends))}
+                      if cls._buffer_fields else None)
         token = self._endpoint_token(wire.PUBLISHER_KIND, fq_topic, cls.__msgtype__, depth,
-                                     history, {})
+                                     history, advertised)
         with typed_zenoh_errors(f"cannot declare a publisher on {fq_topic}"):
             publisher = Publisher(self, cls, token, depth, history)
         with self._lock:
@@ -344,6 +349,8 @@ class Node:
         *,
         with_info: bool = False,
         history: str = wire.KEEP_LAST,
+        raw: bool = False,
+        max_rate: float | None = None,
     ) -> Subscription:
         """A subscription calling ``callback(msg)`` (``callback(msg, info)`` with ``with_info``)
         on this node's executor for every message of ``topic``.
@@ -353,6 +360,13 @@ class Node:
         discovery.
         ``history="keep_last"`` keeps the newest ``depth`` messages waiting for the callback
         (older ones are dropped and counted); ``"keep_all"`` keeps every one (as rmw_zenoh).
+        ``raw=True`` (CPU-only subscriptions) passes the serialized CDR bytes instead of a
+        message, decoding nothing (rclpy's ``raw``): for tools that measure or record.
+        ``max_rate``: at most this many messages a second from each publisher, the first after
+        each interval (a viewer that looks at a few frames a second). Publishers of ours honour
+        it before they serialize for this subscription, so they save the work; for others
+        (rmw_zenoh knows nothing of it) the subscription drops the extra messages on arrival,
+        before decoding them. The keep-last ``depth`` applies to what passes.
         """
         self._check_open()
         if not callable(callback):
@@ -367,13 +381,19 @@ class Node:
                 acceptable_buffer_backends, ["cpu", *self.backends])
         except ValueError as exc:
             raise InvalidEndpointError(str(exc)) from None
-        advertised = {name: "" if name == "cpu" else self.backends[name].get_backend_metadata()
-                      for name in accepted}
-        token = self._endpoint_token(
-            wire.SUBSCRIPTION_KIND, fq_topic, cls.__msgtype__, depth, history, advertised)
+        rate = _max_rate(max_rate)
+        if raw and accepted != ["cpu"]:
+            raise InvalidEndpointError(
+                "raw=True takes CPU bytes only: a backend's descriptor means nothing serialized "
+                f"(acceptable_buffer_backends={acceptable_buffer_backends!r})")
+        advertised = (_subscription_advertisement(acceptable_buffer_backends, accepted, self)
+                      if cls._buffer_fields else None)
+        token = dataclasses.replace(self._endpoint_token(
+            wire.SUBSCRIPTION_KIND, fq_topic, cls.__msgtype__, depth, history, advertised),
+            max_rate_hz=rate)
         with typed_zenoh_errors(f"cannot declare a subscription on {fq_topic}"):
             subscription = Subscription(self, cls, token, callback, depth, accepted, with_info,
-                                        history)
+                                        history, raw=raw)
         with self._lock:
             closed = self._closed  # close() ran meanwhile: it did not see this one
             if not closed:
@@ -389,6 +409,25 @@ class Node:
                 if endpoint in group:
                     group.remove(endpoint)
 
+    def routes(self) -> list[dict[str, Any]]:
+        """Every publisher of this node with the route it takes to each subscription now
+        (:meth:`Publisher.routes`), as plain data (what the node answers on its admin key)."""
+        with self._lock:
+            publishers = list(self._publishers)
+        return [{"publisher": publisher.gid.hex(), "topic": publisher.topic_name,
+                 "type": publisher.msg_type.__msgtype__,
+                 "routes": [{"subscription": r.subscription_gid.hex(), "route": r.route,
+                             "via": r.via, "reason": r.reason} for r in publisher.routes()]}
+                for publisher in publishers]
+
+    def _on_routes_query(self, query: zenoh.Query) -> None:
+        try:
+            payload = json.dumps({"node": self.name, "namespace": self.namespace or "/",
+                                  "publishers": self.routes()})
+            query.reply(query.key_expr, payload.encode())
+        except Exception:  # a Zenoh thread: never raise into it
+            _log.debug("answering a routes query failed", exc_info=True)
+
     # -- discovery -----------------------------------------------------------------------------
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -398,6 +437,13 @@ class Node:
                 token.gid  # derived from the key: a malformed one fails here, not in a hook
         except RosidlBufferError as exc:  # PubSubError, or a type name no message can have
             _log.debug("ignoring liveliness token %s: %s", key, exc)
+            return
+        if isinstance(token, wire.NodeToken):
+            with self._lock:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    self._nodes[key] = token
+                else:
+                    self._nodes.pop(key, None)
             return
         if not isinstance(token, wire.EndpointToken):
             return
@@ -498,6 +544,7 @@ class Node:
         token = self._graph.get(gid)  # a dict read is atomic; no lock on the hot path
         return token if token is not None else self._gone.get(gid)
 
+    # -- the graph (rclpy's names) -------------------------------------------------------------
     def get_topic_names_and_types(self) -> list[tuple[str, list[str]]]:
         """Topics seen in the graph (this domain) with their type names, like rclpy."""
         topics: dict[str, set[str]] = {}
@@ -505,6 +552,80 @@ class Node:
             for token in self._graph.values():
                 topics.setdefault(token.topic, set()).add(token.type_name)
         return sorted((topic, sorted(types)) for topic, types in topics.items())
+
+    def get_node_names_and_namespaces(self) -> list[tuple[str, str]]:
+        """``(name, namespace)`` of every node of the domain, this one included, like rclpy."""
+        return sorted({(n.name, n.namespace) for n in self.get_nodes()})
+
+    def get_nodes(self) -> list[NodeInfo]:
+        """Every node of the domain (name, namespace, enclave, Zenoh session), this one
+        included."""
+        with self._lock:
+            tokens = list(self._nodes.values())
+        return sorted({node_info(t) for t in tokens}, key=lambda n: (n.namespace, n.name, n.zid))
+
+    def _endpoints(self, kind: str, topic: str | None) -> list[TopicEndpointInfo]:
+        with self._lock:
+            tokens = [t for t in self._graph.values()
+                      if t.kind == kind and (topic is None or t.topic == topic)]
+        return [TopicEndpointInfo.from_token(t) for t in sorted(
+            tokens, key=lambda t: (t.topic, t.namespace, t.node_name, t.gid))]
+
+    def get_publishers_info_by_topic(self, topic_name: str) -> list[TopicEndpointInfo]:
+        """Every publisher of ``topic_name`` (relative names resolve in this node's namespace)
+        in the domain, ours and other ROS 2 nodes', with QoS and advertised backends."""
+        return self._endpoints(wire.PUBLISHER_KIND, self._topic(topic_name))
+
+    def get_subscriptions_info_by_topic(self, topic_name: str) -> list[TopicEndpointInfo]:
+        """Every subscription of ``topic_name`` in the domain (see
+        :meth:`get_publishers_info_by_topic`)."""
+        return self._endpoints(wire.SUBSCRIPTION_KIND, self._topic(topic_name))
+
+    def count_publishers(self, topic_name: str) -> int:
+        return len(self.get_publishers_info_by_topic(topic_name))
+
+    def count_subscribers(self, topic_name: str) -> int:
+        return len(self.get_subscriptions_info_by_topic(topic_name))
+
+    def get_endpoints_by_node(self, node_name: str, node_namespace: str = "/"
+                              ) -> list[TopicEndpointInfo]:
+        """The publishers and subscriptions of one node (``ros2 node info``)."""
+        namespace = "" if node_namespace in ("", "/") else "/" + node_namespace.strip("/")
+        return [info for kind in (wire.PUBLISHER_KIND, wire.SUBSCRIPTION_KIND)
+                for info in self._endpoints(kind, None)
+                if info.node_name == node_name
+                and (info.node_namespace.rstrip("/") or "") == namespace]
+
+
+def _max_rate(value: float | None) -> float:
+    """A subscription's ``max_rate`` in Hz (0: none); InvalidEndpointError unless positive and
+    finite."""
+    if value is None:
+        return 0.0
+    try:
+        rate = float(value)
+    except (TypeError, ValueError):
+        raise InvalidEndpointError(f"max_rate must be a number of Hz, got {value!r}") from None
+    if isinstance(value, bool) or not 0 < rate < math.inf:
+        raise InvalidEndpointError(f"max_rate must be a positive, finite rate in Hz, got "
+                                   f"{value!r}")
+    return rate
+
+
+def _nothing_periodic() -> None:
+    """The executor's housekeeping hook: nodes have no periodic work."""
+
+
+def _subscription_advertisement(option: str | Sequence[str], accepted: list[str], node: Node
+                                ) -> dict[str, str] | None:
+    """What a subscription advertises, as rmw_zenoh's ``SubscriptionData::make``: accepting only
+    CPU -> exactly ``cpu``; ``"any"`` -> every installed backend's metadata (no ``cpu``); a list
+    -> its backends besides ``cpu``. None when that leaves nothing (``any`` without backends):
+    such a subscription advertises no backends and listens on its own stream."""
+    backends = [name for name in accepted if name != "cpu"]
+    if not backends and not (isinstance(option, str) and option.strip() == "any"):
+        return {"cpu": ""}
+    return node._installed_metadata(backends) or None
 
 
 def _lane_waker(waker: Waker | None, option: bool | None

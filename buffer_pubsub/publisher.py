@@ -1,18 +1,33 @@
 """``Publisher``: routes every message to each matched subscription by exactly one route.
 
-Per publish:
+The routes are rmw_zenoh 0.10.5's (``rmw_publisher_data.cpp``), judged once per subscription
+when it is discovered (:func:`wire.subscription_channel`), not per message:
 
 - subscriptions of this process get the message object itself (intra-process, no serialization,
   no copy of the payload) when they accept every backend the message's buffers live in, else a
   CPU copy; they are never served through Zenoh as well;
-- a remote subscription that advertises a backend besides CPU gets its own channel
-  ``<key>/_buf/<its gid>`` (over the same-host iceoryx2 lane when its process is on this host
-  and user and has the lane on, see :mod:`._lane_routes`; else on Zenoh): a payload
-  serialized for it alone when a backend agreed to serve it (``on_discovering_endpoint``)
-  and holds one of the message's buffers (``create_descriptor_with_endpoint`` per buffer,
-  CPU bytes where that returns None), else the shared CPU serialization;
-- subscriptions that accept only CPU share one CPU serialization on ``<key>/_buf_cpu``;
-- subscriptions that know nothing of buffers (no extra segment) get CPU bytes on the base key.
+- on a topic whose type has a top-level ``uint8[]`` (buffer-aware):
+
+  - subscriptions that advertise exactly ``cpu`` share one CPU serialization on
+    ``<key>/_buf_cpu``;
+  - every other subscription gets its own stream ``<key>/_buf/<its gid>`` (over the same-host
+    iceoryx2 lane when it is ours, on this host and user, see :mod:`._lane_routes`; else on
+    Zenoh): a payload serialized for it alone when a backend agreed to serve it
+    (``on_discovering_endpoint``) and holds one of the message's buffers
+    (``create_descriptor_with_endpoint`` per top-level buffer, CPU bytes where that returns
+    None), else the shared CPU serialization;
+  - nothing is published while no subscription is matched;
+  - while a subscription that advertises no backends is matched (a pre-0.10.5 rmw_zenoh node, a
+    transient-local subscription: they listen on the base key only), every message goes once on
+    the base key, which every ROS 2 subscription of the topic listens on; only our own
+    subscriptions that a backend serves keep their stream as well (they recognize the base copy
+    by its source timestamp and drop it). rmw_zenoh itself never reaches such subscriptions
+    (its list of discovered subscriptions is never pruned);
+- on any other topic every message goes on the base key (classic rmw_zenoh).
+
+Sequence numbers count per stream (base key, ``_buf_cpu``, each ``_buf/<gid>`` with its lane,
+intra-process), so whoever receives one stream from us sees 1, 2, 3...; source timestamps are
+strictly increasing per publisher (the key of duplicate detection, see :mod:`._sequence`).
 """
 
 from __future__ import annotations
@@ -23,8 +38,8 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import zenoh
 
@@ -33,6 +48,7 @@ from rosidl_buffer.messages import Message, deserialize_message, iter_buffers, s
 
 from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info
+from ._rate import RateLimit
 from ._snapshot import snapshot
 from .loan import Loan, LoanPool, flat_buffer_fields
 from ._validation import validate_message
@@ -48,15 +64,12 @@ from .errors import (
 if TYPE_CHECKING:
     from .node import Node
 
-__all__ = ["Publisher", "seal_and_list_backends"]
+__all__ = ["Publisher", "RouteInfo", "seal_and_list_backends"]
 
 _log = logging.getLogger(__name__)
 #: How long destroy() waits for a publish in flight on another thread before leaving the
 #: Zenoh publishers to that publish to undeclare.
 UNDECLARE_WAIT_S = 1.0
-
-_BUFFER_AWARE_ENCODING = zenoh.Encoding.APPLICATION_CDR.with_schema(wire.BUFFER_AWARE_SCHEMA)
-
 
 def seal_and_list_backends(msg: Message, flat: tuple[str, ...] | None
                            ) -> tuple[frozenset[str], int, tuple[BufferImplBase, ...]]:
@@ -99,6 +112,9 @@ def cpu_copy(message: Message) -> Message:
 class _Peer:
     token: wire.EndpointToken
     info: EndpointInfo
+    # Which stream serves it (wire.SubscriptionChannel), judged once from its token (which never
+    # changes), not per publish.
+    stream: str
     served: set[str] = field(default_factory=set)  # backends that agreed to serve this peer
     channel: Any = None  # zenoh.Publisher on <key>/_buf/<gid>, declared on first use
     lane: fast_lane.LaneWriter | None = None  # the same-host lane to it, opened at matching
@@ -107,16 +123,24 @@ class _Peer:
     # Serializes put and undeclare of the channel: a peer may vanish (discovery thread) while
     # publish() is putting to it, and a zenoh.Publisher must not be used from both at once.
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
-    # Served on its own channel: it advertises a backend besides CPU (see wire). Judged once
-    # from its token (which never changes), not per publish.
-    individual: bool = field(init=False)
+    # The numbers of its own stream (Zenoh channel and lane alike: one stream).
+    sequences: Iterator[int] = field(default_factory=lambda: itertools.count(1), repr=False)
     # What backends are told when descriptors are made for it: its info, plus the depth of
     # the lane's keep-last queue while the lane carries them (EndpointInfo.delivery_queue_depth).
     route_info: EndpointInfo = field(init=False)
+    # A subscription of ours that asked for at most max_rate_hz messages a second: served on
+    # its own stream at that rate (None: every message). Used by the publishing thread alone.
+    rate: RateLimit | None = field(init=False)
 
     def __post_init__(self) -> None:
-        self.individual = wire.accepts_backends(self.token.backends)
         self.route_info = self.info
+        limited = self.token.is_ours and self.token.max_rate_hz
+        self.rate = RateLimit(self.token.max_rate_hz) if limited else None
+
+    @property
+    def individual(self) -> bool:
+        """Served on a stream of its own."""
+        return self.stream == wire.SubscriptionChannel.OWN
 
     def use_lane(self, lane: fast_lane.LaneWriter | None) -> None:
         """Route to it by ``lane`` (None: by Zenoh); call with ``self.lock`` held."""
@@ -141,6 +165,33 @@ class _Peer:
         channel, self.channel = self.channel, None
         lane, self.lane = self.lane, None
         return channel, lane
+
+
+ROUTE_INTRA = "intra"
+ROUTE_DESCRIPTOR = "descriptor"
+ROUTE_CPU = "cpu"
+
+
+@dataclass(frozen=True)
+class RouteInfo:
+    """How a publisher serves one subscription now (see :meth:`Publisher.routes`)."""
+
+    subscription_gid: bytes
+    route: str  # "intra", "descriptor" (zero-copy where a backend serves it) or "cpu" (bytes)
+    via: str  # in process, the iceoryx2 lane, or the Zenoh key
+    reason: str
+
+
+class _Routing(NamedTuple):
+    """The Zenoh streams one publish takes: the peers served on their own stream, whether the
+    shared ``_buf_cpu`` stream and whether the base key are written."""
+
+    own: tuple[_Peer, ...]
+    cpu: bool
+    base: bool
+
+
+_NOBODY = _Routing((), False, False)
 
 
 def _close_route(channel: zenoh.Publisher | None, lane: fast_lane.LaneWriter | None) -> None:
@@ -169,8 +220,13 @@ class Publisher:
         self._lock = threading.Lock()
         self._ready = threading.Condition(self._lock)  # a peer's route settled, or it left
         self._peers: dict[bytes, _Peer] = {}
-        self._sequences = itertools.count(1)
-        self._sequence = 0  # the last one used
+        # Buffer-aware (it advertises backends): the _buf_cpu / _buf/<gid> routes apply.
+        self._aware = token.backends is not None
+        # One numbering per stream (see the module doc); source stamps strictly increase.
+        self._base_sequences = itertools.count(1)
+        self._cpu_sequences = itertools.count(1)
+        self._intra_sequences = itertools.count(1)
+        self._last_stamp = 0
         self._closed = False
         # As rmw_zenoh: keep-last drops when Zenoh's queue to a peer is full (a frozen
         # subscriber never stalls publish()), keep-all blocks (no loss, publish() waits).
@@ -185,12 +241,14 @@ class Publisher:
         self._undeclare_after_send = False  # see _undeclare
         self._flat_buffers = flat_buffer_fields(msg_type)
         self._loans = LoanPool()
-        self._remote: tuple[_Peer, ...] = ()  # peers in other processes, rebuilt on change
+        # Peers in other processes and the streams that serve them, rebuilt on change.
+        self._remote: _Routing = _NOBODY
         self._backends = tuple(node.backends.values())
         for backend in self._backends:
             backend.on_creating_endpoint(self.info)
         self._base = self._declare_channel(self.base_key)
-        self._cpu = self._declare_channel(wire.cpu_channel_key(self.base_key))
+        self._cpu = (self._declare_channel(wire.cpu_channel_key(self.base_key)) if self._aware
+                     else None)
         _process.add_publisher(self.gid)
         self._liveliness = node.session.liveliness().declare_token(token.key())
 
@@ -215,12 +273,16 @@ class Publisher:
                 peer.close()  # (backends hear of its departure from the node: see there)
             return
         info = endpoint_info(token)
-        peer = _Peer(token, info)
+        stream = (wire.subscription_channel(token) if self._aware
+                  else wire.SubscriptionChannel.BASE)
+        if stream == wire.SubscriptionChannel.CPU and token.is_ours and token.max_rate_hz:
+            stream = wire.SubscriptionChannel.OWN  # it listens there too, for its rate
+        peer = _Peer(token, info, stream)
         with self._lock:
             if self._closed or gid in self._peers:
                 return
             existing = [p.info for p in self._peers.values()]
-        if token.buffer_aware:
+        if peer.individual:  # as rmw_zenoh: backends negotiate with subscriptions of own streams
             for name, backend in self.node.backends.items():
                 accepted, _groups = backend.on_discovering_endpoint(
                     info, existing, info.supported_backends)
@@ -256,7 +318,7 @@ class Publisher:
         token = peer.token
         if node._lane is None or not _lane_routes.serves(
                 node.locality, token, individual=peer.individual, served=bool(peer.served),
-                keep_all=wire.KEEP_ALL in (self.history, wire.qos_history(token.qos))):
+                keep_all=self.history == wire.KEEP_ALL or token.qos.keep_all):
             return
         writer = _lane_routes.open_writer(self.base_key, token.gid)  # None: Zenoh serves it
         if writer is None:
@@ -269,11 +331,79 @@ class Publisher:
             writer.close()
 
     def _update_remote(self) -> None:
-        """Rebuild the peers publish() serves through Zenoh; call with ``self._lock`` held.
-        Subscriptions of this process are served in-process (they register there before their
-        token is declared, so discovery already knows them as local)."""
-        self._remote = tuple(peer for gid, peer in self._peers.items()
-                             if not _process.is_local_subscription(gid))
+        """Rebuild the routes publish() takes through Zenoh (see the module doc); call with
+        ``self._lock`` held. Subscriptions of this process are served in-process (they register
+        there before their token is declared, so discovery already knows them as local)."""
+        peers = [peer for gid, peer in self._peers.items()
+                 if not _process.is_local_subscription(gid)]
+        if not peers:
+            self._remote = _NOBODY
+        elif not self._aware:
+            self._remote = _Routing((), False, True)
+        elif any(peer.stream == wire.SubscriptionChannel.BASE for peer in peers):
+            # Base key for everyone; our own subscriptions a backend serves keep their stream
+            # (for descriptors, see publish) and drop the base copy.
+            self._remote = _Routing(tuple(peer for peer in peers if peer.individual
+                                          and peer.token.is_ours and peer.served), False, True)
+        else:
+            own = tuple(peer for peer in peers if peer.individual)
+            self._remote = _Routing(own, len(own) < len(peers), False)
+
+    def routes(self) -> list[RouteInfo]:
+        """How each matched subscription is served now, with the reason (what ``warp-buffer
+        topic info -v`` shows): in process, over the same-host lane, on its own Zenoh stream
+        (descriptors where a backend serves it and holds the message's buffers, CPU bytes
+        otherwise), on the shared CPU stream, or on the base key."""
+        with self._lock:
+            routing, peers = self._remote, list(self._peers.values())
+        routes = []
+        local = {s.gid for s in _process.local_subscriptions(self._intra_key)
+                 if s.node.domain_id == self.node.domain_id}
+        for gid in sorted(local):
+            routes.append(RouteInfo(gid, ROUTE_INTRA, "in process",
+                                    "same process: the message object itself (a CPU copy for "
+                                    "a subscription that does not accept its backend)"))
+        own = {id(peer) for peer in routing.own}
+        for peer in peers:
+            gid = peer.token.gid
+            if gid in local:
+                continue
+            rate = (f"; at most {peer.token.max_rate_hz:g} messages a second (its max_rate)"
+                    if peer.rate is not None else "")
+            if not self._aware:
+                routes.append(RouteInfo(gid, ROUTE_CPU, "base key",
+                                        "the type has no top-level uint8[]: classic rmw_zenoh"))
+            elif id(peer) in own:
+                via = "iceoryx2 lane" if peer.lane is not None else "own stream (_buf/<gid>)"
+                if peer.served:
+                    why = "served by " + ", ".join(sorted(peer.served)) + self._why(peer, True)
+                    routes.append(RouteInfo(gid, ROUTE_DESCRIPTOR, via, why + (
+                        "; CPU bytes for a message whose buffers live elsewhere") + rate))
+                else:
+                    routes.append(RouteInfo(gid, ROUTE_CPU, via, "no backend serves it"
+                                            + self._why(peer, False) + rate))
+            elif routing.base:
+                routes.append(RouteInfo(gid, ROUTE_CPU, "base key",
+                                        "a subscription that advertises no backends is matched "
+                                        "(it listens on the base key only): every subscription "
+                                        "takes the base key"))
+            else:
+                routes.append(RouteInfo(gid, ROUTE_CPU, "shared CPU stream (_buf_cpu)",
+                                        "it accepts only CPU"))
+        return routes
+
+    def _why(self, peer: _Peer, served: bool) -> str:
+        """The backends' own reasons about ``peer``, where they give one (``peer_decision``)."""
+        reasons = []
+        for name, backend in self.node.backends.items():
+            decide = getattr(backend, "peer_decision", None)
+            if decide is None or (name in peer.served) != served:
+                continue
+            try:
+                reasons.append(f"{name}: {decide(peer.info).reason}")
+            except Exception:  # an explanation must never break introspection
+                continue
+        return f" ({'; '.join(reasons)})" if reasons else ""
 
     def get_subscription_count(self) -> int:
         """Matched subscriptions (local and remote) currently known through discovery."""
@@ -338,18 +468,17 @@ class Publisher:
             if self._closed:
                 raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
             remote = self._remote
-            # Numbered and sent under one lock: concurrent publish() calls leave in the order of
-            # their sequence numbers (else subscribers count the overtaken ones as lost).
+            # Stamped and sent under one lock: concurrent publish() calls leave in the order of
+            # their numbers (else subscribers count the overtaken ones as lost).
             with self._out_lock:
                 if self._closed:  # destroyed while this publish waited for the lock
                     raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
-                self._sequence = sequence = next(self._sequences)
-                attachment = wire.Attachment(sequence, time.time_ns(), self.gid)
-                if not remote:
-                    self._publish_intra(msg, backends, attachment)
+                stamp = self._last_stamp = max(time.time_ns(), self._last_stamp + 1)
+                if remote is _NOBODY:
+                    self._publish_intra(msg, backends, stamp)
                     return
                 try:
-                    self._publish_remote(msg, backends, nbytes, attachment, remote)
+                    self._publish_remote(msg, backends, nbytes, stamp, remote)
                 finally:
                     if self._undeclare_after_send:  # destroyed during this publish (see there)
                         undeclare_quietly(self._base, self._cpu)
@@ -357,36 +486,39 @@ class Publisher:
             for impl in impls:  # after the sends: readers are on their way meanwhile
                 impl.end_publish()
 
-    def _publish_remote(self, msg: Message, backends: frozenset[str], nbytes: int,
-                        attachment: wire.Attachment, peers: tuple[_Peer, ...]) -> None:
+    def _publish_remote(self, msg: Message, backends: frozenset[str], nbytes: int, stamp: int,
+                        routing: _Routing) -> None:
         # Everything is serialized (and size-checked) before anything leaves, so a message too
         # large for the transport reaches nobody rather than some.
-        cpu_payload: bytearray | None = None
+        need_base = routing.base
+        need_cpu = routing.cpu or need_base
         individual: list[tuple[_Peer, bytearray | None]] = []
-        need_cpu_channel = need_base = need_cpu = False
-        for peer in peers:
-            if not peer.token.buffer_aware:
-                need_base = True
-            elif not peer.individual:
-                need_cpu_channel = True
-            elif peer.served & backends:
+        now = time.monotonic()
+        for peer in routing.own:
+            if peer.rate is not None and not peer.rate.admit(now):
+                continue  # at its max_rate: nothing serialized, nothing sent
+            if peer.served & backends:
                 individual.append((peer, self._checked(self._serialize_for(peer, msg))))
-            else:
+            elif not need_base:
                 individual.append((peer, None))  # the shared CPU serialization
                 need_cpu = True
-        if need_cpu_channel or need_base or need_cpu:
+            # (else the base copy serves it)
+        cpu_payload: bytearray | None = None
+        if need_cpu:
             if nbytes > self.node.max_message_size:
                 self._checked(None, nbytes)  # hopeless: raise before copying a huge payload
             cpu_payload = self._out = self._checked(serialize_message(msg, out=self._out))
-        self._publish_intra(msg, backends, attachment)
-        encoded = attachment.encode()
+        self._publish_intra(msg, backends, stamp)
+        gid = self.gid
         try:
             for peer, payload in individual:
-                self._put_individual(peer, cpu_payload if payload is None else payload, encoded)
-            if need_cpu_channel:
-                self._cpu.put(cpu_payload, attachment=encoded)
+                self._put_individual(peer, cpu_payload if payload is None else payload, stamp)
+            if routing.cpu:
+                self._cpu.put(cpu_payload, attachment=wire.Attachment(  # type: ignore[union-attr]
+                    next(self._cpu_sequences), stamp, gid).encode())
             if need_base:
-                self._base.put(cpu_payload, attachment=encoded, encoding=_BUFFER_AWARE_ENCODING)
+                self._base.put(cpu_payload, attachment=wire.Attachment(
+                    next(self._base_sequences), stamp, gid).encode())
         except zenoh.ZError as exc:
             raise TransportError(f"publish on {self.topic_name}: {exc}") from exc
 
@@ -403,11 +535,11 @@ class Publisher:
                 "see transport/link/rx/max_message_size); split it, or use a buffer backend")
         return payload
 
-    def _publish_intra(self, msg: Message, backends: frozenset[str],
-                       attachment: wire.Attachment) -> None:
+    def _publish_intra(self, msg: Message, backends: frozenset[str], stamp: int) -> None:
         subscriptions = _process.local_subscriptions(self._intra_key)
         if not subscriptions:
             return
+        attachment = wire.Attachment(next(self._intra_sequences), stamp, self.gid)
         copy: Message | None = None
         domain_id = self.node.domain_id
         for subscription in subscriptions:
@@ -434,10 +566,11 @@ class Publisher:
 
         return serialize_message(msg, route=route)
 
-    def _put_individual(self, peer: _Peer, payload: bytearray, attachment: bytes) -> None:
+    def _put_individual(self, peer: _Peer, payload: bytearray, stamp: int) -> None:
         with peer.lock:
             if peer.gone:
                 return  # the subscription vanished while we were publishing: nobody to send to
+            attachment = wire.Attachment(next(peer.sequences), stamp, self.gid).encode()
             lane = peer.lane
             if lane is not None and lane.fits(len(attachment) + len(payload)):
                 try:
@@ -475,7 +608,7 @@ class Publisher:
             self._closed = True
             peers = list(self._peers.values())
             self._peers.clear()
-            self._remote = ()
+            self._remote = _NOBODY
             self._ready.notify_all()
         _process.remove_publisher(self.gid)
         self._loans.clear()

@@ -3,26 +3,26 @@ node's executor (or, when nothing waits before it, on the thread the message arr
 executor's own waiting thread for a lane message, Zenoh's for a sample whose subscription's
 callbacks proved short, see :mod:`._inline`; one callback of the node at a time either way).
 
-A subscription listens on ``<key>/_buf/<its gid>`` (payloads built for it) when it accepts some
-backend besides CPU, else on ``<key>/_buf_cpu`` (the shared CPU stream), and on the base key (see
-:mod:`.wire`). As rmw_zenoh, it accepts every sample with a valid 33-byte attachment from any
-publisher, whatever its gid: other ROS 2 implementations derive gids their own way. What it
+As rmw_zenoh 0.10.5 (``rmw_subscription_data.cpp``), a subscription listens on the base key and,
+on a buffer-aware topic, on one more key: ``<key>/_buf_cpu`` when it accepts only CPU, else
+``<key>/_buf/<its gid>`` (payloads built for it, possibly with backend descriptors; also over
+the same-host lane). It accepts every sample with a valid 33-byte attachment from any publisher,
+whatever its gid, known or not: a sample built for us by a publisher whose token has not arrived
+is decoded at once with what the gid alone says (rmw_zenoh's minimal endpoint info). What it
 refuses is counted by reason in ``counters.refused``:
 
 - ``attachment``: no valid attachment;
-- ``duplicate``: a base-key copy written by a buffer-aware publisher (that publisher reaches us
-  on ``_buf_cpu`` / ``_buf/<gid>``);
-- ``unknown_publisher``: a payload built for us (it may hold backend descriptors, which need the
-  publisher's endpoint info) whose publisher's liveliness token did not arrive within
-  ``PUBLISHER_DISCOVERY_WAIT_S``. Such samples wait *parked* in this subscription only (at most
-  ``depth`` of them); no thread ever waits on discovery, and other subscriptions are unaffected.
+- ``duplicate``: a second copy of a message (same publisher and source timestamp), which one of
+  our publishers sends while it also serves a subscription without backends on the base key;
+- ``late``: older than a message already delivered from its publisher on the same stream
+  (keep-last only; a route switch from Zenoh to the lane may let a later message overtake).
 
-A jump in a publisher's sequence number counts as ``lost`` when within ``LOST_WINDOW`` (a larger
-jump, spoofed or a restarted counter, only resynchronizes and counts in ``sequence_jumps``). A
-keep-last queue of ``depth`` messages drops the oldest when the callback falls behind
-(``dropped``); keep-all keeps every message. A message that cannot be deserialized (a typed
-``RosidlBufferError``, e.g. a stale backend buffer, or any other exception a backend raises)
-counts in ``errors`` and the subscription goes on.
+Losses are judged per stream (see :mod:`._sequence`): a gap on Zenoh counts in ``lost``; a
+gap on the lane is the lane's keep-last queue overwriting what the executor had not taken yet,
+the subscription's own backlog, and counts in ``dropped`` with the overflow of its own keep-last
+queue. A message that cannot be deserialized (a typed ``RosidlBufferError``, e.g. a stale
+backend buffer, or any other exception a backend raises) counts in ``errors`` and the
+subscription goes on.
 """
 
 from __future__ import annotations
@@ -38,11 +38,18 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from rosidl_buffer import RosidlBufferError
-from rosidl_buffer.messages import Message, deserialize_message, release_buffers
+from rosidl_buffer.messages import (
+    Message,
+    deserialize_message,
+    release_buffers,
+    serialize_message,
+)
 
 from . import _lane_routes, _process, fast_lane, wire
-from ._info import endpoint_gone, endpoint_info
+from ._info import endpoint_gone, endpoint_info, unknown_publisher_info
 from ._inline import InlinePolicy
+from ._rate import RateLimit
+from ._sequence import Deduplicator, SequenceTracker
 from ._zenoh import undeclare_quietly
 from .errors import PubSubError
 
@@ -52,13 +59,6 @@ if TYPE_CHECKING:
 __all__ = ["MessageInfo", "Subscription", "SubscriptionCounters"]
 
 _log = logging.getLogger(__name__)
-
-#: How long a sample built for us waits (parked, nobody blocked) for its publisher's token.
-PUBLISHER_DISCOVERY_WAIT_S = 1.0
-#: Largest sequence gap counted as lost; a larger jump only resynchronizes.
-LOST_WINDOW = 1 << 16
-#: Publishers whose last sequence number a subscription remembers (oldest forgotten first).
-MAX_TRACKED_PUBLISHERS = 1024
 
 ROUTE_INTRA = "intra"  # same process, message object shared (or CPU copy)
 ROUTE_BUFFER = "buffer"  # <key>/_buf/<gid>: serialized for this subscription (descriptor or CPU)
@@ -71,10 +71,10 @@ _DESCRIPTOR_ROUTES = (ROUTE_BUFFER, ROUTE_LANE)
 
 REFUSED_ATTACHMENT = "attachment"
 REFUSED_DUPLICATE = "duplicate"
-REFUSED_LATE = "late"  # older than a message already delivered from its publisher (keep-last)
-REFUSED_UNKNOWN_PUBLISHER = "unknown_publisher"
-
-_BUFFER_AWARE_ENCODING = zenoh.Encoding.APPLICATION_CDR.with_schema(wire.BUFFER_AWARE_SCHEMA)
+REFUSED_LATE = "late"  # older than a message already delivered on its stream (keep-last)
+#: The stream (for sequence numbers) of each route: the lane carries what _buf/<gid> carries.
+_STREAM = {ROUTE_INTRA: "intra", ROUTE_BUFFER: "own", ROUTE_LANE: "own", ROUTE_CPU: "cpu",
+           ROUTE_BASE: "base"}
 
 
 @dataclass(frozen=True)
@@ -91,13 +91,18 @@ class MessageInfo:
 @dataclass
 class SubscriptionCounters:
     received: int = 0  # callbacks delivered
-    lost: int = 0  # sequence gaps (within LOST_WINDOW) seen on arrival (on the lane, also
-    # iceoryx2's keep-last overwrite when the executor falls more than depth messages behind)
+    lost: int = 0  # messages that never arrived: gaps in a stream's numbers on Zenoh
     errors: int = 0  # messages that failed to deserialize (on arrival for descriptor routes)
-    dropped: int = 0  # overwritten in the keep-last queue before the callback ran
-    rejected: int = 0  # samples refused for a reason other than "duplicate" (see refused)
+    # Overwritten in a keep-last queue before the callback ran: this subscription's own queue,
+    # or the lane's (which holds as many): the subscriber's backlog, not transport loss.
+    dropped: int = 0
+    # Samples refused as malformed (see refused; a duplicate or late copy is no fault of input).
+    rejected: int = 0
     callback_errors: int = 0  # exceptions raised by the user callback
-    sequence_jumps: int = 0  # sequence jumps beyond LOST_WINDOW (resynchronized, not counted)
+    # Messages left out by the subscription's max_rate (here; a publisher of ours that honours
+    # the rate does not send them at all, and they count nowhere).
+    decimated: int = 0
+    sequence_jumps: int = 0  # jumps beyond _sequence.LOST_WINDOW (resynchronized, not counted)
     refused: dict[str, int] = field(default_factory=dict)  # reason -> samples not delivered
 
 
@@ -106,9 +111,15 @@ class Subscription:
 
     def __init__(self, node: Node, msg_type: type[Message], token: wire.EndpointToken,
                  callback: Callable[..., Any], depth: int, accepted: list[str],
-                 with_info: bool, history: str = wire.KEEP_LAST) -> None:
+                 with_info: bool, history: str = wire.KEEP_LAST, *, raw: bool = False) -> None:
         self.node = node
         self.msg_type = msg_type
+        self.raw = raw  # callbacks get the serialized CDR bytes (rclpy's raw=True)
+        # At most max_rate_hz messages a second from each publisher (0: all). Our publishers
+        # honour it on this subscription's own stream; what comes otherwise (a shared stream,
+        # another implementation) is thinned here, before it is decoded or copied.
+        self.max_rate_hz = token.max_rate_hz
+        self._rates: dict[bytes, RateLimit] = {}  # per publisher
         self.topic_name = token.topic
         self.depth = depth
         self.history = history
@@ -124,8 +135,8 @@ class Subscription:
         self._queue: collections.deque[tuple[Any, ...]] = collections.deque(
             maxlen=depth if history == wire.KEEP_LAST else None)
         self._scheduled = False  # in the executor's ready set (at most once)
-        self._parked: collections.deque[tuple[float, tuple[Any, ...]]] = collections.deque()
-        self._last_sequence: dict[bytes, int] = {}
+        self._sequences = SequenceTracker()
+        self._copies = Deduplicator()
         self._closed = False
         # Zenoh arrivals may run their callback on Zenoh's thread (see _inline) only when the
         # node runs its own executor thread: with executor="manual" callbacks run in spin().
@@ -138,19 +149,24 @@ class Subscription:
             backend.on_creating_endpoint(self.info)
         session = node.session
         remote = zenoh.Locality.REMOTE
-        if wire.accepts_backends(token.backends):
-            channel = session.declare_subscriber(
-                wire.buffer_channel_key(self.base_key, self.gid),
-                lambda s: self._on_sample(s, ROUTE_BUFFER), allowed_origin=remote)
-        else:
-            channel = session.declare_subscriber(
-                wire.cpu_channel_key(self.base_key),
-                lambda s: self._on_sample(s, ROUTE_CPU), allowed_origin=remote)
-        self._subscribers = [
-            channel,
-            session.declare_subscriber(
-                self.base_key, lambda s: self._on_sample(s, ROUTE_BASE), allowed_origin=remote),
-        ]
+        self._subscribers = [session.declare_subscriber(
+            self.base_key, lambda s: self._on_sample(s, ROUTE_BASE), allowed_origin=remote)]
+        # A buffer-aware subscription (its type has a top-level uint8[]) listens on one more key:
+        # the shared CPU stream when it advertises exactly cpu, else its own.
+        # A rate-limited CPU-only one listens on its own stream too: our publishers serve it
+        # there, at its rate (see max_rate below).
+        own_stream = False
+        if msg_type._buffer_fields:
+            cpu_only = wire.subscription_channel(token) == wire.SubscriptionChannel.CPU
+            if cpu_only:
+                self._subscribers.append(session.declare_subscriber(
+                    wire.cpu_channel_key(self.base_key),
+                    lambda s: self._on_sample(s, ROUTE_CPU), allowed_origin=remote))
+            if not cpu_only or token.max_rate_hz:
+                own_stream = not cpu_only
+                self._subscribers.append(session.declare_subscriber(
+                    wire.buffer_channel_key(self.base_key, self.gid),
+                    lambda s: self._on_sample(s, ROUTE_BUFFER), allowed_origin=remote))
         # The lane reader exists before the token: a publisher that discovers us finds the
         # service, so its writer decides the route at once. The Zenoh channel stays for
         # publishers that cannot open the lane (other host or user, lane off, older peers).
@@ -159,7 +175,7 @@ class Subscription:
         # (Keep-all stays on Zenoh: iceoryx2's keep-last queue would drop; so do queues
         # deeper than the lane preallocates, see fast_lane.MAX_DEPTH.)
         if (lane is not None and history == wire.KEEP_LAST and depth <= fast_lane.MAX_DEPTH
-                and wire.accepts_backends(token.backends)):
+                and own_stream):
             self._lane_reader = _lane_routes.open_reader(self.base_key, self.gid, depth)
             if self._lane_reader is not None:
                 lane.attach(self._lane_reader, self._on_lane)
@@ -203,7 +219,7 @@ class Subscription:
         """Count ``count`` samples refused for ``reason``; call with ``self._lock`` held."""
         refused = self.counters.refused
         refused[reason] = refused.get(reason, 0) + count
-        if reason != REFUSED_DUPLICATE:
+        if reason not in (REFUSED_DUPLICATE, REFUSED_LATE):
             self.counters.rejected += count
 
     # -- arrival (Zenoh threads, or the publisher's thread for intra-process) -------------------
@@ -216,17 +232,10 @@ class Subscription:
             with self._lock:
                 self._refuse(REFUSED_ATTACHMENT)
             return
-        gid = attachment.publisher_gid
-        if _process.is_local_publisher(gid):
+        if _process.is_local_publisher(attachment.publisher_gid):
             return  # delivered intra-process already
-        node = self.node
-        if route == ROUTE_BASE:
-            publisher = node._publisher_token(gid)
-            if (publisher is not None and publisher.buffer_aware) or \
-                    sample.encoding == _BUFFER_AWARE_ENCODING:
-                with self._lock:
-                    self._refuse(REFUSED_DUPLICATE)
-                return
+        if self.max_rate_hz and not self._due(attachment, route):
+            return
         # ZBytes has no buffer protocol in zenoh 1.10: to_bytes() is the one copy out of Zenoh
         # (deserialization then aliases these bytes).
         self._arrived((sample.payload.to_bytes(), attachment, route, received_ns, False),
@@ -246,44 +255,49 @@ class Subscription:
         gid = attachment.publisher_gid
         if _process.is_local_publisher(gid):
             return  # delivered intra-process already (never sent here; a forged frame)
+        if self.max_rate_hz and not self._due(attachment, ROUTE_LANE):
+            return
         self._arrived((payload, attachment, ROUTE_LANE, received_ns, False), inline=True)
 
-    def _arrived(self, item: tuple[Any, ...], inline: bool = False) -> None:
-        """A sample built for us waits (parked) for its publisher's token, which its
-        descriptors need; anything else is accepted at once (``inline``: see _enqueue)."""
-        publisher = None
-        if item[2] in _DESCRIPTOR_ROUTES:
-            gid = item[1].publisher_gid
-            publisher = self.node._publisher_token(gid)
-            # Behind its publisher's parked samples while they wait to resume: accepted first,
-            # it would make them late (and refused)
-            if publisher is None or (self._parked and self._has_parked(gid)):
-                self._park(item)
-                return
-        self._accept(item, publisher, inline)
+    def _due(self, attachment: wire.Attachment, route: str) -> bool:
+        """Whether a message passes ``max_rate_hz`` (the first after each interval, per
+        publisher); one that does not is counted in ``decimated``, its number still judged."""
+        gid = attachment.publisher_gid
+        if route in _DESCRIPTOR_ROUTES and self._from_ours(gid, route):
+            return True  # our publisher sends this stream at our rate already
+        now = time.monotonic()
+        with self._lock:
+            rate = self._rates.get(gid)
+            if rate is None:
+                rate = self._rates[gid] = RateLimit(self.max_rate_hz)
+            if rate.admit(now):
+                return True
+            self._judge(attachment, route)
+            self.counters.decimated += 1
+            return False
 
-    def _accept(self, item: tuple[Any, ...], publisher: wire.EndpointToken | None = None,
-                inline: bool = False) -> None:
-        """Queue an arrived sample; one built for us is deserialized now (descriptors imported,
-        holds taken) and queued as the message, released if it is dropped before delivery.
-        ``inline``: deliver at once if nothing waits (see :meth:`_enqueue`)."""
+    def _arrived(self, item: tuple[Any, ...], inline: bool = False) -> None:
+        """Queue an arrived sample (``inline``: deliver at once if nothing waits, see
+        :meth:`_enqueue`). One built for us is deserialized now (descriptors imported, holds
+        taken: released if it is dropped before delivery), with its publisher's info, or with
+        the gid alone when its token has not arrived (rmw_zenoh does not wait either)."""
         payload, attachment, route, received_ns, _ = item
         if route in _DESCRIPTOR_ROUTES:
             try:
-                msg = self._deserialize(payload, attachment, route, publisher)
+                msg = self._deserialize(payload, attachment, route)
             except Exception as exc:  # typed errors expected; a backend bug is counted too
-                self._count_error(exc, attachment, arrived=True)
+                self._count_error(exc, attachment, route)
                 return
             item = (msg, attachment, route, received_ns, True)
         self._enqueue(item, inline)
 
     def _count_error(self, exc: BaseException, attachment: wire.Attachment,
-                     arrived: bool = False) -> None:
-        """Count a message that failed to deserialize (``arrived``: on arrival, before the
-        queue saw its sequence number, so it is an error and not also a gap)."""
+                     arrived_on: str | None = None) -> None:
+        """Count a message that failed to deserialize (``arrived_on``: its route, when it failed
+        on arrival, before the queue saw its number: an error, not also a gap)."""
         with self._lock:
-            if arrived:
-                self._track_sequence(attachment)
+            if arrived_on is not None:
+                self._judge(attachment, arrived_on)
             self.counters.errors += 1
         self.last_error = exc
         _log.warning("%r: dropped a message from %s: %s", self,
@@ -291,29 +305,44 @@ class Subscription:
                      exc_info=not isinstance(exc, RosidlBufferError))
 
     def _deliver_intra(self, msg: Message, attachment: wire.Attachment) -> None:
+        if self.max_rate_hz and not self._due(attachment, ROUTE_INTRA):
+            return
         self._enqueue((msg, attachment, ROUTE_INTRA, time.time_ns(), False))
 
-    def _track_sequence(self, attachment: wire.Attachment) -> bool:
-        """Count gaps in the publisher's sequence; whether this message is older than one
-        already seen from it (call with ``self._lock`` held)."""
+    def _judge(self, attachment: wire.Attachment, route: str) -> bool:
+        """Count what ``attachment`` says of its stream (gaps, jumps); whether the message is
+        late, older than one already seen there (call with ``self._lock`` held)."""
         gid = attachment.publisher_gid
-        sequence = attachment.sequence_number
-        last_seen = self._last_sequence
-        last = last_seen.get(gid)
-        if last is None:
-            if len(last_seen) >= MAX_TRACKED_PUBLISHERS:
-                del last_seen[next(iter(last_seen))]
-            last_seen[gid] = sequence
-            return False
-        gap = sequence - last - 1
-        if gap < 0 and last - sequence < LOST_WINDOW:
-            return True  # late or repeated: neither new nor a gap
-        if 0 < gap <= LOST_WINDOW:
-            self.counters.lost += gap
-        elif gap != 0:
+        verdict = self._sequences.track(_STREAM[route], gid, attachment.sequence_number,
+                                        self._numbered_per_stream(gid, route))
+        if verdict.lost:
+            if route == ROUTE_LANE:
+                self.counters.dropped += verdict.lost  # the lane's keep-last queue overwrote
+            else:
+                self.counters.lost += verdict.lost
+        elif verdict.jump:
             self.counters.sequence_jumps += 1
-        last_seen[gid] = sequence
-        return False
+        return verdict.late
+
+    def _from_ours(self, gid: bytes, route: str) -> bool:
+        """Is ``gid`` one of our publishers in another process? Only those may send a message
+        twice (see :mod:`._sequence`), and only their stamps are known to be unique; another
+        implementation may stamp every message alike."""
+        if route == ROUTE_INTRA:
+            return False
+        token = self.node._publisher_token(gid)
+        return token is not None and token.is_ours
+
+    def _numbered_per_stream(self, gid: bytes, route: str) -> bool:
+        """Does publisher ``gid`` number this stream on its own (every step exact)? Ours do, in
+        process or not; on the base key every publisher does (a buffer-aware one writes it
+        alone when it writes it at all), and so does one that advertises no backends. On the
+        buffer streams, rmw_zenoh's publishers and publishers not discovered yet are judged by
+        the stride of their steps (see :mod:`._sequence`)."""
+        if route == ROUTE_INTRA or route == ROUTE_BASE:
+            return True
+        token = self.node._publisher_token(gid)
+        return token is not None and (token.is_ours or token.backends is None)
 
     def _enqueue(self, item: tuple[Any, ...], inline: bool = False) -> None:
         """Queue ``(payload or message, attachment, route, received_ns, owned)``; ``owned``:
@@ -328,19 +357,26 @@ class Subscription:
         run_now = False
         gate = self._gate
         with self._lock:
+            route = item[2]
+            attachment = item[1]
             if self._closed:
                 closed = True
-            elif self._track_sequence(item[1]) and self.history == wire.KEEP_LAST:
-                # Older than one already delivered: a route switch (Zenoh to the lane) let a
-                # later message overtake it. A keep-last reader gets each publisher's messages
-                # in order (its gap was counted as lost when the later one came).
+            elif self._from_ours(attachment.publisher_gid, route) and self._copies.seen_before(
+                    attachment.publisher_gid, attachment.source_timestamp_ns):
+                # a second copy (see _sequence): its stream's numbers still advance
+                self._judge(attachment, route)
                 closed = True  # (not queued: released below, as a closed one is)
-                refused = self.counters.refused
-                refused[REFUSED_LATE] = refused.get(REFUSED_LATE, 0) + 1
+                self._refuse(REFUSED_DUPLICATE)
+            elif self._judge(attachment, route) and self.history == wire.KEEP_LAST:
+                # Older than one already delivered on its stream: a route switch (Zenoh to the
+                # lane) let a later message overtake it. A keep-last reader gets each
+                # publisher's messages in order (its gap was counted when the later one came).
+                closed = True  # (not queued: released below, as a closed one is)
+                self._refuse(REFUSED_LATE)
             else:
                 closed = False
                 queue = self._queue
-                lane = item[2] == ROUTE_LANE
+                lane = route == ROUTE_LANE
                 if (inline and not queue and not self.node._executor.has_ready()
                         and (lane or self._policy.trusted)
                         and (gate is None or gate.acquire(blocking=False))):
@@ -372,55 +408,14 @@ class Subscription:
         if evicted is not None and evicted[4]:
             release_buffers(evicted[0])
 
-    # -- samples waiting for their publisher's token -------------------------------------------
-    def _has_parked(self, gid: bytes) -> bool:
-        with self._lock:  # (a deque another thread changes cannot be iterated unlocked)
-            return any(entry[1][1].publisher_gid == gid for entry in self._parked)
-
-    def _park(self, item: tuple[Any, ...]) -> None:
-        deadline = time.monotonic() + PUBLISHER_DISCOVERY_WAIT_S
-        with self._lock:
-            if self._closed:
-                return
-            self._parked.append((deadline, item))
-            if len(self._parked) > self.depth:
-                self._parked.popleft()
-                self._refuse(REFUSED_UNKNOWN_PUBLISHER)
-        # The token may have arrived between the lookup and the append: resume at once.
-        if self.node._publisher_token(item[1].publisher_gid) is not None:
-            self._resume(item[1].publisher_gid)
-
+    # -- discovery --------------------------------------------------------------------------
     def _on_publisher(self, token: wire.EndpointToken, appeared: bool) -> None:
-        """A matching publisher appeared (resume its parked samples) or left."""
-        if appeared:
-            if self._parked:
-                self._resume(token.gid)
-        else:
+        """A matching publisher appeared or left (what is known of its streams is dropped)."""
+        if not appeared:
             with self._lock:
-                self._last_sequence.pop(token.gid, None)
-
-    def _resume(self, gid: bytes) -> None:
-        with self._lock:
-            ready = [item for _, item in self._parked if item[1].publisher_gid == gid]
-            if not ready:
-                return
-            self._parked = collections.deque(
-                entry for entry in self._parked if entry[1][1].publisher_gid != gid)
-        for item in ready:
-            self._accept(item)
-
-    def _expire_parked(self, now: float) -> None:
-        """Drop (and count) parked samples whose publisher never appeared in time."""
-        if not self._parked:
-            return
-        with self._lock:
-            parked = self._parked
-            expired = 0
-            while parked and parked[0][0] <= now:
-                parked.popleft()
-                expired += 1
-            if expired:
-                self._refuse(REFUSED_UNKNOWN_PUBLISHER, expired)
+                self._sequences.forget(token.gid)
+                self._copies.forget(token.gid)
+                self._rates.pop(token.gid, None)
 
     # -- executor ------------------------------------------------------------------------------
     def _run_one(self) -> bool:
@@ -440,7 +435,9 @@ class Subscription:
         """Deserialize a queued payload if it still is one, then run the callback; whether it
         ran (not for a message that failed to decode or arrived after close)."""
         payload, attachment, route, received_ns, owned = item
-        if owned or route == ROUTE_INTRA:
+        if self.raw:  # the bytes as they came (CPU routes only); an intra message serialized
+            msg = bytes(serialize_message(payload)) if route == ROUTE_INTRA else bytes(payload)
+        elif owned or route == ROUTE_INTRA:
             msg = payload
         else:
             try:
@@ -480,14 +477,15 @@ class Subscription:
         _log.error("%r: callback raised %s", self, type(exc).__name__,
                    exc_info=(type(exc), exc, exc.__traceback__))
 
-    def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str,
-                     publisher: wire.EndpointToken | None = None) -> Message:
-        # Only a payload built for us may hold descriptors, which need the publisher's info; it
-        # was parked until the token arrived. CPU payloads need no publisher info.
+    def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str) -> Message:
+        # Only a payload built for us may hold descriptors, which need the publisher's info
+        # (the gid alone when it is not discovered yet). CPU payloads need none.
         info = None
         if route in _DESCRIPTOR_ROUTES:
-            token = publisher or self.node._publisher_token(attachment.publisher_gid)
-            info = None if token is None else endpoint_info(token)
+            gid = attachment.publisher_gid
+            token = self.node._publisher_token(gid)
+            info = (endpoint_info(token) if token is not None else
+                    unknown_publisher_info(gid, self.topic_name, self.msg_type.__msgtype__))
         return deserialize_message(payload, self.msg_type, backends=self.node.backends,
                                    endpoint_info=info)
 
@@ -504,7 +502,6 @@ class Subscription:
             self._closed = True
             owned = [item[0] for item in self._queue if item[4]]
             self._queue.clear()  # the rest: serialized bytes or shared intra messages
-            self._parked.clear()
         for msg in owned:
             release_buffers(msg)
         _process.remove_subscription(self.base_key, self)

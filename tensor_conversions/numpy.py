@@ -66,7 +66,8 @@ class _NumpyAdapter(_api.Adapter[np.ndarray]):
     numpy_dtypes = True
 
     def host_input(self, storage: np.ndarray, layout: TensorLayout) -> np.ndarray:
-        array = layout.ndarray_over(storage)
+        shape, dtype, offset, strides = layout.numpy_args  # (ndarray_over: called with them)
+        array = np.ndarray(shape, dtype, buffer=storage, offset=offset, strides=strides)
         array.flags.writeable = False
         return array
 

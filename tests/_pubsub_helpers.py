@@ -162,7 +162,8 @@ def run_sub(args: argparse.Namespace) -> int:
             records.append(record)
 
         sub = node.create_subscription(TENSOR, args.topic, on_msg, depth=args.depth,
-                                       acceptable_buffer_backends=args.accept, with_info=True)
+                                       acceptable_buffer_backends=args.accept, with_info=True,
+                                       max_rate=args.max_rate or None)
         sub.wait_for_publishers(args.publishers, timeout=args.timeout)
         _emit("READY")
         _stdin_stop(args.timeout).wait()
@@ -237,6 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--expect", type=int, default=0, help="sub: wait for this many on stop")
     parser.add_argument("--stale-index", type=int, default=-1, help="pub: frame sent stale")
     parser.add_argument("--timeout", type=float, default=30.0)
+    parser.add_argument("--max-rate", type=float, default=0.0, help="sub: its max_rate (Hz)")
     args = parser.parse_args(argv)
     use_fake_backend()
     return {"sub": run_sub, "pub": run_pub, "relay": run_relay}[args.role](args)

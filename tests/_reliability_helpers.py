@@ -248,8 +248,9 @@ class ForgedPublisher:
         self.token = wire.EndpointToken(
             domain_id=domain, zid=str(self.session.zid()), node_id=0, entity_id=1,
             kind=wire.PUBLISHER_KIND, namespace="", node_name="forger", topic=topic,
-            type_name=TENSOR, type_hash=get_type_hash(TENSOR), qos=wire.qos_segment(10),
-            buffer_aware=True, locality=wire.Locality(local_host_id(), os.getpid(), os.getuid()))
+            type_name=TENSOR, type_hash=get_type_hash(TENSOR), qos=wire.QoSProfile.of(10),
+            backends={"cpu": ""},
+            locality=wire.Locality(local_host_id(), os.getpid(), os.getuid()))
         self._liveliness = self.session.liveliness().declare_token(self.token.key())
         self._sequence = 0
 

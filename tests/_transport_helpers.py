@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 import time
 import zlib
@@ -46,14 +47,16 @@ def _wait_for_subscription(session, domain: int, topic: str, timeout: float = 15
 
 
 def _plain_token(domain: int, zid: str, topic: str, entity_id: int, aware: bool = False):
+    """A foreign publisher's token: plain (13 segments), or buffer-aware as rmw_zenoh's
+    (advertising cpu)."""
     from buffer_pubsub import wire
     from rosidl_buffer.messages import get_type_hash
 
     return wire.EndpointToken(
         domain_id=domain, zid=zid, node_id=0, entity_id=entity_id, kind=wire.PUBLISHER_KIND,
         namespace="", node_name="foreign", topic=topic, type_name=TENSOR,
-        type_hash=get_type_hash(TENSOR), qos=wire.qos_segment(10), buffer_aware=aware,
-        locality=wire.Locality("elsewhere", 1, 0))
+        type_hash=get_type_hash(TENSOR), qos=wire.QoSProfile.of(10),
+        backends={"cpu": ""} if aware else None)
 
 
 def run_foreign(args: argparse.Namespace) -> int:
@@ -113,6 +116,10 @@ def run_foreign(args: argparse.Namespace) -> int:
 def run_flood(args: argparse.Namespace) -> int:
     from buffer_pubsub import Node
 
+    # Started from a background job (nohup, &, a CI runner) this process inherits an ignored
+    # SIGINT, and Python then installs no KeyboardInterrupt handler: restore it, since the test
+    # ends this flood with SIGINT.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     started = None
     try:
         with Node(f"flood_{os.getpid()}", domain_id=args.domain) as node:

@@ -66,6 +66,18 @@ def topic(request: pytest.FixtureRequest) -> str:
     return f"/{request.module.__name__.rsplit('.', 1)[-1]}/t_{uuid.uuid4().hex[:10]}"
 
 
+@pytest.fixture
+def sigint_raises():
+    """SIGINT raises KeyboardInterrupt in this process during the test, as under a terminal. A
+    suite started from a background job (nohup, &, some CI runners) inherits an ignored SIGINT,
+    and Python then installs no handler of its own: a test that sends itself SIGINT needs it."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 # --------------------------------------------------------------------------- leak guard
 SHM_DIR = pathlib.Path("/dev/shm")
 # Long-lived helpers the standard library starts once per session on purpose.

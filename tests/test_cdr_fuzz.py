@@ -152,13 +152,21 @@ MALFORMED = {
                              "sensor_msgs/msg/JointState"),
     "message-seq-count-huge": (CDR_HEADER + HEADER + u32(0x10000000) + bytes(64),
                                "diagnostic_msgs/msg/DiagnosticArray"),
-    # backend form
+    # backend form (two marker words, upstream's buffer_serialization.hpp)
     "backend-name-unknown": (CDR_HEADER + HEADER + IMAGE_SCALARS + u32(0xFFFFFFFF)
-                             + cdr_string(b"nope\x00") + bytes(32), "sensor_msgs/msg/Image"),
-    "backend-name-missing": (CDR_HEADER + HEADER + IMAGE_SCALARS + u32(0xFFFFFFFF),
+                             + u32(0x524F5332) + cdr_string(b"nope\x00") + bytes(32),
                              "sensor_msgs/msg/Image"),
+    "backend-name-missing": (CDR_HEADER + HEADER + IMAGE_SCALARS + u32(0xFFFFFFFF)
+                             + u32(0x524F5332), "sensor_msgs/msg/Image"),
     "backend-descriptor-missing": (CDR_HEADER + HEADER + IMAGE_SCALARS + u32(0xFFFFFFFF)
-                                   + cdr_string(b"fake\x00"), "sensor_msgs/msg/Image"),
+                                   + u32(0x524F5332) + cdr_string(b"fake\x00"),
+                                   "sensor_msgs/msg/Image"),
+    # a first marker word alone is the length of an ordinary sequence (far too long here)
+    "backend-one-marker-only": (CDR_HEADER + HEADER + IMAGE_SCALARS + u32(0xFFFFFFFF)
+                                + cdr_string(b"fake\x00") + bytes(32), "sensor_msgs/msg/Image"),
+    "backend-second-marker-wrong": (CDR_HEADER + HEADER + IMAGE_SCALARS + u32(0xFFFFFFFF)
+                                    + u32(0x324F5352) + cdr_string(b"fake\x00") + bytes(32),
+                                    "sensor_msgs/msg/Image"),
 }
 
 

@@ -41,7 +41,7 @@ def test_help_lists_every_command_and_the_verbose_flag(capsys: pytest.CaptureFix
         main(["--help"])
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
-    for command in ("info", "demo", "bench", "router"):
+    for command in ("info", "demo", "bench", "router", "bag"):
         assert command in out
     assert "--verbose" in out
 

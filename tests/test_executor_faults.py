@@ -123,7 +123,7 @@ def test_a_keep_last_subscription_refuses_a_message_older_than_one_delivered(dom
                 msg = sub.msg_type(data=str(sequence))
                 from rosidl_buffer.messages import serialize_message
 
-                attachment = wire.Attachment(sequence, 0, gid)
+                attachment = wire.Attachment(sequence, sequence, gid)
                 sub._enqueue((bytes(serialize_message(msg)), attachment, ROUTE_BASE, 0, False))
         while node.spin_once(0.2):
             pass
@@ -167,10 +167,10 @@ def test_a_node_in_a_worker_forked_after_zenoh_started_is_refused_at_once(domain
     assert float(took) < 1.0 and names_the_remedy == "True"
 
 
-def test_a_parked_sample_is_not_overtaken_by_a_later_one_of_its_publisher(domain, topic):
-    """Samples wait (parked) for their publisher's token; a later sample of that publisher,
-    accepted between the token's arrival and the hook that resumes the parked ones, made them
-    late: refused. It waits behind them now."""
+def test_a_sample_of_an_undiscovered_publisher_is_not_overtaken_by_a_later_one(domain, topic):
+    """A sample whose publisher's token has not arrived is delivered at once (as rmw_zenoh:
+    nothing waits for discovery), so a later sample, which arrives once the token did, comes
+    after it and neither is refused as late."""
     from rosidl_buffer.messages import serialize_message
 
     from buffer_pubsub import wire
@@ -186,11 +186,11 @@ def test_a_parked_sample_is_not_overtaken_by_a_later_one_of_its_publisher(domain
             return (payload, wire.Attachment(sequence, time.time_ns(), token.gid),
                     ROUTE_BUFFER, time.time_ns(), False)
 
-        sub._arrived(sample(1))  # parked: the publisher is not discovered yet
+        sub._arrived(sample(1))  # the publisher is not discovered yet
         with node._lock:
             node._graph[token.gid] = token  # discovery records it (under the node's lock) ...
         sub._arrived(sample(2))  # ... a Zenoh thread delivers the next sample ...
-        sub._on_publisher(token, True)  # ... then the hook resumes the parked ones
+        sub._on_publisher(token, True)  # ... then the discovery hook runs
         while node.spin_once(0.2):
             pass
         assert got == ["m1", "m2"] and sub.counters.refused == {}

@@ -287,6 +287,7 @@ def test_busy_poll_delivers_without_blocking() -> None:
 
 
 @requires_iceoryx2
+@pytest.mark.usefixtures("sigint_raises")
 @pytest.mark.parametrize("attached", [False, True], ids=["queue-mode", "waitset-mode"])
 def test_ctrl_c_interrupts_a_wait(attached: bool) -> None:
     """iceoryx2 leaves SIGINT to Python: a KeyboardInterrupt ends a wait at once, whether it

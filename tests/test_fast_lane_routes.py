@@ -16,12 +16,12 @@ from tests.test_fast_lane import peers, requires_iceoryx2
 HERE = wire.Locality(local_host_id(), os.getpid(), os.getuid())
 
 
-def token(locality: wire.Locality, buffer_aware: bool = True) -> wire.EndpointToken:
+def token(locality: wire.Locality | None) -> wire.EndpointToken:
     return wire.EndpointToken(
         domain_id=0, zid="0" * 32, node_id=1, entity_id=2, kind=wire.SUBSCRIPTION_KIND,
         namespace="", node_name="n", topic="/t", type_name="std_msgs/msg/String",
-        type_hash="RIHS01_00", qos=wire.qos_segment(10), buffer_aware=buffer_aware,
-        locality=locality, backends={"warp": ""})
+        type_hash="RIHS01_00", qos=wire.QoSProfile.of(10), locality=locality,
+        backends={"warp": ""})
 
 
 def test_serves_only_same_host_user_other_process_keep_last_served_individual() -> None:
@@ -31,7 +31,7 @@ def test_serves_only_same_host_user_other_process_keep_last_served_individual() 
         (token(HERE), {}),  # this process: intra-process route
         (token(dataclasses.replace(other, host_id="elsewhere")), {}),
         (token(dataclasses.replace(other, user_id=HERE.user_id + 1)), {}),
-        (token(other, buffer_aware=False), {}),
+        (token(None), {}),  # not ours (no locality): it has no lane
         (token(other), {"individual": False}),
         (token(other), {"served": False}),
         (token(other), {"keep_all": True}),

@@ -103,3 +103,29 @@ def test_sigkilled_lane_publisher_is_cleaned_and_the_next_one_uses_the_lane(sett
               for pub_id in (1, 2)}
     assert routes == {1: {"lane"}, 2: {"lane"}}
     assert all(check_frame(m)["ok"] for m, _ in got)
+
+
+def test_a_slow_subscriber_on_the_lane_counts_its_backlog_as_dropped_not_lost(setting):
+    """The lane's keep-last queue overwrites what a slow callback did not take: the
+    subscriber's own backlog, counted in ``dropped`` as on Zenoh, never as transport loss."""
+    domain, topic, backends = setting
+    routes = set()
+
+    def slow(msg, info) -> None:
+        routes.add(info.route)
+        time.sleep(0.01)
+
+    with Node("lane_slow", domain_id=domain, backends=backends) as node:
+        sub = node.create_subscription(TENSOR, topic, slow, depth=5, with_info=True,
+                                       acceptable_buffer_backends="warp")
+        pub = Child("pub", domain=domain, topic=topic, backend="warp", count=300,
+                    interval=0.001, size=1024)
+        try:
+            pub.wait_ready()
+            assert _settles(lambda: sub.received + sub.counters.dropped >= 300, 30)
+            pub.stop()
+        finally:
+            pub.close()
+    assert "lane" in routes
+    assert sub.counters.lost == 0 and sub.counters.dropped > 50
+    assert sub.received + sub.counters.dropped == 300

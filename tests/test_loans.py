@@ -282,7 +282,7 @@ def test_an_exception_in_the_block_publishes_nothing_and_returns_the_loan(
                 raise ValueError("camera unplugged")
         del msg, out
         time.sleep(0.2)
-        assert received == [] and pub._sequence == 0  # nothing published
+        assert received == [] and pub._last_stamp == 0  # nothing published
         with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
             out = tc.from_output_tensor_msg(msg)
             assert out.data_ptr() == first  # the loan came back to the pool, writable

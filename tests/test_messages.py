@@ -22,11 +22,11 @@ from rosidl_buffer import (
     local_host_id,
 )
 from rosidl_buffer.messages import (
-    BUFFER_DESCRIPTOR_MARKER,
     CDR_HEADER,
     Message,
     deserialize_message,
     get_message_type,
+    register_message_definitions,
     serialize_message,
 )
 
@@ -236,7 +236,6 @@ def test_bounded_sequences_longer_than_their_bound_are_refused_on_read():
 
 
 def test_bounded_string_sequence_longer_than_its_bound_is_refused_on_read():
-    from rosidl_buffer.messages import register_message_definitions
 
     type_name = "warp_buffer_test_msgs/msg/BoundedNames"
     register_message_definitions({type_name: "string[<=2] names\n"})
@@ -286,7 +285,9 @@ def test_backend_form_wire_layout():
     start = len(cpu_wire) - 4 - len(image.data)
     assert wire[:start] == cpu_wire[:start] and wire[:4] == CDR_HEADER
     name = FAKE_BACKEND.encode() + b"\x00"
-    prefix = struct.pack("<II", BUFFER_DESCRIPTOR_MARKER, len(name)) + name
+    # rosidl_typesupport_fastrtps 3.9.4+ (buffer_serialization.hpp): two marker words, 0xFFFFFFFF
+    # then "ROS2" read as a little-endian uint32, before the backend name
+    prefix = struct.pack("<III", 0xFFFFFFFF, 0x524F5332, len(name)) + name
     descriptor_start = start + len(prefix)
     padding = -(descriptor_start - len(CDR_HEADER)) % 8  # the descriptor starts with a uint64
     (descriptor,) = described
@@ -389,3 +390,34 @@ def test_messages_pickle_by_type_name_with_buffers_as_cpu_bytes():
     image = get_message_type("sensor_msgs/msg/Image")(height=2, width=3, encoding="mono8",
                                                       step=3, data=bytes(range(6)))
     assert pickle.loads(pickle.dumps(image)) == image
+
+
+NESTED_BUFFER_TYPE = "warp_buffer_test_msgs/msg/ImagePair"
+register_message_definitions({
+    NESTED_BUFFER_TYPE: "sensor_msgs/Image left\nsensor_msgs/Image[] more\nuint8[] blob\n"})
+
+
+def test_only_top_level_buffers_travel_as_descriptors():
+    """As upstream's generated type support (msg__type_support.cpp.em): a nested message is
+    serialized by its plain codec, so its buffers are CPU bytes even on an endpoint route."""
+    backend = FakeBackend()
+    pair = get_message_type(NESTED_BUFFER_TYPE)(
+        left=fake_image(b"L"), more=[fake_image(b"M")], blob=Buffer(FakeBufferImpl(b"top")))
+    described = []
+    wire = serialize_message(pair, route=fake_route(backend, described))
+    assert len(described) == 1  # the top-level blob alone
+    received = deserialize_message(wire, NESTED_BUFFER_TYPE, backends={FAKE_BACKEND: backend},
+                                   endpoint_info=publisher_endpoint())
+    assert received.left.data.get_backend_type() == "cpu" and bytes(received.left.data) == b"L"
+    assert bytes(received.more[0].data) == b"M"
+    assert received.blob.get_backend_type() == FAKE_BACKEND
+
+
+def test_a_descriptor_in_a_nested_message_is_malformed():
+    backend = FakeBackend()
+    image_wire = bytes(serialize_message(fake_image(b"L"), route=fake_route(backend)))
+    # the same bytes as the nested `left` of a pair whose other fields are empty
+    pair_wire = image_wire + struct.pack("<II", 0, 0)
+    with pytest.raises(DeserializationError, match="nested"):
+        deserialize_message(pair_wire, NESTED_BUFFER_TYPE, backends={FAKE_BACKEND: backend},
+                            endpoint_info=publisher_endpoint())

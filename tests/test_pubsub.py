@@ -7,6 +7,8 @@ Topology tests use the ``warp`` backend once it is installed and the test-only `
 
 from __future__ import annotations
 
+import dataclasses
+
 import os
 import signal
 import time
@@ -277,7 +279,8 @@ def test_negotiation_hooks_are_called(domain, topic, backends):
             time.sleep(0.01)
     assert {e.gid for e in fake.created[created:]} == {pub.gid, sub.gid}
     peer = fake.discovered[discovered]
-    assert peer.gid == sub.gid and dict(peer.supported_backends) == {"fake": "fake-v1", "cpu": ""}
+    # as rmw_zenoh advertises an explicit list: its backends besides cpu, with their metadata
+    assert peer.gid == sub.gid and dict(peer.supported_backends) == {"fake": "fake-v1"}
     assert peer.process_id == os.getpid()
 
 
@@ -306,7 +309,7 @@ def test_stale_descriptor_is_counted_and_the_subscription_goes_on(domain, topic,
 
 def test_samples_without_attachment_are_rejected_and_base_key_serves_plain_peers(
         domain, topic, backends):
-    """A peer that knows nothing of buffers (plain rmw_zenoh: no extra segment) gets CPU bytes on
+    """A peer that knows nothing of buffers (pre-0.10.5 rmw_zenoh: no backends) gets CPU bytes on
     the base key; a bare sample with no attachment is dropped."""
     tensor = get_message_type(TENSOR)
     got, plain = [], []
@@ -319,7 +322,7 @@ def test_samples_without_attachment_are_rejected_and_base_key_serves_plain_peers
         token = wire.EndpointToken(
             domain_id=domain, zid=str(raw.zid()), node_id=0, entity_id=1,
             kind=wire.SUBSCRIPTION_KIND, namespace="", node_name="plain", topic=topic,
-            type_name=TENSOR, type_hash=sub._token.type_hash, qos=wire.qos_segment(10))
+            type_name=TENSOR, type_hash=sub._token.type_hash, qos=wire.QoSProfile.of(10))
         base = wire.data_key(domain, topic, TENSOR)
         raw_sub = raw.declare_subscriber(
             base, lambda s: plain.append((s.payload.to_bytes(), s.attachment)))
@@ -346,22 +349,22 @@ def test_samples_without_attachment_are_rejected_and_base_key_serves_plain_peers
 
 
 def test_wire_layout():
+    """Tokens, gid and attachment against values written out by hand from rmw_zenoh 0.10.5's
+    liveliness_utils.cpp (Entity constructor, escape_backend_field) and attachment_helpers.cpp."""
     token = wire.EndpointToken(
         domain_id=0, zid="abc", node_id=1, entity_id=2, kind=wire.SUBSCRIPTION_KIND,
         namespace="/ns", node_name="n", topic="/robot1/chatter", type_name="std_msgs/msg/String",
-        type_hash="RIHS01_" + "0" * 64, qos=wire.qos_segment(10), buffer_aware=True,
+        type_hash="RIHS01_" + "0" * 64, qos=wire.QoSProfile.of(10),
         locality=wire.Locality("id@host/x", 12, 1000),
-        backends={"warp": "dev=cpu;a/b*c", "cpu": ""})
-    key = token.key()
-    segments = key.split("/")
-    assert segments[:10] == ["@ros2_lv", "0", "abc", "1", "2", "MS", "%", "%ns", "n",
-                             "%robot1%chatter"]
-    assert segments[10:13] == ["std_msgs::msg::dds_::String_", "RIHS01_" + "0" * 64,
-                               "::,10:,:,:,,"]
-    assert len(segments) == 14 and not set("*$?#/") & set(segments[13])
-    parsed = wire.parse_token(key)
+        backends={"warp": "dev=cpu;a/b:c%", "cpu": ""})
+    canonical = ("@ros2_lv/0/abc/1/2/MS/%/%ns/n/%robot1%chatter/std_msgs::msg::dds_::String_/"
+                 "RIHS01_" + "0" * 64 + "/::,10:,:,:,,/backends:cpu:;warp:dev=cpu%3Ba%2Fb%3Ac%25")
+    assert token.canonical_key() == canonical
+    # ours adds the locality segment last, which rmw_zenoh drops when it rebuilds the key
+    assert token.key() == canonical + "/wbloc:id@host%2Fx:12:1000"
+    parsed = wire.parse_token(token.key())
     assert parsed == token and parsed.backends == token.backends
-    assert parsed.gid == token.gid and len(token.gid) == 16
+    assert wire.parse_token(canonical).gid == token.gid
     assert wire.data_key(0, "/robot1/chatter", "std_msgs/msg/String").startswith(
         "0/robot1/chatter/std_msgs::msg::dds_::String_/RIHS01_")
     att = wire.Attachment(5, 123, token.gid)
@@ -371,10 +374,15 @@ def test_wire_layout():
         wire.Attachment.decode(b"\x00" * 32)
     import xxhash
 
-    # The gid is what stock rmw_zenoh computes: XXH3-128 of the first 13 segments only.
-    digest = xxhash.xxh3_128_intdigest("/".join(segments[:13]).encode())
+    # The gid is XXH3-128 of the canonical key, the backends segment included: low 64 bits then
+    # high 64 bits, each little endian.
+    digest = xxhash.xxh3_128_intdigest(canonical.encode())
     assert token.gid == digest.to_bytes(16, "little")
     assert token.gid[:8] == (digest & (2**64 - 1)).to_bytes(8, "little")
+    # a '*' (which a Zenoh key cannot hold) is escaped in the declared key, not in the hash
+    starred = dataclasses.replace(token, backends={"warp": "a*b"})
+    assert "warp:a%2Ab" in starred.key() and starred.canonical_key().endswith("warp:a*b")
+    assert wire.parse_token(starred.key()).gid == starred.gid
 
 
 def test_misuse_raises_typed_errors(domain, topic, backends):
@@ -436,16 +444,17 @@ def test_a_twin_token_with_the_same_gid_never_replaces_or_removes_the_endpoint(
         real = wire.EndpointToken(
             domain_id=domain, zid=str(raw.zid()), node_id=0, entity_id=1,
             kind=wire.SUBSCRIPTION_KIND, namespace="", node_name="real", topic=topic,
-            type_name=TENSOR, type_hash=pub._token.type_hash, qos=wire.qos_segment(10),
-            buffer_aware=True, backends={"cpu": ""})
+            type_name=TENSOR, type_hash=pub._token.type_hash, qos=wire.QoSProfile.of(10),
+            backends={"cpu": ""})
         real_key = real.key()
-        twin_key = "/".join(real_key.split("/")[:wire.STOCK_ENDPOINT_SEGMENTS])
+        # a segment after the 14th is dropped from the rebuilt key: same gid, another key
+        twin_key = real_key + "/wbloc:elsewhere:1:2"
         assert twin_key != real_key and wire.parse_token(twin_key).gid == real.gid
         real_token = raw.liveliness().declare_token(real_key)
         assert wait_until(lambda: real.gid in pub._peers)
         twin_token = raw.liveliness().declare_token(twin_key)
         time.sleep(0.5)
-        assert node._graph[real.gid].buffer_aware  # still the real one
+        assert node._graph[real.gid].locality is None  # still the real one
         twin_token.undeclare()
         time.sleep(0.5)
         assert real.gid in pub._peers and pub.get_subscription_count() == 1
@@ -458,7 +467,7 @@ def test_tokens_with_impossible_type_names_are_ignored(domain, topic, backends, 
         good = wire.EndpointToken(
             domain_id=domain, zid=str(raw.zid()), node_id=0, entity_id=1,
             kind=wire.SUBSCRIPTION_KIND, namespace="", node_name="odd", topic=topic,
-            type_name=TENSOR, type_hash="RIHS01_00", qos=wire.qos_segment(10)).key().split("/")
+            type_name=TENSOR, type_hash="RIHS01_00", qos=wire.QoSProfile.of(10)).key().split("/")
         tokens = []
         for dds in ("::::dds_::_", "a::b::dds_::_", "::msg::dds_::X_", "a b::msg::dds_::X_"):
             parts = list(good)
@@ -472,3 +481,22 @@ def test_tokens_with_impossible_type_names_are_ignored(domain, topic, backends, 
     assert not [t for t in node._graph.values() if t.node_name == "odd"]
     assert not any("/msg/X" == n or n.startswith("a/b") for types in names.values()
                    for n in types)
+
+
+def test_a_raw_subscription_gets_the_serialized_bytes(domain, topic, backends):
+    """rclpy's raw=True: the CDR bytes, nothing decoded (CPU-only: a descriptor means nothing
+    serialized); in process, the message serialized as the wire would carry it."""
+    from rosidl_buffer.messages import deserialize_message, serialize_message
+
+    got = []
+    with Node("raw", domain_id=domain, backends=backends) as node:
+        with pytest.raises(InvalidEndpointError, match="raw"):
+            node.create_subscription(TENSOR, topic, got.append, raw=True,
+                                     acceptable_buffer_backends="any")
+        node.create_subscription(TENSOR, topic, got.append, raw=True)
+        pub = node.create_publisher(TENSOR, topic)
+        frame = make_frame(0, 3, 64, "cpu")
+        pub.publish(frame)
+        assert wait_until(lambda: got)
+    assert type(got[0]) is bytes and got[0] == bytes(serialize_message(frame))
+    assert check_frame(deserialize_message(got[0], TENSOR))["index"] == 3

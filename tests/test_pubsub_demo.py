@@ -29,8 +29,9 @@ def test_demo_passes_on_the_cpu_device():
     assert done.returncode == 0, out + done.stderr[-3000:]
     assert "warp subscriber: path warp" in out and "cpu subscriber: path cpu" in out
     assert "received 12/12" in out and "p99" in out
-    report = ("warp-buffer demo:", "publisher:", "warp subscriber:", "cpu subscriber:", "demo:")
-    assert [line.split(" ")[0] for line in out.splitlines()] == [p.split(" ")[0] for p in report]
+    report = ("warp-buffer demo:", "publisher:", "warp subscriber:", "latency", "check",
+              "cpu subscriber:", "latency", "check", "demo:")
+    assert [line.split()[0] for line in out.splitlines()] == [p.split()[0] for p in report]
     for noise in ("Warp 1.", "CUDA driver", "Module "):  # Warp's banner, native warning, logs
         assert noise not in out + done.stderr
 
@@ -44,6 +45,28 @@ def test_demo_fails_when_a_check_fails(monkeypatch, capsys):
     monkeypatch.setenv("WARP_BUFFER_DEMO_CORRUPT", "1")
     assert demo.run(args) == 1
     assert "FAILED" in capsys.readouterr().out
+
+
+def test_latency_is_stamped_at_callback_entry_and_the_check_is_timed_apart():
+    """The demo stamped latency after checking every element of the frame: a slow check read
+    as a slow transport ("zero-copy is slower than copying")."""
+    from types import SimpleNamespace
+
+    stats = demo._new_stats()
+    msg = SimpleNamespace(data=SimpleNamespace(get_backend_type=lambda: "warp"))
+    info = SimpleNamespace(route="lane", source_timestamp_ns=time.time_ns())
+
+    def slow_check(_msg) -> bool:
+        time.sleep(0.3)
+        return True
+
+    demo.record_frame(stats, msg, info, slow_check)
+    assert stats["check_ms"][0] >= 300
+    assert stats["latency_ms"][0] < stats["check_ms"][0] / 2  # the check is not in it
+    assert (stats["received"], stats["bad"], stats["backends"], stats["routes"]) == (
+        1, 0, ["warp"], ["lane"])
+    demo.record_frame(stats, msg, info, lambda _msg: 1 / 0)  # a failing check is a bad frame
+    assert stats["bad"] == 1 and "ZeroDivisionError" in stats["errors"][0]
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:

@@ -95,11 +95,10 @@ def test_spoofed_sequence_jump_does_not_count_as_loss(domain, topic, backends):
     assert sub.counters.lost == 1 and sub.counters.sequence_jumps == 2
 
 
-def test_unknown_publisher_samples_park_without_stalling_other_subscriptions(
-        domain, topic, backends):
-    """Samples built for a subscription (they may hold descriptors) wait for their publisher's
-    token in that subscription alone: another subscription of the node keeps its rate; samples
-    whose token comes late are delivered, the others counted as refused."""
+def test_samples_of_undiscovered_publishers_are_delivered_at_once(domain, topic, backends):
+    """As rmw_zenoh, samples on a subscription's own stream from a publisher whose token has
+    not arrived (or never comes) are messages, decoded at once with the gid alone: nothing
+    waits for discovery, and another subscription of the node keeps its rate."""
     got, ticks = [], []
     other_topic = topic + "_other"
     with Node("park_sub", domain_id=domain, backends=backends) as node:
@@ -116,12 +115,13 @@ def test_unknown_publisher_samples_park_without_stalling_other_subscriptions(
             while time.monotonic() < deadline:
                 ticker.publish(frame)
                 time.sleep(0.01)
-            assert _wait(lambda: sub.counters.refused.get("unknown_publisher") == 2, 5)
+            assert _wait(lambda: len(got) == 5, 5)
             peer.stop()
         finally:
             peer.close()
-    assert sorted(check_frame(m)["index"] for m, _ in got) == [10, 11, 12]
+    assert sorted(check_frame(m)["index"] for m, _ in got) == [0, 1, 10, 11, 12]
     assert {i.route for _, i in got} == {"buffer"}
+    assert sub.counters.refused == {} and sub.counters.errors == 0
     # Before, each such sample held the node's only callback thread for 1 s.
     assert max(np.diff(ticks)) < 0.6, "a sample waiting for discovery stalled the executor"
 
@@ -168,7 +168,7 @@ def test_keep_all_blocks_and_keep_last_drops(domain, topic, backends):
                                        history="keep_all")
         assert last._congestion == zenoh.CongestionControl.DROP
         assert every._congestion == zenoh.CongestionControl.BLOCK
-        assert every._token.qos == "::2,5:,:,:,," and wire.qos_history(every._token.qos) == "keep_all"
+        assert every._token.qos.to_keyexpr() == "::2,5:,:,:,," and every._token.qos.keep_all
         assert sub._queue.maxlen is None
 
 
@@ -476,9 +476,8 @@ def _remote_subscription(pub, domain: int, entity_id: int, node_name: str) -> wi
     return wire.EndpointToken(
         domain_id=domain, zid="0" * 32, node_id=0, entity_id=entity_id,
         kind=wire.SUBSCRIPTION_KIND, namespace="", node_name=node_name, topic=pub.topic_name,
-        type_name=TENSOR, type_hash=pub._token.type_hash, qos=wire.qos_segment(10),
-        buffer_aware=True, locality=wire.Locality("h", 1, 0),
-        backends={"fake": "fake-v1", "cpu": ""})
+        type_name=TENSOR, type_hash=pub._token.type_hash, qos=wire.QoSProfile.of(10),
+        locality=wire.Locality("h", 1, 0), backends={"fake": "fake-v1", "cpu": ""})
 
 
 def _negotiate(pub, token: wire.EndpointToken, fake, meanwhile) -> set[bytes]:
@@ -641,7 +640,7 @@ def test_a_frozen_warp_subscriber_on_the_lane_pins_a_bounded_number_of_blocks(
             pub = node.create_publisher(TENSOR, topic)
             frozen.wait_ready()
             assert pub.wait_for_subscriptions(1, timeout=10)
-            (peer,) = pub._remote
+            (peer,) = pub._remote.own
             assert peer.lane is not None and peer.route_info.delivery_queue_depth == depth
             before = pool_stats().get("cpu", {}).get("created", 0)
             os.kill(frozen.proc.pid, signal.SIGSTOP)
@@ -670,7 +669,7 @@ def test_a_subscriber_behind_on_zenoh_loses_nothing_to_recycling(domain, topic, 
             pub = node.create_publisher(TENSOR, topic)
             late.wait_ready()
             assert pub.wait_for_subscriptions(1, timeout=10)
-            (peer,) = pub._remote
+            (peer,) = pub._remote.own
             assert peer.lane is None and peer.route_info.delivery_queue_depth == 0
             os.kill(late.proc.pid, signal.SIGSTOP)
             try:
@@ -686,17 +685,28 @@ def test_a_subscriber_behind_on_zenoh_loses_nothing_to_recycling(domain, topic, 
     assert len(result["records"]) == count
 
 
-@pytest.mark.parametrize("segment, depth", [
-    (wire.qos_segment(10), 10), (wire.qos_segment(42), 42), (wire.qos_segment(1), 1),
-    (wire.qos_segment(5, "keep_all"), 0), ("::1,7:,:,:,,", 7), ("garbage", 0), ("::1,x:", 0),
-    ("::1,\u00b2:,:", 0),  # a digit to str.isdigit(), not to int()
+@pytest.mark.parametrize("segment, history, depth", [
+    ("::,10:,:,:,,", "keep_last", 10), ("::,:,:,:,,", "keep_last", 42),
+    ("::1,7:,:,:,,", "keep_last", 7), ("::2,5:,:,:,,", "keep_all", 5),
+    ("::,007:,:,:,,", "keep_last", 7),
 ])
-def test_the_keep_last_depth_is_read_from_a_qos_segment(segment, depth):
-    assert wire.qos_depth(segment) == depth
+def test_the_history_is_read_from_a_qos_segment(segment, history, depth):
+    qos = wire.QoSProfile.from_keyexpr(segment)
+    assert (qos.history_name, qos.depth) == (history, depth)
+
+
+@pytest.mark.parametrize("segment", [
+    "garbage", "::1,x:", "::1,7:,:,:", "::01,7:,:,:,,", "::1,-7:,:,:,,",
+    "::1,\u00b2:,:,:,,",  # a digit to str.isdigit(), not to strtoull
+])
+def test_qos_segments_rmw_zenoh_rejects_are_refused(segment):
+    with pytest.raises(wire.WireFormatError):
+        wire.QoSProfile.from_keyexpr(segment)
 
 
 
 
+@pytest.mark.usefixtures("sigint_raises")
 def test_ctrl_c_during_a_bounded_teardown_step_lets_it_finish_then_propagates():
     """A second Ctrl-C while Node.close() waits on Zenoh must not leave the interpreter exiting
     with the step still inside Zenoh (the process aborted): the step finishes (within its

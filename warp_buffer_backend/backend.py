@@ -318,6 +318,14 @@ class WarpBufferBackend(BufferBackend):
         publisher, on its first descriptor).
         """
         gid = endpoint_info.gid
+        if not endpoint_info.host_id:
+            # A publisher known by its gid alone (its token has not arrived: the transport does
+            # not wait for it, as rmw_zenoh does not). Nothing to judge it by but the descriptor:
+            # the import's hand-off checks with the kernel (SO_PEERCRED) that the memory's owner
+            # is a process of this user reachable on this host. Not cached: its token may come.
+            if ipc_disabled():
+                raise ExportUnavailableError("IPC is disabled here (WARP_BUFFER_DISABLE_IPC)")
+            return import_buffer(descriptor)
         try:
             refusal = self._publishers[gid]
         except KeyError:

@@ -6,7 +6,10 @@ import argparse
 import importlib
 import logging
 import os
+import signal
 import sys
+
+from rosidl_buffer.errors import RosidlBufferError
 
 VERBOSE_ENV = "WARP_BUFFER_VERBOSE"  # read by warp_buffer.startup (not imported here: cost)
 
@@ -18,6 +21,12 @@ _COMMANDS = {
     "bench": ("benchmarks.run", "measure latency, rate and copies against peer transports"),
     "router": ("warp_buffer_cli.router",
                "run a Zenoh router (rmw_zenoh's defaults) for nodes on several hosts"),
+    # Groups of subcommands (warp_buffer_cli._groups): one module each, its leaves beside it.
+    "topic": ("warp_buffer_cli.topic",
+              "list topics, show their endpoints and routes, echo, measure rate and bandwidth"),
+    "node": ("warp_buffer_cli.node", "list the nodes of the domain, show one's endpoints"),
+    "bag": ("warp_buffer_cli.bag",
+            "record topics to a rosbag2 bag (MCAP or sqlite3), play one back, describe one"),
 }
 
 
@@ -46,18 +55,30 @@ def main(argv: list[str] | None = None) -> int:
         if name == chosen:
             module = importlib.import_module(module_name)
             module.add_arguments(sub)
-            sub.set_defaults(run=module.run)
+            if hasattr(module, "run"):  # a group's leaves set their own
+                sub.set_defaults(run=module.run)
     args = parser.parse_args(argv)
     _configure_output(args.verbose)
+    # Ctrl-C ends a command even when it was started from a background job (nohup, &, a CI
+    # runner), which hands it an ignored SIGINT: as ros2's tools do (rclpy installs its handler
+    # whatever it inherited).
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+    name = getattr(args, "command_name", f"warp-buffer {args.command}")
     try:
         return int(args.run(args))
+    except RosidlBufferError as exc:  # bad input the command found: one line, no traceback
+        text = " ".join(str(exc).split())  # one line, whatever the message (a YAML parser's)
+        print(f"{name}: {type(exc).__name__}: {text}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback (children were reaped)
-        print(f"warp-buffer {args.command}: interrupted", file=sys.stderr)
+        print(f"{name}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # stdout's reader left (| head -1): nothing more to write there
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # the interpreter's last flush must not fail too
         return 141
+    finally:
+        signal.signal(signal.SIGINT, inherited)  # main() called in a program leaves it as found
 
 
 if __name__ == "__main__":

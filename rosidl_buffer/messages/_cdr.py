@@ -6,9 +6,13 @@ the reference: tests check this codec byte for byte against ``Typestore.serializ
 
 Wire form of a buffer field:
 - CPU: the ordinary sequence, ``uint32 length`` then the bytes (old readers are unaffected);
-- backend: ``uint32 0xFFFFFFFF``, the backend name as a CDR string, then the descriptor message
-  inline (aligned against the same origin as the rest of the stream), at most
-  ``MAX_BUFFER_DESCRIPTOR_SIZE`` bytes.
+- backend (rosidl_typesupport_fastrtps >= 3.9.4, ``buffer_serialization.hpp``): after aligning to
+  4, the words ``0xFFFFFFFF`` and ``0x524F5332`` ("ROS2"), the backend name as a CDR string, then
+  the descriptor message inline (aligned against the same origin as the rest of the stream), at
+  most ``MAX_BUFFER_DESCRIPTOR_SIZE`` bytes. A reader takes the descriptor path only when both
+  words match; a first word alone is the length of an ordinary sequence. As upstream's generated
+  type support, only top-level ``uint8[]`` fields travel in backend form: a nested message's
+  buffers are always CPU bytes.
 
 Serialization runs in two passes, sizing then writing into one preallocated ``bytearray``, so a
 payload is copied exactly once. Deserialization returns buffers that alias the input bytes.
@@ -50,6 +54,7 @@ from ._schema import PRIMITIVE_FORMATS, FieldKind, FieldSpec, get_schema
 
 __all__ = [
     "BUFFER_DESCRIPTOR_MARKER",
+    "BUFFER_DESCRIPTOR_MARKER_2",
     "CDR_HEADER",
     "BufferRoute",
     "serialize_message",
@@ -60,8 +65,9 @@ __all__ = [
 CDR_HEADER = b"\x00\x01\x00\x00"  # representation CDR_LE, options 0
 _ORIGIN = len(CDR_HEADER)  # alignment counts from the end of the header
 BUFFER_DESCRIPTOR_MARKER = 0xFFFFFFFF
+BUFFER_DESCRIPTOR_MARKER_2 = 0x524F5332  # "ROS2"
 _U32 = struct.Struct("<I")
-_U32X2 = struct.Struct("<II")  # a buffer field's marker and its backend name's length
+_HEADER = struct.Struct("<III")  # a descriptor form's two markers and its backend name's length
 _NUMPY_COPY_THRESHOLD = 1 << 16
 _ZEROS = tuple(bytes(n) for n in range(8))  # padding, by length
 _LITTLE_ENDIAN = sys.byteorder == "little"
@@ -90,6 +96,13 @@ class _SizeContext:
     route: BufferRoute | None
     decisions: list[Any]
 
+    def inner(self) -> _SizeContext:
+        """The context of a nested message: no route (its buffers are CPU bytes), the same
+        decisions (pass two replays them in field order)."""
+        if self.route is None:
+            return self
+        return _SizeContext(None, self.decisions)
+
 
 @dataclass
 class _ReadContext:
@@ -97,18 +110,24 @@ class _ReadContext:
     owner: Any
     backends: Mapping[str, BufferBackend] | None
     endpoint_info: EndpointInfo | None
+    top_level: bool = True
+
+    def inner(self) -> _ReadContext:
+        """The context of a nested message, where a descriptor is malformed input."""
+        if not self.top_level:
+            return self
+        return _ReadContext(self.data, self.owner, self.backends, self.endpoint_info, False)
 
 
 # What pass one decided for one buffer field, replayed by pass two: ``(host bytes, None, None)``
-# for the CPU form, ``(None, encoded backend name, descriptor)`` for a descriptor.
+# for the CPU form, ``(None, encoded backend name, descriptor, its decisions or None for a fixed
+# layout)`` for a descriptor.
 _CPU_IMPLS: dict[type, bool] = {}  # impl type -> is it CPU storage (judged once per type)
 _IMPLS: dict[type, bool] = {}  # type a backend returned -> is it a BufferImplBase
 _NAMES: dict[str, bytes] = {}  # backend name -> its CDR string bytes after the length
 _call = operator.call
 _repeat = itertools.repeat
 _drain = collections.deque(maxlen=0).extend  # runs an iterator at C speed, keeps nothing
-
-
 _new_buffer = Buffer.__new__
 
 
@@ -241,13 +260,13 @@ class _String(_Field):
 
 class _Nested(_Field):
     def size(self, value: Any, pos: int, ctx: _SizeContext) -> int:
-        return _codec(self.spec.element).size(value, pos, ctx)
+        return _codec(self.spec.element).size(value, pos, ctx.inner())
 
     def write(self, value: Any, out: bytearray, pos: int, decisions: list[Any]) -> int:
         return _codec(self.spec.element).write(value, out, pos, decisions)
 
     def read(self, ctx: _ReadContext, pos: int) -> tuple[Any, int]:
-        return _codec(self.spec.element).read(ctx, pos)
+        return _codec(self.spec.element).read(ctx.inner(), pos)
 
 
 class _NumericArray(_Field):
@@ -409,7 +428,7 @@ def _descriptor_size(codec: _MessageCodec, descriptor: Any) -> int:
 
 
 class _BufferField(_Field):
-    """An unbounded ``uint8[]``: CPU sequence, or marker + backend name + descriptor (a
+    """An unbounded ``uint8[]``: CPU sequence, or markers + backend name + descriptor (a
     fixed-layout descriptor in one struct call, see the module docstring)."""
 
     def __init__(self, spec: FieldSpec) -> None:
@@ -424,10 +443,7 @@ class _BufferField(_Field):
         if route is not None:
             kind = type(value._impl)
             cpu = _CPU_IMPLS.get(kind)
-            if not (_judge_cpu(kind) if cpu is None else cpu):
-                route = route(value)
-            else:
-                route = None
+            route = None if (_judge_cpu(kind) if cpu is None else cpu) else route(value)
         if route is None:
             host = value._host_view()
             ctx.decisions.append((host, None, None))
@@ -436,7 +452,7 @@ class _BufferField(_Field):
         name = _NAMES.get(backend_name) if type(backend_name) is str else None
         if name is None:
             name = _name_bytes(backend_name, self.name)
-        pos += 8 + (-(pos - _ORIGIN) % 4) + len(name)  # marker, name length, name
+        pos += 12 + (-(pos - _ORIGIN) % 4) + len(name)  # two markers, the name's length, name
         codec = _codec(descriptor.__msgtype__)
         if codec.fixed is not None:  # sized once per type
             nbytes = codec.fixed_size
@@ -466,9 +482,10 @@ class _BufferField(_Field):
         if pad:
             out[pos:pos + pad] = _ZEROS[pad]
             pos += pad
-        end = pos + 8 + len(name)
-        _U32X2.pack_into(out, pos, BUFFER_DESCRIPTOR_MARKER, len(name))
-        out[pos + 8:end] = name
+        end = pos + 12 + len(name)
+        _HEADER.pack_into(out, pos, BUFFER_DESCRIPTOR_MARKER, BUFFER_DESCRIPTOR_MARKER_2,
+                          len(name))
+        out[pos + 12:end] = name
         codec = _codec(descriptor.__msgtype__)
         if descriptor_decisions is None:  # fixed layout: one struct call
             packer, length = codec.fixed[(end - _ORIGIN) & 7]
@@ -479,27 +496,46 @@ class _BufferField(_Field):
             return end + length
         return codec.write(descriptor, out, end, descriptor_decisions)
 
+    @staticmethod
+    def _second_marker(ctx: _ReadContext, pos: int) -> bool:
+        """Is the word after a first marker the second one? (Upstream reads it only then: an
+        empty stream end after 0xFFFFFFFF is a too-long sequence, not a short read.)"""
+        data = ctx.data
+        return pos + 4 <= len(data) and _U32.unpack_from(data, pos)[0] == BUFFER_DESCRIPTOR_MARKER_2
+
     def read(self, ctx: _ReadContext, pos: int) -> tuple[Any, int]:
         data = ctx.data
         pos += -(pos - _ORIGIN) % 4
-        if pos + 8 > len(data):
-            n, pos = _read_count(ctx, pos, self.name)  # the truncation error
-        else:
-            n, length = _U32X2.unpack_from(data, pos)
-            if n == BUFFER_DESCRIPTOR_MARKER and length and pos + 8 + length <= len(data):
-                return self._read_descriptor(ctx, pos + 8, length)
-            pos += 4
-        if n == BUFFER_DESCRIPTOR_MARKER:  # a malformed name: the string reader's error
-            return self._read_descriptor(ctx, pos, None)
-        if pos + n > len(data):
+        end = len(data)
+        if pos + 4 <= end:  # the common forms in one pass; anything else: _read_checked
+            n = _U32.unpack_from(data, pos)[0]
+            if n != BUFFER_DESCRIPTOR_MARKER:
+                if pos + 4 + n <= end:
+                    view = np.frombuffer(ctx.owner, dtype=np.uint8, count=n, offset=pos + 4)
+                    return _buffer_of(CpuBufferImpl.wrap(view)), pos + 4 + n
+            elif pos + 12 <= end and ctx.top_level:
+                _, second, length = _HEADER.unpack_from(data, pos)
+                if second == BUFFER_DESCRIPTOR_MARKER_2 and length and pos + 12 + length <= end:
+                    return self._read_descriptor(ctx, pos + 12, length)
+        return self._read_checked(ctx, pos)
+
+    def _read_checked(self, ctx: _ReadContext, pos: int) -> tuple[Any, int]:
+        """The field read step by step: every malformed form's typed error."""
+        n, pos = _read_count(ctx, pos, self.name)
+        if n != BUFFER_DESCRIPTOR_MARKER or not self._second_marker(ctx, pos):
             _need(ctx, pos, n, self.name)
-        view = np.frombuffer(ctx.owner, dtype=np.uint8, count=n, offset=pos)
-        return _buffer_of(CpuBufferImpl.wrap(view)), pos + n
+            view = np.frombuffer(ctx.owner, dtype=np.uint8, count=n, offset=pos)
+            return _buffer_of(CpuBufferImpl.wrap(view)), pos + n
+        if not ctx.top_level:
+            raise DeserializationError(
+                f"field {self.name!r}: a backend descriptor in a nested message (only top-level "
+                "uint8[] fields travel in backend form)")
+        return self._read_descriptor(ctx, pos + 4, None)
 
     def _read_descriptor(self, ctx: _ReadContext, pos: int, length: int | None
                          ) -> tuple[Any, int]:
-        """A descriptor form: the backend name at ``pos`` (its ``length`` read already, or
-        None), then the descriptor, rebuilt by the backend."""
+        """A descriptor form: the backend name at ``pos`` (after its ``length``, read already;
+        None: at ``pos`` with its length), then the descriptor, rebuilt by the backend."""
         data = ctx.data
         if length is not None and data[pos + length - 1] == 0:
             try:
@@ -724,9 +760,10 @@ def _codec_source(steps: list[Any]) -> str:
                      *(f"        set_{name}(m, v_{name})" for name in step.names),
                      "        pos += length"]
         elif kind is _Nested:
-            size.append(f"    pos = CS{i}({_get(step.name)}, pos, ctx)")
+            # a nested message's buffers never travel as descriptors (see the module doc)
+            size.append(f"    pos = CS{i}({_get(step.name)}, pos, ctx.inner())")
             write.append(f"    pos = CW{i}({_get(step.name)}, out, pos, decisions)")
-            read += [f"    value, pos = CR{i}(ctx, pos)", f"    set_{step.name}(m, value)"]
+            read += [f"    value, pos = CR{i}(ctx.inner(), pos)", f"    set_{step.name}(m, value)"]
         else:
             size.append(f"    pos = S{i}.size({_get(step.name)}, pos, ctx)")
             write.append(f"    pos = S{i}.write({_get(step.name)}, out, pos, decisions)")

@@ -35,8 +35,10 @@ __all__ = [
 
 INTERFACES_ENTRY_POINT_GROUP = "rosidl_buffer.interfaces"
 
-#: The ROS 2 distribution whose standard messages rosbags provides.
-ROS_DISTRIBUTION = Stores.ROS2_KILTED
+#: The ROS 2 distribution whose standard messages rosbags provides: Lyrical, the distribution of
+#: rmw_zenoh 0.10.5, the first with rosidl::Buffer (its Image, CompressedImage, PointCloud2 and
+#: UInt8MultiArray have the same definitions and RIHS01 hashes as Jazzy's and Kilted's).
+ROS_DISTRIBUTION = Stores.ROS2_LYRICAL
 
 _log = logging.getLogger(__name__)
 

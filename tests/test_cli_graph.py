@@ -1,0 +1,159 @@
+"""The introspection commands (``warp-buffer topic ...``, ``warp-buffer node ...``) run in their
+own processes against a graph of real processes: a publisher of ours, a warp subscription of
+ours, and an rmw_zenoh subscription (the independent model of tests/upstream_model)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+import pytest
+
+from tests._pubsub_helpers import ROOT, child_env
+from tests.test_ros2_interop import Procs, wait_ready
+
+pytestmark = pytest.mark.multiprocess
+
+RATE = 20.0
+
+
+@pytest.fixture(scope="module")
+def graph():
+    """One graph for the module: talker, viewer (ours) and an rmw_zenoh CPU-only subscription."""
+    import os
+    import uuid
+
+    domain = 7000 + os.getpid() % 900
+    topic = f"/cli_graph/image_{uuid.uuid4().hex[:8]}"
+    procs = Procs()
+    try:
+        viewer = procs.start("tests._graph_talker", "viewer", "--domain", str(domain),
+                             "--topic", topic)
+        model = procs.model("sub", domain, topic, "sensor_msgs/msg/Image", "--node-name",
+                            "ros2_viewer")
+        talker = procs.start("tests._graph_talker", "talker", "--domain", str(domain),
+                             "--topic", topic, "--rate", str(RATE))
+        for proc in (viewer, model, talker):
+            wait_ready(proc)
+        _wait_for_routes(domain)  # the lane's files exist before the first test looks
+        yield domain, topic
+    finally:
+        procs.close()
+
+
+def _wait_for_routes(domain: int, timeout: float = 20.0) -> None:
+    """Until the talker has settled both subscriptions' routes (its lane to the viewer open)."""
+    import time
+
+    from buffer_pubsub import Node
+    from warp_buffer_cli._graph import routes_by_publisher
+
+    with Node("_cli_graph_probe", domain_id=domain, fast_lane=False) as node:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            routes = [r for rs in routes_by_publisher(node).values() for r in rs]
+            if len(routes) == 2 and any(r["via"] == "iceoryx2 lane" for r in routes):
+                return
+            time.sleep(0.1)
+
+
+def cli(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "warp_buffer_cli.main", *args], cwd=ROOT,
+                          env=child_env(), capture_output=True, text=True, timeout=timeout,
+                          stdin=subprocess.DEVNULL)
+
+
+def test_topic_list_shows_the_topic_its_type_and_the_backends(graph):
+    domain, topic = graph
+    typed = cli("topic", "list", "-t", "--domain", str(domain))
+    assert typed.returncode == 0 and f"{topic} [sensor_msgs/msg/Image]" in typed.stdout.split("\n")
+    assert typed.stderr == ""
+    listed = cli("topic", "list", "-v", "--domain", str(domain))
+    assert listed.stderr == ""  # -v is the command's, not the top-level --verbose (logs)
+    verbose = listed.stdout
+    published, subscribed = verbose.split("Subscribed topics:")
+    # (the tests' children also load the test-only "fake" backend)
+    assert re.search(rf" \* {topic} \[sensor_msgs/msg/Image\] 1 publisher "
+                     r"\(backends: cpu, (fake, )?warp\)", published), published
+    assert f" * {topic} [sensor_msgs/msg/Image] 2 subscribers (backends: cpu, warp)" in subscribed
+
+
+def test_topic_info_shows_every_endpoint_and_the_routes(graph):
+    domain, topic = graph
+    short = cli("topic", "info", topic, "--domain", str(domain)).stdout
+    assert short.splitlines() == ["Type: sensor_msgs/msg/Image", "Publisher count: 1",
+                                  "Subscription count: 2"]
+    done = cli("topic", "info", "-v", topic, "--domain", str(domain))
+    out = done.stdout
+    assert done.stderr == ""
+    assert "Node name: talker" in out and "Node name: ros2_viewer" in out
+    assert "Node namespace: /robot" in out
+    assert out.count("Buffer backends: cpu\n") == 1  # the rmw_zenoh CPU-only subscription
+    assert "Implementation: another ROS 2 node (rmw_zenoh)" in out
+    assert "History (Depth): KEEP_LAST (10)" in out
+    routes = [line for line in out.splitlines() if line.startswith("  -> ")]
+    assert len(routes) == 2, out
+    warp = next(line for line in routes if line.startswith("  -> /robot/viewer"))
+    # ours, on this host and user: warp descriptors over the same-host lane (or Zenoh)
+    assert re.search(r": descriptor \((iceoryx2 lane|own stream \(_buf/<gid>\))\): served by warp",
+                     warp), warp
+    model = next(line for line in routes if line.startswith("  -> /ros2_viewer"))
+    assert ": cpu (shared CPU stream (_buf_cpu)): it accepts only CPU" in model
+
+
+def test_topic_echo_prints_fields_and_summarises_buffers(graph):
+    domain, topic = graph
+    out = cli("topic", "echo", topic, "--once", "--domain", str(domain)).stdout
+    assert out.endswith("---\n")
+    assert "encoding: mono8" in out and "height: 2" in out and "width: 4" in out
+    assert re.search(r"frame_id: talker/\d+", out)
+    assert "data:\n  backend: cpu\n  size: 8\n  first_bytes:\n  - " in out
+    field = cli("topic", "echo", topic, "--once", "--field", "header.frame_id",
+                "--domain", str(domain)).stdout
+    assert re.fullmatch(r"talker/\d+\n---\n", field)
+    csv = cli("topic", "echo", topic, "--once", "--csv", "--field", "data",
+              "--domain", str(domain)).stdout.strip()
+    assert csv.split(",")[:2] == ["cpu", "8"]
+    count = cli("topic", "echo", topic, "--count", "3", "--field", "header.frame_id",
+                "--domain", str(domain)).stdout
+    indices = [int(x) for x in re.findall(r"talker/(\d+)", count)]
+    assert len(indices) == 3 and indices == sorted(indices)
+
+
+def test_topic_hz_is_within_ten_percent_of_the_published_rate(graph):
+    domain, topic = graph
+    out = cli("topic", "hz", topic, "--count", "3", "--domain", str(domain)).stdout
+    rates = [float(x) for x in re.findall(r"average rate: ([\d.]+)", out)]
+    assert len(rates) == 3 and abs(rates[-1] - RATE) <= 0.1 * RATE, out
+    assert re.search(r"\tmin: [\d.]+s max: [\d.]+s std dev: [\d.]+s window: \d+", out)
+
+
+def test_topic_bw_reports_bytes_per_second_and_sizes(graph):
+    domain, topic = graph
+    out = cli("topic", "bw", topic, "--count", "2", "--domain", str(domain)).stdout
+    assert re.search(r"[\d.]+ (B|KB)/s from \d+ messages\n\tMessage size mean: [\d.]+ B "
+                     r"min: [\d.]+ B max: [\d.]+ B", out), out
+
+
+def test_node_list_and_info(graph):
+    domain, topic = graph
+    names = cli("node", "list", "--domain", str(domain)).stdout.split()
+    assert {"/talker", "/robot/viewer", "/ros2_viewer"} <= set(names)
+    assert not [n for n in names if n.rsplit("/", 1)[-1].startswith("_")]  # the CLI's own
+    out = cli("node", "info", "/talker", "--domain", str(domain)).stdout
+    assert out.startswith("/talker\n  Subscribers:\n  Publishers:\n"
+                          f"    {topic}: sensor_msgs/msg/Image\n")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (("topic", "echo", "/no/such/topic"), "is not in the graph"),
+    (("topic", "info", "/no/such/topic"), "is not in the graph"),
+    (("node", "info", "/nobody"), "is not in the graph"),
+    (("topic", "hz", "/x", "--window", "0"), "--window"),
+])
+def test_bad_input_is_one_line_and_a_non_zero_exit(graph, argv, message):
+    domain, _ = graph
+    done = cli(*argv, "--domain", str(domain), "--spin-time", "0.3")
+    assert done.returncode == 1 and done.stdout == ""
+    assert len(done.stderr.strip().splitlines()) == 1 and message in done.stderr, done.stderr

@@ -1,0 +1,173 @@
+"""Our token rules against values written out by hand from rmw_zenoh 0.10.5's sources
+(``liveliness_utils.cpp``: ``qos_to_keyexpr``, ``keyexpr_to_qos``, ``Entity`` constructor and
+``Entity::make``, ``escape_backend_field`` / ``unescape_backend_field``), and the sequence and
+duplicate rules of :mod:`buffer_pubsub._sequence`.
+
+Every expected string below is what the C++ code produces for the input, worked out by reading it;
+none is computed with our functions.
+"""
+
+from __future__ import annotations
+
+import xxhash
+import pytest
+
+from buffer_pubsub import wire
+from buffer_pubsub._sequence import Deduplicator, SequenceTracker
+
+HASH = "RIHS01_" + "ab" * 32
+PREFIX = ("@ros2_lv/3/z1/7/9/MP/%/%/cam/%image/sensor_msgs::msg::dds_::Image_/" + HASH)
+
+
+def gid_of(text: str) -> bytes:
+    digest = xxhash.xxh3_128_intdigest(text.encode())
+    return (digest & (2**64 - 1)).to_bytes(8, "little") + (digest >> 64).to_bytes(8, "little")
+
+
+@pytest.mark.parametrize("qos, text", [
+    (wire.QoSProfile(depth=10), "::,10:,:,:,,"),
+    (wire.QoSProfile(history=wire.HISTORY_KEEP_ALL, depth=5), "::2,5:,:,:,,"),
+    (wire.QoSProfile(reliability=wire.RELIABILITY_BEST_EFFORT, depth=1), "2::,1:,:,:,,"),
+    (wire.QoSProfile(durability=wire.DURABILITY_TRANSIENT_LOCAL, depth=1), ":1:,1:,:,:,,"),
+    (wire.QoSProfile(deadline=(1, 500), lifespan=(0, 0)), "::,:1,500:0,0:,,"),
+    (wire.QoSProfile(liveliness=3, liveliness_lease=(2, 854775807)), "::,:,:,:3,2,"),
+])
+def test_qos_keyexpr_both_ways(qos, text):
+    assert qos.to_keyexpr() == text
+    assert wire.QoSProfile.from_keyexpr(text) == qos
+
+
+def test_default_qos_is_six_empty_fields():
+    # R : D : H,depth : Ds,Dns : Ls,Lns : Liv,LivS,LivNs
+    assert wire.QoSProfile().to_keyexpr() == "::,:,:,:,,"
+
+
+def test_a_token_is_rebuilt_canonically_before_it_is_hashed():
+    """Explicit default QoS values, a lower-case escape and unsorted backends: rmw_zenoh parses
+    the token and rebuilds the key (defaults left out, names sorted, upper-case escapes), then
+    hashes that."""
+    sent = PREFIX + "/1:2:1,10:,:,:1,,/backends:warp:a%3bb;cpu:"
+    rebuilt = PREFIX + "/::,10:,:,:,,/backends:cpu:;warp:a%3Bb"
+    token = wire.parse_token(sent)
+    assert token.canonical_key() == rebuilt
+    assert token.gid == gid_of(rebuilt)
+    assert token.backends == {"warp": "a;b", "cpu": ""}
+
+
+@pytest.mark.parametrize("segment, backends", [
+    ("backends:cpu:", {"cpu": ""}),
+    ("backends:", None),  # names nothing: the key is rebuilt without it
+    ("backends:;;", None),
+    ("backends::meta", None),  # an empty name is skipped
+    ("backends:cuda", {"cuda": ""}),  # no ':' -> empty metadata
+    ("backends:x:1;x:2", {"x": "2"}),  # a repeated name: the last wins
+    ("backends:a:b:c", {"a": "b:c"}),  # the first ':' splits name from metadata
+    ("backends:a:%zz%4", {"a": "%zz%4"}),  # not two hex digits: kept as is
+    ("backends:a:%41%2f", {"a": "A/"}),  # either case of hex
+    ("Backends:cpu:", None),  # only "backends:" is a backends segment
+])
+def test_backends_segment_parsing(segment, backends):
+    token = wire.parse_token(PREFIX + "/::,10:,:,:,,/" + segment)
+    assert token.backends == backends
+    expected = PREFIX + "/::,10:,:,:,,"
+    if backends is not None:
+        expected += "/backends:" + ";".join(
+            f"{n.replace('%', '%25').replace(';', '%3B').replace(':', '%3A').replace('/', '%2F')}:"
+            f"{m.replace('%', '%25').replace(';', '%3B').replace(':', '%3A').replace('/', '%2F')}"
+            for n, m in sorted(backends.items()))
+    assert token.gid == gid_of(expected)
+
+
+def test_segments_after_the_backends_are_dropped_from_the_gid():
+    base = PREFIX + "/::,10:,:,:,,"
+    with_backends = base + "/backends:cpu:"
+    assert wire.parse_token(with_backends + "/anything").gid == gid_of(with_backends)
+    assert wire.parse_token(base + "/not-backends/x").gid == gid_of(base)
+    ours = wire.parse_token(with_backends + "/wbloc:h%3Ax:12:1000")
+    assert ours.locality == wire.Locality("h:x", 12, 1000) and ours.gid == gid_of(with_backends)
+
+
+@pytest.mark.parametrize("key", [
+    PREFIX.replace("cam", "") + "/::,10:,:,:,,",  # an empty segment
+    PREFIX,  # 12 segments: no QoS
+    PREFIX + "/::,10:,:",  # too few QoS parts
+    PREFIX + "/9::,10:,:,:,,",  # unknown reliability
+    PREFIX.replace("/MP/", "/XX/") + "/::,10:,:,:,,",  # unknown entity
+    "@ros2_lv/x/z1/7/7/NN/%/%/cam",  # non-numeric domain
+])
+def test_tokens_rmw_zenoh_rejects_are_refused(key):
+    with pytest.raises(wire.WireFormatError):
+        wire.parse_token(key)
+
+
+def test_node_token_layout():
+    token = wire.NodeToken(3, "z1", 7, "/robot1", "cam")
+    assert token.key() == "@ros2_lv/3/z1/7/7/NN/%/%robot1/cam"
+    assert wire.parse_token(token.key()) == token
+
+
+def test_subscription_channels_follow_rmw_zenoh():
+    def sub(backends):
+        return wire.EndpointToken(3, "z1", 7, 9, wire.SUBSCRIPTION_KIND, "", "n", "/t",
+                                  "sensor_msgs/msg/Image", HASH, wire.QoSProfile.of(10),
+                                  backends=backends)
+
+    assert wire.subscription_channel(sub({"cpu": ""})) == wire.SubscriptionChannel.CPU
+    assert wire.subscription_channel(sub({"cpu": "x"})) == wire.SubscriptionChannel.CPU
+    assert wire.subscription_channel(sub({"cuda": ""})) == wire.SubscriptionChannel.OWN
+    assert wire.subscription_channel(sub({"cuda": "", "cpu": ""})) == wire.SubscriptionChannel.OWN
+    assert wire.subscription_channel(sub(None)) == wire.SubscriptionChannel.BASE
+    assert wire.buffer_channel_key("0/t/T/H", bytes(range(16))) == \
+        "0/t/T/H/_buf/000102030405060708090a0b0c0d0e0f"
+    assert wire.cpu_channel_key("0/t/T/H") == "0/t/T/H/_buf_cpu"
+
+
+# --------------------------------------------------------------------------- sequences
+GID = b"\x01" * 16
+
+
+def run(tracker, numbers, exact):
+    verdicts = [tracker.track("own", GID, n, exact) for n in numbers]
+    return sum(v.lost for v in verdicts), [v.late for v in verdicts], sum(v.jump for v in verdicts)
+
+
+def test_our_streams_count_every_gap():
+    assert run(SequenceTracker(), [1, 2, 4, 5, 9], True) == (1 + 3, [False] * 5, 0)
+
+
+def test_an_upstream_fan_out_is_not_loss():
+    # one publish to three streams: this one sees every third number
+    assert run(SequenceTracker(), [2, 5, 8, 11, 14], False)[0] == 0
+
+
+def test_a_loss_under_an_upstream_fan_out_counts_whole_messages():
+    # stride 3; 11 -> 17 skips one message of this stream (14)
+    assert run(SequenceTracker(), [2, 5, 8, 11, 17, 20, 23], False)[0] == 1
+
+
+def test_a_fan_out_that_grows_costs_no_false_loss():
+    # a subscription joined: the stride goes from 2 to 3 and stays
+    assert run(SequenceTracker(), [1, 3, 5, 7, 10, 13, 16, 19], False)[0] == 0
+
+
+def test_late_and_jumps():
+    lost, late, jumps = run(SequenceTracker(), [1, 2, 3, 2, 2**40, 4], True)
+    assert late == [False, False, False, True, False, False] and jumps == 2 and lost == 0
+
+
+def test_streams_and_publishers_are_judged_apart():
+    tracker = SequenceTracker()
+    for n in (1, 2, 3):
+        assert tracker.track("base", GID, n, True).lost == 0
+        assert tracker.track("own", GID, n, True).lost == 0
+        assert tracker.track("base", b"\x02" * 16, n * 10, True).lost == (0 if n == 1 else 9)
+
+
+def test_duplicates_by_publisher_and_stamp():
+    copies = Deduplicator()
+    assert not copies.seen_before(GID, 100)
+    assert not copies.seen_before(b"\x02" * 16, 100)  # another publisher
+    assert copies.seen_before(GID, 100)
+    assert not copies.seen_before(GID, 101)
+    copies.forget(GID)
+    assert not copies.seen_before(GID, 100)

@@ -1,0 +1,77 @@
+"""rosbags' bag writer with large messages written to MCAP in one write each.
+
+rosbags' MCAP storage builds every message record in a ``BytesIO``, appends it to the pending
+chunk's ``BytesIO``, and copies the chunk twice more when it closes it: for a 16 MiB frame that
+is 65 ms of CPU here (six copies into fresh memory), against 3 ms for the one serialization.
+A message of at least :data:`DIRECT_BYTES` is written here as a chunk of its own, header and
+payload straight to the file (the payload from the caller's buffer, no copy in Python), with the
+same records rosbags writes for a chunk (chunk, message index, and the chunk index it keeps for
+the summary). Smaller messages, compression and everything else are rosbags' own.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections import defaultdict
+from io import BytesIO
+from typing import Any
+
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
+
+__all__ = ["DIRECT_BYTES", "BagWriter"]
+
+#: Messages from this size on get a chunk of their own (rosbags closes a chunk past 1 MiB).
+DIRECT_BYTES = 1 << 20
+
+_OP_MESSAGE, _OP_CHUNK, _OP_MESSAGE_INDEX = 0x05, 0x06, 0x07
+_MESSAGE_HEADER = struct.Struct("<BQHIQQ")  # op, record length, channel, sequence, log, publish
+_CHUNK_HEADER = struct.Struct("<BQQQQIIQ")  # op, length, start, end, size, crc, "", compressed
+
+
+class _DirectMcapWriter(McapWriter):
+    """rosbags' MCAP storage writer; large uncompressed messages go to the file directly."""
+
+    def write(self, connection: Any, timestamp: int, data: bytes | memoryview) -> None:
+        if len(data) < DIRECT_BYTES or self.compression:
+            super().write(connection, timestamp, data)
+            return
+        if self.chunk.bio.tell():  # what is pending (schemas, channels, small messages) first
+            self.close_chunk()
+        self.message_start_time = min(timestamp, self.message_start_time)
+        self.message_end_time = max(timestamp, self.message_end_time)
+        self.channel_stats[connection.id] += 1
+        record_length = _MESSAGE_HEADER.size - 9 + len(data)
+        content_length = 9 + record_length
+        chunk_start = self.bio.tell()
+        self.bio.write(_CHUNK_HEADER.pack(
+            _OP_CHUNK, 8 + 8 + 8 + 4 + 4 + 8 + content_length, timestamp, timestamp,
+            content_length, 0, 0, content_length))
+        self.bio.write(_MESSAGE_HEADER.pack(_OP_MESSAGE, record_length, connection.id, 0,
+                                            timestamp, timestamp))
+        self.bio.write(data)
+        chunk_end = self.bio.tell()
+        index_start = chunk_end
+        self.bio.write(struct.pack("<BQHIQQ", _OP_MESSAGE_INDEX, 2 + 4 + 16, connection.id, 16,
+                                   timestamp, 0))  # one message, at offset 0 of the content
+        self.chunks.append(_chunk_index(timestamp, chunk_start, chunk_end, connection.id,
+                                        index_start, self.bio.tell() - chunk_end,
+                                        content_length))
+        self.chunk = PendingChunk(2**63 - 1, 0, BytesIO(), defaultdict(list))
+
+
+def _chunk_index(timestamp: int, chunk_start: int, chunk_end: int, channel: int,
+                 index_start: int, index_length: int, content_length: int) -> BytesIO:
+    """The chunk index record's body, as rosbags keeps it until the summary is written."""
+    record = BytesIO()
+    record.write(struct.pack("<QQQQI", timestamp, timestamp, chunk_start, chunk_end - chunk_start,
+                             10))
+    record.write(struct.pack("<HQ", channel, index_start))
+    record.write(struct.pack("<QIQQ", index_length, 0, content_length, content_length))
+    return record
+
+
+class BagWriter(Writer):
+    """rosbags' ``Writer`` whose MCAP storage writes large messages in one write each."""
+
+    STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _DirectMcapWriter}

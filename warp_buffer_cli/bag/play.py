@@ -1,0 +1,258 @@
+"""Republish a bag's messages with their recorded timing (scaled by --rate).
+
+Every topic of the bag, or those given with --topics, is published by a node of this process
+with the QoS history its publishers offered. --backend warp puts each buffer field in Warp memory
+(--device) before publishing, so same-host subscriptions that accept warp get it zero-copy;
+cpu (the default) publishes the bytes as stored. Types this process does not know are built from
+the definitions the bag carries. Before the first message the player waits up to
+--wait-for-subscribers seconds for each topic to have a subscription (discovery takes a moment:
+without the wait the first messages reach nobody). Ctrl-C or SIGTERM stops it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .._arguments import absolute_topic_name, number
+from .errors import BagError, BagReadError, UnknownTopicError
+from .progress import Progress, mib
+from .qos import publisher_history
+
+__all__ = ["PlayTopic", "Player", "add_arguments", "open_bag", "run"]
+
+BACKENDS = ("cpu", "warp")
+
+
+def open_bag(path: str | os.PathLike[str]) -> Any:
+    """An open rosbags ``Reader`` of the bag at ``path``; :class:`BagReadError` (one line)
+    when it is missing, no bag, or damaged."""
+    from rosbags.rosbag2 import Reader
+
+    try:
+        reader = Reader(Path(path))
+        reader.open()
+    except FileNotFoundError:
+        raise BagReadError(f"no bag at {path}: it does not exist") from None
+    except Exception as exc:  # rosbags' ReaderError, YAML and storage errors: all unreadable
+        raise BagReadError(f"cannot read the bag at {path}: {exc}") from exc
+    return reader
+
+
+def message_class(type_name: str, definition: Any = None) -> Any:
+    """The message class of ``type_name``; a type this process does not know is registered from
+    the bag's ``.msg`` definition (``definition``: a rosbags ``MessageDefinition``)."""
+    from rosidl_buffer.errors import UnknownMessageTypeError
+    from rosidl_buffer.messages import get_message_type, register_message_definitions
+
+    try:
+        return get_message_type(type_name)
+    except UnknownMessageTypeError:
+        text = getattr(definition, "data", "") or ""
+        if getattr(getattr(definition, "format", None), "name", "") != "MSG" or not text.strip():
+            raise UnknownMessageTypeError(
+                f"type {type_name} is not known here and the bag carries no .msg definition "
+                "of it") from None
+    try:
+        register_message_definitions({type_name: text})
+        return get_message_type(type_name)
+    except Exception as exc:  # rosbags' parse or clash errors, our schema's refusals
+        raise UnknownMessageTypeError(
+            f"type {type_name}: the bag's definition cannot be used: {exc}") from None
+
+
+@dataclass
+class PlayTopic:
+    """One topic and type of the bag, as played."""
+
+    topic: str
+    type_name: str
+    messages: int = 0
+    nbytes: int = 0
+
+
+class Player:
+    """Publishes the messages of the bag at ``path`` with their recorded timing.
+
+    ``topics``: only these (every one must be in the bag, else :class:`UnknownTopicError`);
+    ``rate``: time scale (2.0 plays twice as fast); ``backend``: ``"cpu"`` publishes buffers as
+    the stored bytes, ``"warp"`` copies each into a warp buffer on ``device`` first.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, topics: list[str] | None = None,
+                 rate: float = 1.0, backend: str = "cpu", device: str | None = None,
+                 domain_id: int | None = None, node_name: str = "warp_buffer_player") -> None:
+        if backend not in BACKENDS:
+            raise BagError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        self.path = Path(path)
+        self.rate = rate
+        self.backend = backend
+        self.device = device
+        self.reader = open_bag(path)
+        try:
+            self.connections = self._select(topics)
+            self._classes = {c.id: message_class(c.msgtype, c.msgdef) for c in self.connections}
+            if backend == "warp":
+                self._check_device()
+            from buffer_pubsub import Node
+
+            self.node = Node(node_name, domain_id=domain_id)
+        except BaseException:
+            self.reader.close()
+            raise
+        self.topics = {c.id: PlayTopic(c.topic, c.msgtype) for c in self.connections}
+        self._publishers: dict[int, Any] = {}
+        for c in self.connections:
+            history, depth = publisher_history(getattr(c.ext, "offered_qos_profiles", []))
+            self._publishers[c.id] = self.node.create_publisher(
+                self._classes[c.id], c.topic, depth=depth, history=history)
+
+    def _select(self, topics: list[str] | None) -> list[Any]:
+        connections = list(self.reader.connections)
+        if not topics:
+            return connections
+        present = {c.topic for c in connections}
+        missing = [t for t in topics if t not in present]
+        if missing:
+            raise UnknownTopicError(
+                f"not in the bag {self.path}: {', '.join(missing)} (it holds "
+                f"{', '.join(sorted(present)) or 'no topic'})")
+        return [c for c in connections if c.topic in topics]
+
+    def _check_device(self) -> None:
+        import warp_buffer
+
+        if self.device is None:
+            self.device = str(warp_buffer.init_warp().get_preferred_device().alias)
+        warp_buffer.allocate_buffer(1, device=self.device)  # DeviceUnavailableError now, typed
+
+    def wait_for_subscribers(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s until every topic has a subscription; whether all have."""
+        deadline = time.monotonic() + timeout
+        for publisher in self._publishers.values():
+            if not publisher.wait_for_subscriptions(1, timeout=max(0.0, deadline - time.monotonic())):
+                return False
+        return True
+
+    def play(self, stop: threading.Event | None = None, loop: bool = False,
+             progress: Progress | None = None) -> None:
+        """Publish every message at its recorded time from now (scaled by ``rate``); once, or
+        until ``stop`` is set with ``loop``."""
+        stop = stop or threading.Event()
+        while not stop.is_set():
+            self._play_once(stop, progress)
+            if not loop:
+                return
+
+    def _play_once(self, stop: threading.Event, progress: Progress | None) -> None:
+        from rosidl_buffer.messages import deserialize_message
+
+        started = time.monotonic()
+        first: int | None = None
+        for connection, timestamp, data in self.reader.messages(connections=self.connections):
+            first = timestamp if first is None else first
+            due = started + (timestamp - first) / 1e9 / self.rate
+            if stop.wait(max(0.0, due - time.monotonic())):
+                return
+            msg = deserialize_message(data, self._classes[connection.id])  # buffers alias data
+            if self.backend == "warp":
+                _buffers_to_warp(msg, self.device)
+            self._publishers[connection.id].publish(msg)
+            played = self.topics[connection.id]
+            played.messages += 1
+            played.nbytes += len(data)
+            if progress is not None:
+                progress.update(*self.totals())
+
+    def totals(self) -> tuple[int, int]:
+        """Messages and bytes published so far."""
+        return (sum(t.messages for t in self.topics.values()),
+                sum(t.nbytes for t in self.topics.values()))
+
+    def close(self) -> None:
+        """Undeclare the publishers and close the bag."""
+        self.node.close()
+        if self.reader.is_open:
+            self.reader.close()
+
+    def __enter__(self) -> Player:
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        self.close()
+
+
+def _buffers_to_warp(msg: Any, device: str | None) -> None:
+    """Replace every non-empty buffer field of ``msg`` (nested messages too) by a warp buffer
+    holding the same bytes (a pooled block: steady-state playback allocates nothing)."""
+    import warp_buffer
+    from rosidl_buffer.messages import get_schema
+
+    for spec in get_schema(msg.__msgtype__).fields:
+        value = getattr(msg, spec.name)
+        if spec.is_buffer:
+            if value.size():
+                buffer = warp_buffer.allocate_buffer(value.size(), device=device)
+                with warp_buffer.from_output_buffer(buffer) as out:
+                    warp_buffer.to_buffer(value.numpy(writable=False), out)
+                setattr(msg, spec.name, buffer)
+        elif spec.kind.value == "message":
+            for child in (value if spec.is_collection else [value]):
+                _buffers_to_warp(child, device)
+
+
+# --------------------------------------------------------------------------- command line
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("bag", metavar="DIR", help="the bag directory (or its .mcap/.db3 file)")
+    parser.add_argument("-r", "--rate", type=number(float, 0, inclusive=False, high=1e6), default=1.0,
+                        help="time scale: 2 plays twice as fast (default: 1)")
+    parser.add_argument("-l", "--loop", action="store_true",
+                        help="play again from the start until Ctrl-C")
+    parser.add_argument("--backend", choices=BACKENDS, default="cpu",
+                        help="where buffer fields are published from: cpu (the stored bytes) "
+                             "or warp (copied into Warp memory first) (default: cpu)")
+    parser.add_argument("--device", default=None,
+                        help="Warp device of --backend warp (default: Warp's preferred one)")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", type=absolute_topic_name,
+                        help="play only these topics (default: every topic of the bag)")
+    parser.add_argument("--wait-for-subscribers", type=number(float, 0, high=86_400.0),
+                        default=1.0, metavar="S",
+                        help="before the first message, wait up to S seconds for a subscription "
+                             "on every topic (default: 1)")
+
+
+def run(args: argparse.Namespace) -> int:
+    stop = threading.Event()
+    previous = {signum: signal.signal(signum, lambda *_: stop.set())
+                for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with Player(args.bag, topics=args.topics, rate=args.rate, backend=args.backend,
+                    device=args.device) as player:
+            player.wait_for_subscribers(args.wait_for_subscribers)
+            started = time.monotonic()
+            progress = Progress("played")
+            try:
+                player.play(stop, loop=args.loop, progress=progress)
+            finally:
+                progress.close()
+            _report(player, time.monotonic() - started)
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    return 0
+
+
+def _report(player: Player, elapsed: float) -> None:
+    messages, nbytes = player.totals()
+    print(f"played {messages} messages, {mib(nbytes)}, in {elapsed:.2f} s from {player.path} "
+          f"(bag duration {player.reader.duration / 1e9:.2f} s, rate {player.rate:g})")
+    for t in player.topics.values():
+        print(f"  {t.topic}  {t.type_name}  {t.messages} messages  {mib(t.nbytes)}")
+    sys.stdout.flush()

@@ -1,0 +1,45 @@
+"""QoS profiles as a bag stores them (``offered_qos_profiles``) and as buffer_pubsub takes them.
+
+buffer_pubsub's publishers are reliable and volatile (rmw_zenoh's only durability they offer);
+history is keep-last ``depth`` or keep-all. ``ros2 bag play`` reads reliability and durability
+from the profiles to choose its publishers' QoS; deadline, lifespan and lease stay unset
+(0 s: the default, infinite).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+
+KEEP_LAST = "keep_last"
+KEEP_ALL = "keep_all"
+#: History depth recorded for a publisher whose own depth the graph does not show (rclcpp's).
+DEFAULT_DEPTH = 10
+_UNSET = QosTime(0, 0)
+
+
+def offered_profile(history: str = KEEP_LAST, depth: int = DEFAULT_DEPTH) -> Qos:
+    """The profile a buffer_pubsub publisher with this history offers."""
+    return Qos(history=QosHistory.KEEP_ALL if history == KEEP_ALL else QosHistory.KEEP_LAST,
+               depth=depth, reliability=QosReliability.RELIABLE,
+               durability=QosDurability.VOLATILE, deadline=_UNSET, lifespan=_UNSET,
+               liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=_UNSET,
+               avoid_ros_namespace_conventions=False)
+
+
+def publisher_history(profiles: Sequence[Qos]) -> tuple[str, int]:
+    """History and depth for a player's publisher from a topic's recorded profiles: keep-all if
+    any recorded publisher kept all (nothing it sent may be dropped), else keep-last of the
+    deepest recorded depth (at least 1)."""
+    if any(p.history == QosHistory.KEEP_ALL for p in profiles):
+        return KEEP_ALL, max([p.depth for p in profiles] + [DEFAULT_DEPTH])
+    depth = max((p.depth for p in profiles if p.depth > 0), default=DEFAULT_DEPTH)
+    return KEEP_LAST, depth

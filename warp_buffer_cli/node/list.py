@@ -1,0 +1,24 @@
+"""List the nodes of the domain by full name, one per line, as ``ros2 node list`` does."""
+
+from __future__ import annotations
+
+import argparse
+
+from .._graph import add_graph_options, graph_node, hidden
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("-c", "--count-nodes", action="store_true",
+                        help="print only the number of nodes")
+    add_graph_options(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    with graph_node(args) as node:
+        names = sorted({n.full_name for n in node.get_nodes() if not hidden(n.name, args)})
+    if args.count_nodes:
+        print(len(names))
+    else:
+        for name in names:
+            print(name)
+    return 0

@@ -1,0 +1,110 @@
+"""A received message as plain data, printed as ``ros2 topic echo`` prints it (YAML, or one CSV
+line), with ``uint8[]`` buffers summarised (backend, size, first bytes) instead of listed."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+__all__ = ["BUFFER_PREVIEW", "csv_line", "pick", "to_plain", "yaml_lines"]
+
+#: Bytes of a buffer shown by echo.
+BUFFER_PREVIEW = 16
+_PLAIN_STRING = re.compile(r"^[A-Za-z_/][A-Za-z0-9_./\-]*$")
+
+
+def to_plain(value: Any, truncate: int) -> Any:
+    """Messages become dicts (field order kept), buffers a summary, arrays lists (at most
+    ``truncate`` items, then ``'...'``; 0: no limit)."""
+    from rosidl_buffer import Buffer
+    from rosidl_buffer.messages import Message
+
+    if isinstance(value, Message):
+        return {spec.name: to_plain(getattr(value, spec.name), truncate)
+                for spec in type(value)._schema.fields}
+    if isinstance(value, Buffer):
+        head = value.to_numpy()[:BUFFER_PREVIEW] if len(value) else np.zeros(0, np.uint8)
+        return {"backend": value.get_backend_type(), "size": len(value),
+                "first_bytes": [int(b) for b in head]}
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        items = list(value)
+        shown = items if not truncate or len(items) <= truncate else items[:truncate]
+        out = [to_plain(item, truncate) for item in shown]
+        return out + ["..."] if len(shown) < len(items) else out
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, str) and truncate and len(value) > truncate:
+        return value[:truncate] + "..."
+    return value
+
+
+def pick(plain: Any, path: str) -> Any:
+    """The value at ``path`` (``header.stamp.sec``; list items by index: ``points.0.x``)."""
+    for part in filter(None, path.split(".")):
+        if isinstance(plain, dict) and part in plain:
+            plain = plain[part]
+        elif isinstance(plain, list) and part.isdecimal() and int(part) < len(plain):
+            plain = plain[int(part)]
+        else:
+            raise KeyError(part)
+    return plain
+
+
+def _scalar(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, str):
+        return value if _PLAIN_STRING.match(value) and value not in ("true", "false", "null") \
+            else "'" + value.replace("'", "''") + "'"
+    return str(value)
+
+
+def yaml_lines(plain: Any, indent: str = "") -> Iterator[str]:
+    """Block YAML, as ``ros2 topic echo`` prints it (lists of scalars one item a line)."""
+    if isinstance(plain, dict):
+        for key, value in plain.items():
+            if isinstance(value, dict) and value:
+                yield f"{indent}{key}:"
+                yield from yaml_lines(value, indent + "  ")
+            elif isinstance(value, list) and value:
+                yield f"{indent}{key}:"
+                yield from yaml_lines(value, indent)
+            else:
+                empty = "{}" if isinstance(value, dict) else "[]" if isinstance(value, list) \
+                    else _scalar(value)
+                yield f"{indent}{key}: {empty}"
+    elif isinstance(plain, list):
+        for item in plain:
+            if isinstance(item, dict) and item:
+                lines = list(yaml_lines(item, indent + "  "))
+                yield f"{indent}- {lines[0].lstrip()}"
+                yield from lines[1:]
+            else:
+                yield f"{indent}- {_scalar(item) if not isinstance(item, (dict, list)) else item}"
+    else:
+        yield f"{indent}{_scalar(plain)}"
+
+
+def _flatten(plain: Any) -> Iterator[Any]:
+    if isinstance(plain, dict):
+        for value in plain.values():
+            yield from _flatten(value)
+    elif isinstance(plain, list):
+        for item in plain:
+            yield from _flatten(item)
+    else:
+        yield plain
+
+
+def csv_line(plain: Any) -> str:
+    """Every leaf value in field order, comma separated (``ros2 topic echo --csv``)."""
+    return ",".join("" if v is None else str(v) for v in _flatten(plain))
