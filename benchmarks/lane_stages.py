@@ -19,6 +19,12 @@ transport calls: ``LaneWriter.write`` (publisher), ``Subscription._on_lane`` /
 the user callback stamps its entry and the moment the view is usable. Each wrapper costs ~1 us.
 For the lane, a bare 602-byte frame on a lane reader of the child's own, attached to the same
 waker, is interleaved with the messages: what the lane alone costs in the same run.
+
+After the timed messages, ``--frames N`` more (default 10) are sent with the Python frames they
+run counted (:class:`benchmarks.frames.FrameCounter`, ``sys.setprofile``): on the publisher from
+the loan to the end of ``publish()``, on the subscriber from the frame's arrival in the
+subscription to the usable view; the benchmark's own wrappers are not counted. The first line
+prints the medians.
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ from typing import Any
 TENSOR_TYPE = "tensor_msgs/msg/ExperimentalTensor"
 STAMP = struct.Struct("<qq")  # (message index, t0) in the first 16 bytes of the tensor
 BARE_BYTES = 602  # a bare frame: the size of a descriptor message, nothing imported
-BARE, FULL = 0, 1
+BARE, FULL, COUNTED = 0, 1, 2  # COUNTED: a message whose Python frames were counted
 # Stamps of one message, in order (publisher ones first, then the subscriber's).
 PUB_STAMPS = ("t0", "loaned", "write_in", "write_out", "published")
 SUB_STAMPS = ("entered", "deser_in", "deser_out", "callback", "viewed")
@@ -103,9 +109,15 @@ def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
     import buffer_pubsub.subscription as subscription
     from buffer_pubsub import fast_lane
 
+    from benchmarks.frames import FrameCounter
+
     stamps: dict[str, int] = {}
     clock = time.perf_counter_ns
     deserialize = subscription.deserialize_message
+    counter = FrameCounter(exclude={__file__})
+    # counting: frames are counted per message; inside: a lane frame is being delivered, the
+    # record of its callback waits in pending until the delivery returned (and counting stopped)
+    state: dict[str, Any] = {"counting": False, "inside": False, "pending": None}
 
     def stamped_deserialize(*args: Any, **kwargs: Any) -> Any:
         stamps["deser_in"] = clock()
@@ -117,7 +129,20 @@ def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
     def entry(original: Any) -> Any:
         def stamped(self: Any, *args: Any) -> Any:
             stamps.setdefault("entered", clock())
-            return original(self, *args)
+            if not state["counting"]:
+                return original(self, *args)
+            state["inside"] = True
+            counter.start()
+            try:
+                return original(self, *args)
+            finally:
+                frames = counter.stop()
+                state["inside"] = False
+                pending, state["pending"] = state["pending"], None
+                if pending is not None:
+                    pending[3]["frames"] = frames
+                    pending[3]["detail"] = counter.by_function
+                    ctrl.send(pending)
         return stamped
 
     subscription.deserialize_message = stamped_deserialize
@@ -132,7 +157,10 @@ def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
         del view
         record = dict(stamps)
         stamps.clear()
-        ctrl.send((FULL, index, t0, record))
+        if state["inside"]:
+            state["pending"] = (FULL, index, t0, record)  # sent once the delivery returned
+        else:
+            ctrl.send((FULL, index, t0, record))
 
     def on_bare(data: bytes) -> None:
         now = clock()
@@ -155,7 +183,13 @@ def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
             node._lane.attach(bare, on_bare)  # the same waker as the subscription's lane
         ctrl.send(("ready", os.getpid()))
         try:
-            while not ctrl.poll():
+            while True:
+                if ctrl.poll():
+                    command = ctrl.recv()
+                    if command != "count":
+                        break
+                    state["counting"] = True
+                    ctrl.send(("counting", 0, 0, {}))
                 if lane:
                     node.spin_once(0.05)
                 else:
@@ -169,14 +203,16 @@ def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
 
 
 def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0,
-              spin: bool = False) -> list[tuple[int, dict[str, int]]]:
+              spin: bool = False, frames: int = 0) -> list[tuple[int, dict[str, Any]]]:
     """Publish ``count`` messages one at a time; every message's stamps, by kind. ``spin``:
     wait for each message's stamps by polling (this process never sleeps, so its stages run
-    warm)."""
+    warm). ``frames``: that many more messages follow with their Python frames counted (kind
+    ``COUNTED``: ``pub_frames`` and ``frames``, the subscriber's, in the record)."""
     import numpy as np
     import tensor_conversions.numpy as tc
     from rosidl_buffer.messages import get_message_type
 
+    from benchmarks.frames import FrameCounter
     from benchmarks.processes import free_tcp_port
     from buffer_pubsub import fast_lane
 
@@ -216,7 +252,15 @@ def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0,
             frame = bytearray(BARE_BYTES)
             prepared = tc.allocate_tensor_msg((nbytes,), np.uint8) if route == "cpu" else None
             head = tc.from_output_tensor_msg(prepared) if prepared is not None else None
-            for index in range(count):
+            counter = FrameCounter(exclude={__file__})
+            for index in range(count + frames):
+                counting = index >= count
+                if index == count:  # the subscriber counts from now on
+                    parent.send("count")
+                    if parent.recv()[0] != "counting":
+                        raise RuntimeError("the subscriber did not start counting frames")
+                if counting:
+                    counter.start()
                 stamps.clear()
                 t0 = clock()
                 if prepared is not None:
@@ -231,15 +275,18 @@ def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0,
                         del array
                         stamps["loaned"] = clock()
                 stamps["published"] = clock()
-                stamps["t0"] = t0
-                mine = dict(stamps)
+                mine: dict[str, Any] = dict(stamps)
+                if counting:
+                    mine["pub_frames"] = counter.stop()
+                    mine["pub_detail"] = counter.by_function
+                mine["t0"] = t0
                 while spin and not parent.poll(0):
                     pass
                 kind, got, _, theirs = parent.recv()
                 if kind != FULL or got != index:
                     raise RuntimeError(f"expected message {index}, got {kind, got}")
-                records.append((FULL, {**mine, **theirs}))
-                if bare is not None:  # the lane alone, interleaved
+                records.append((COUNTED if counting else FULL, {**mine, **theirs}))
+                if bare is not None and not counting:  # the lane alone, interleaved
                     now = clock()
                     STAMP.pack_into(frame, 0, index, now)
                     write(bare, frame)
@@ -292,6 +339,30 @@ def stage_figures(records: list[tuple[int, dict[str, int]]], route: str
     return rows
 
 
+def frame_counts(records: list[tuple[int, dict[str, Any]]]) -> tuple[int, int] | None:
+    """The median Python frames per message ``(publisher, subscriber)`` of the counted
+    messages, or None when none was counted."""
+    counted = [r for kind, r in records if kind == COUNTED and "frames" in r]
+    if not counted:
+        return None
+    return (int(_percentile([r["pub_frames"] for r in counted], 0.5)),
+            int(_percentile([r["frames"] for r in counted], 0.5)))
+
+
+def frame_detail(records: list[tuple[int, dict[str, Any]]]) -> str:
+    """Where the frames of the last counted message went, per side and function."""
+    counted = [r for kind, r in records if kind == COUNTED and "frames" in r]
+    if not counted:
+        return ""
+    lines = []
+    for side, key in (("publisher", "pub_detail"), ("subscriber", "detail")):
+        lines.append(f"{side}:")
+        detail = counted[-1][key]
+        for name, n in sorted(detail.items(), key=lambda item: (-item[1], item[0])):
+            lines.append(f"  {n:4d}  {name}")
+    return "\n".join(lines)
+
+
 def table(rows: list[tuple[str, float, float]]) -> str:
     """The rows as a text table."""
     width = max(len(r[0]) for r in rows)
@@ -313,6 +384,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spin", action="store_true",
                         help="the publisher polls for each message's stamps instead of "
                              "sleeping (with --busy-poll: every stage warm, no wake-up)")
+    parser.add_argument("--frames", type=int, default=10, metavar="N",
+                        help="count the Python frames of N more messages after the timed ones "
+                             "(0: none)")
+    parser.add_argument("--frame-detail", action="store_true",
+                        help="print where the counted frames go, per function (to stderr)")
     parser.add_argument("--role", choices=("pub", "sub"), default="pub")
     parser.add_argument("--run")
     parser.add_argument("--port", type=int)
@@ -323,13 +399,21 @@ def main(argv: list[str] | None = None) -> int:
         subscriber(args.run, args.port, args.domain, args.route, args.busy_poll,
                    Connection(args.fd))
         return 0
-    records = publisher(args.count, args.nbytes, args.route, args.busy_poll, args.spin)
+    records = publisher(args.count, args.nbytes, args.route, args.busy_poll, args.spin,
+                        max(0, args.frames))
+    timed = [r for r in records if r[0] != COUNTED]
     per = 2 if args.route == "lane" else 1
-    warm = records[per * min(20, args.count // 10):]  # first imports map files, warm caches
+    warm = timed[per * min(20, args.count // 10):]  # first imports map files, warm caches
     what = ("loaned warp tensor over the fast lane" if args.route == "lane"
             else "prepared CPU tensor over Zenoh")
-    print(f"{what}, {args.nbytes} B, {len(warm) // per} messages (one in flight):")
+    frames = frame_counts(records)
+    counted = "" if frames is None else (
+        f"; Python frames per message: publisher {frames[0]}, subscriber {frames[1]}, "
+        f"total {sum(frames)}")
+    print(f"{what}, {args.nbytes} B, {len(warm) // per} messages (one in flight){counted}:")
     print(table(stage_figures(warm, args.route)))
+    if args.frame_detail:
+        print(frame_detail(records), file=sys.stderr)
     return 0
 
 

@@ -25,7 +25,9 @@ described in :mod:`buffer_pubsub.config`. QoS: keep-last ``depth`` (congestion c
 Loaned messages (``with pub.loan(factory) as msg:``, filled in place, published on exit, storage
 reused once no reader holds it) are described in :mod:`buffer_pubsub.loan`.
 Callbacks run on the node's executor thread, or on your own thread with
-``Node(..., executor="manual")`` and ``node.spin()`` / ``node.spin_once(timeout)``.
+``Node(..., executor="manual")`` and ``node.spin()`` / ``node.spin_once(timeout)``, one at a time;
+to run them in parallel, add nodes to a ``MultiThreadedExecutor`` (:mod:`buffer_pubsub.executors`)
+and choose callback groups (:mod:`buffer_pubsub.callback_groups`), as in rclpy.
 
 buffer_pubsub knows backends only through :class:`rosidl_buffer.BufferBackend` and
 :mod:`rosidl_buffer.registry`; it imports no backend.

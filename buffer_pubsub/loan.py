@@ -5,30 +5,54 @@ messages and iceoryx2's ``loan`` do.
         fill msg in place
     # published on exit; an exception in the block publishes nothing and returns the loan
 
-``factory`` makes a new message for the pool (called only when no pooled one is free). The
-pool key is ``factory.loan_key`` when it has one (so specs built per frame with equal values
-share a pool), else the factory itself. A pooled message is handed out again only when nobody
-else references it or its buffers (intra-process subscribers get snapshots over its
-``Buffer`` objects: a reader holding the message, a snapshot or a ``Buffer`` of it is a hold;
-counted by reference, CPython; a message with no buffer is never pooled) and
-every buffer's backend re-armed it (:meth:`rosidl_buffer.BufferImplBase.reclaim`: no reader in
-this or another process holds its memory). Otherwise the pool grows, up to ``max_loans``
+``factory`` makes a new message for the pool (called only when no pooled one is free).
+
+**Pools are keyed by what the factory makes**: ``factory.loan_key`` when it has one (a loan spec
+of ``tensor_conversions``: the message type and the spec's arguments), else its call site: a
+function's code with the values its closure and defaults hold, so ``lambda: make(h, w)``
+written inside a frame loop is one pool, whichever function object each frame builds. A bound
+method is its function and object, a ``functools.partial`` its function and arguments, any
+other callable itself. A publisher keeps at most :data:`MAX_POOLS` keys: a new key past that
+drops the least recently used pool none of whose messages is on loan (its messages are then
+ordinary ones). So neither keys nor pooled messages grow without bound: at most ``MAX_POOLS``
+times ``max_loans`` messages.
+
+**A pooled message is handed out again only when nobody can read its storage**, decided by
+tokens, never by counting references:
+
+- every loan hands out ``Buffer`` objects of its own over the pooled storage (the message's
+  buffer fields get fresh ones when the pool takes the message back): a ``Buffer`` an earlier
+  loan handed out is its holders' token: the message's publish put it in every in-process
+  subscriber's snapshot, and a user who keeps ``msg.data`` keeps it. The pool sees it alive
+  through a weak reference;
+- views of the storage hold tokens of the backend's (``BufferImplBase.reclaim``: a warp loan's
+  lease, CPU storage's tracked views), and the backend tells whether a peer in another process
+  may still read the memory.
+
+The loan ends at publish: the message object itself goes back to the pool (keeping it is not a
+hold, as with rclcpp's loaned messages: the next loan may hand out that very object); keep its
+``Buffer`` or a view to keep reading a frame. Otherwise the pool grows, up to ``max_loans``
 messages per key; past that a loan is a fresh, unpooled message (correct, just not reused).
+Messages whose storage cannot be re-armed (a plain warp buffer), with no buffer at all, or
+with buffers inside sequences of messages are never pooled.
 
 This module knows backends only through ``reclaim``; what a loan's buffers and native views
-are comes from the factory (``tensor_conversions`` provides tensor specs; a message whose
-storage cannot be re-armed, an image allocated on warp storage say, is loaned unpooled).
+are comes from the factory (``tensor_conversions`` provides loan specs for tensors, images and
+point clouds).
 """
 
 from __future__ import annotations
 
-import sys
+import collections
+import functools
 import threading
-from collections.abc import Callable
+import types
+import weakref
+from collections.abc import Callable, Hashable
 from typing import TYPE_CHECKING, Any
 
 from rosidl_buffer import Buffer, BufferImplBase
-from rosidl_buffer.messages import Message, iter_buffers
+from rosidl_buffer.messages import Message
 from rosidl_buffer.messages._schema import FieldKind
 
 from .errors import LoanError
@@ -36,100 +60,193 @@ from .errors import LoanError
 if TYPE_CHECKING:
     from .publisher import Publisher
 
-__all__ = ["Loan", "LoanPool", "DEFAULT_MAX_LOANS", "flat_buffer_fields"]
+__all__ = ["DEFAULT_MAX_LOANS", "MAX_POOLS", "Loan", "LoanPool", "flat_buffer_fields",
+           "loan_key"]
 
 DEFAULT_MAX_LOANS = 16
+#: Factory keys a publisher pools at once (see the module docstring).
+MAX_POOLS = 16
+_ref = weakref.ref
 
 
 def flat_buffer_fields(msg_type: type[Message]) -> tuple[str, ...] | None:
     """The buffer fields of a message type without nested messages (the common case: one
-    getattr each), or None when nested messages need the full walk (``iter_buffers``)."""
+    getattr each), or None when nested messages need the full walk."""
     if any(spec.kind is FieldKind.MESSAGE for spec in msg_type._schema.fields):
         return None
     return tuple(sorted(msg_type._buffer_fields))
 
 
+# ------------------------------------------------------------------------------ pool keys
+class _Identity:
+    """An unhashable value in a key, compared by identity (and kept alive, so its id is not
+    reused while the key exists)."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value: Any) -> None:
+        self.value = value
+
+    def __hash__(self) -> int:
+        return id(self.value)
+
+    def __eq__(self, other: object) -> bool:
+        return type(other) is _Identity and other.value is self.value
+
+
+def _value_key(value: Any) -> Hashable:
+    try:
+        hash(value)
+    except TypeError:
+        return _Identity(value)
+    return (type(value), value)
+
+
+def loan_key(factory: Callable[[], Message]) -> Hashable:
+    """The pool key of ``factory`` (see the module docstring)."""
+    key = getattr(factory, "loan_key", None)
+    if key is not None:
+        return key
+    if type(factory) is types.FunctionType:
+        try:
+            captured = tuple(_value_key(cell.cell_contents) for cell in factory.__closure__ or ())
+        except ValueError:  # a cell not yet bound: only this function object is known
+            return _value_key(factory)
+        kwdefaults = factory.__kwdefaults__
+        return ("function", factory.__code__, captured,
+                tuple(_value_key(v) for v in factory.__defaults__ or ()),
+                tuple(sorted((k, _value_key(v)) for k, v in kwdefaults.items()))
+                if kwdefaults else ())
+    if type(factory) is types.MethodType:
+        return ("method", loan_key(factory.__func__), _Identity(factory.__self__))
+    if type(factory) is functools.partial:
+        return ("partial", loan_key(factory.func), tuple(_value_key(v) for v in factory.args),
+                tuple(sorted((k, _value_key(v)) for k, v in factory.keywords.items())))
+    return _value_key(factory)
+
+
+# ------------------------------------------------------------------------------ pooled messages
+def _places(msg: Message) -> list[tuple[Message, str]] | None:
+    """``(message, field)`` of every buffer of ``msg`` (nested messages included), or None
+    when a buffer sits in a sequence of messages (not pooled)."""
+    places = []
+    cls = type(msg)
+    for name in sorted(cls._buffer_fields):
+        places.append((msg, name))
+    for spec in cls._schema.fields:
+        if spec.kind is FieldKind.MESSAGE:
+            value = getattr(msg, spec.name)
+            if isinstance(value, list):
+                if any(isinstance(item, Message) and _places(item) for item in value):
+                    return None
+            elif isinstance(value, Message):
+                nested = _places(value)
+                if nested is None:
+                    return None
+                places += nested
+    return places
+
+
 class _Slot:
-    """One pooled message, its buffers and their reference counts when only we held them."""
+    """One pooled message: where its buffers sit, the storage they hold (kept), the Buffers
+    this slot put there (weakly) and those earlier loans handed out (their holders' tokens)."""
 
-    __slots__ = ("msg", "fields", "buffers", "baseline", "loaned")
+    __slots__ = ("msg", "places", "impls", "placed", "handed", "loaned")
 
-    def __init__(self, msg: Message) -> None:
-        self.msg: Message = msg
-        self.fields = flat_buffer_fields(type(msg))
-        self.buffers: tuple[Buffer, ...] = self._buffers_now()
-        self.baseline = _buffer_refs(self.buffers)
+    def __init__(self, msg: Message, places: list[tuple[Message, str]]) -> None:
+        self.msg = msg
+        self.places = places
+        buffers = [getattr(owner, name) for owner, name in places]
+        self.impls = tuple(buffer.get_impl() for buffer in buffers)
+        self.placed = [_ref(buffer) for buffer in buffers]
+        self.handed: list[weakref.ref[Buffer]] = []
         self.loaned = True
 
-    def _buffers_now(self) -> tuple[Buffer, ...]:
-        msg, fields = self.msg, self.fields
-        if fields is None:
-            return tuple(iter_buffers(msg))
-        return tuple([getattr(msg, name) for name in fields])
-
     def reusable(self) -> bool:
-        """Nobody but the pool references the message or its buffers, and every backend
-        re-armed its memory (no reader holds it)."""
-        if self.loaned or _refs(self.msg) > _SLOT_REFS:
-            return False
-        buffers = self.buffers
-        if any(now > then for now, then in zip(_buffer_refs(buffers), self.baseline)):
-            return False
-        return all(buffer.get_impl().reclaim() for buffer in buffers)
+        """Nobody can read the storage: no Buffer an earlier loan handed out is alive, and every
+        backend re-armed its memory. First the message's buffer fields get fresh Buffers (the
+        published ones become tokens of whoever kept them)."""
+        handed = self.handed
+        placed = self.placed
+        for index, (owner, name) in enumerate(self.places):
+            mine = placed[index]
+            current = getattr(owner, name)
+            if current is mine():  # ours: it was handed out with the last loan
+                handed.append(mine)
+                fresh = current.share()
+            else:  # a Buffer the user put there: not ours, not a token
+                fresh = Buffer(self.impls[index])
+            object.__setattr__(owner, name, fresh)
+            placed[index] = _ref(fresh)
+        del current, fresh  # no reference of ours may stay alive while the tokens are checked
+        if handed:
+            for ref in handed:
+                if ref() is not None:
+                    return False
+            handed.clear()
+        for impl in self.impls:
+            if not impl.reclaim():
+                return False
+        return True
 
-    def intact(self) -> bool:
-        """The message still holds the pooled buffers (a field may have been replaced)."""
-        now = self._buffers_now()
-        return len(now) == len(self.buffers) and all(a is b for a, b in zip(now, self.buffers))
+
+def _rearmable(msg: Message) -> list[tuple[Message, str]] | None:
+    """Where the buffers of ``msg`` sit, when every one of them can be re-armed for a later loan
+    (its impl has a ``reclaim``), else None: a pool of messages whose storage never can would
+    only pin them (a plain warp buffer). A message with no buffer is not pooled either:
+    in-process readers hold snapshots of it that share its arrays, which no token covers."""
+    places = _places(msg)
+    if not places:
+        return None
+    for owner, name in places:
+        buffer = getattr(owner, name)
+        if type(buffer.get_impl()).reclaim is BufferImplBase.reclaim:
+            return None
+    return places
 
 
-def _buffer_refs(buffers: tuple[Buffer, ...]) -> tuple[int, ...]:
-    """Reference counts of ``buffers``, measured the same way whenever called (so a count above
-    the one taken when the slot was made is a reference someone else holds)."""
-    return tuple([sys.getrefcount(buffer) for buffer in buffers])
+class _Pool:
+    __slots__ = ("slots",)
 
-
-def _refs(obj: Any) -> int:
-    return sys.getrefcount(obj) - 1  # less getrefcount's own argument
-
-
-_SLOT_REFS = 2  # _Slot.msg and the caller's argument of _refs (slot.msg evaluated once)
-
-
-def _rearmable(msg: Message) -> bool:
-    """Can every buffer of ``msg`` be re-armed for a later loan (its impl has a ``reclaim``)?
-    A pool of messages whose storage never can would only pin them (a plain warp buffer). A
-    message with no buffer is not pooled either: in-process readers hold snapshots of it (see
-    buffer_pubsub._snapshot) that share its arrays, and only buffers count their readers."""
-    buffers = list(iter_buffers(msg))
-    return bool(buffers) and all(type(buffer.get_impl()).reclaim is not BufferImplBase.reclaim
-                                 for buffer in buffers)
+    def __init__(self) -> None:
+        self.slots: list[_Slot] = []
 
 
 class LoanPool:
     """The pooled messages of one publisher, by factory key (see the module docstring)."""
 
-    def __init__(self, max_loans: int = DEFAULT_MAX_LOANS) -> None:
+    def __init__(self, max_loans: int = DEFAULT_MAX_LOANS, max_pools: int = MAX_POOLS) -> None:
         self.max_loans = max_loans
+        self.max_pools = max_pools
         self._lock = threading.Lock()
-        self._slots: dict[Any, list[_Slot]] = {}
+        self._pools: collections.OrderedDict[Hashable, _Pool] = collections.OrderedDict()
         self.created = 0  # pooled messages made by a factory
         self.reused = 0  # loans served by a pooled message
         self.unpooled = 0  # loans not kept: past max_loans, or storage that cannot be re-armed
 
     def take(self, factory: Callable[[], Message],
              max_loans: int | None = None) -> tuple[Message, _Slot | None]:
-        """A pooled message of ``factory``'s key that nobody holds (handed to ``factory.reloan``
-        if it has one, so a loan starts as the factory made it), else a new one, pooled while
-        the key has fewer than ``max_loans`` (default: the pool's) and its buffers can be
-        re-armed at all."""
-        key = getattr(factory, "loan_key", factory)
+        """A pooled message of ``factory``'s key that nobody can read (handed to
+        ``factory.reloan`` if it has one, so a loan starts as the factory made it), else a new
+        one, pooled while the key has fewer than ``max_loans`` (default: the pool's) and its
+        buffers can be re-armed at all."""
+        key = getattr(factory, "loan_key", None)  # (loan_key's first case, inline: per loan)
+        if key is None:
+            key = loan_key(factory)
         limit = self.max_loans if max_loans is None else max_loans
         reused = None
         with self._lock:
-            slots = self._slots.setdefault(key, [])
+            pools = self._pools
+            pool = pools.get(key)
+            if pool is None:
+                pool = pools[key] = _Pool()
+                if len(pools) > self.max_pools:
+                    self._evict()
+            else:
+                pools.move_to_end(key)
+            slots = pool.slots
             for index, slot in enumerate(slots):
-                if slot.reusable():
+                if not slot.loaned and slot.reusable():  # (least recently loaned first)
                     slot.loaned = True
                     self.reused += 1
                     # Least recently loaned first next time: the one just published is the
@@ -147,11 +264,13 @@ class LoanPool:
         if not isinstance(msg, Message):
             raise LoanError(f"the loan factory {factory!r} returned {type(msg).__name__}, "
                             "not a message")
-        if not full and _rearmable(msg):
-            slot = _Slot(msg)
+        places = None if full else _rearmable(msg)
+        if places is not None:
+            slot = _Slot(msg, places)
             with self._lock:
-                # Checked again: other threads may have pooled theirs while the factory ran.
-                if len(slots) < limit:
+                # Checked again: other threads may have pooled theirs while the factory ran,
+                # or the key's pool was dropped meanwhile.
+                if pools.get(key) is pool and len(slots) < limit:
                     slots.append(slot)
                     self.created += 1
                     return msg, slot
@@ -159,25 +278,32 @@ class LoanPool:
             self.unpooled += 1
         return msg, None
 
+    def _evict(self) -> None:
+        """Drop the least recently used pool none of whose messages is on loan (call with the
+        lock held, past ``max_pools`` keys)."""
+        for key, pool in self._pools.items():
+            if not any(slot.loaned for slot in pool.slots):
+                del self._pools[key]
+                return
+
     def give_back(self, slot: _Slot) -> None:
-        """The loan ended (published or abandoned); a slot whose buffers were replaced is
-        dropped (its message is then an ordinary one)."""
-        with self._lock:
-            slot.loaned = False
-            if not slot.intact():
-                for slots in self._slots.values():
-                    if slot in slots:
-                        slots.remove(slot)
+        """The loan ended (published or abandoned)."""
+        slot.loaned = False
 
     def stats(self) -> dict[str, int]:
         with self._lock:
-            pooled = sum(len(slots) for slots in self._slots.values())
+            pooled = sum(len(pool.slots) for pool in self._pools.values())
             return {"created": self.created, "reused": self.reused, "unpooled": self.unpooled,
                     "pooled": pooled}
 
+    def pools(self) -> int:
+        """Factory keys pooled now (at most ``max_pools``)."""
+        with self._lock:
+            return len(self._pools)
+
     def clear(self) -> None:
         with self._lock:
-            self._slots.clear()
+            self._pools.clear()
 
 
 class Loan:
@@ -187,7 +313,7 @@ class Loan:
     loan ends at publish: buffers are sealed, and a backend may make a view kept past it
     unwritable, as warp_buffer does on its cpu device); on an exception nothing is published
     and the message goes back to the pool. A loaned message published intra-process is not
-    reused while any subscriber still references it.
+    reused while any subscriber still holds it (its snapshot holds the loan's ``Buffer``).
     """
 
     __slots__ = ("_publisher", "_factory", "_max_loans", "_msg", "_slot")
@@ -208,11 +334,10 @@ class Loan:
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         msg, slot = self._msg, self._slot
-        self._msg = self._slot = None  # our references must not count as holds
+        self._msg = self._slot = None
         try:
             if exc_type is None and msg is not None:
                 self._publisher.publish(msg)
         finally:
-            del msg
             if slot is not None:
-                self._publisher._loans.give_back(slot)
+                slot.loaned = False  # the loan ended (published or abandoned)

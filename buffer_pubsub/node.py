@@ -1,12 +1,14 @@
 """``Node``: a Zenoh session, its discovery graph and its executor.
 
-Shaped after ``rclpy.node.Node``. Callbacks of every subscription of a node run one at a time,
-never on Zenoh's threads: on the node's own executor thread (``Node(executor="thread")``, the
-default), or on the user's thread inside :meth:`Node.spin` / :meth:`Node.spin_once`
-(``Node(executor="manual")``, as rclpy's ``rclpy.spin(node)``), so an application busy in Python
-pays no GIL hand-off to a library thread. Either way the executor waits on one waker
-(:mod:`._waker`) and runs each ready subscription's next message; a subscription is queued at most
-once, whatever the number of messages in its keep-last queue.
+Shaped after ``rclpy.node.Node``. Callbacks of every subscription of a node run one at a time:
+on the node's own executor thread (``Node(executor="thread")``, the default), or on the user's
+thread inside :meth:`Node.spin` / :meth:`Node.spin_once` (``Node(executor="manual")``, as rclpy's
+``rclpy.spin(node)``), so an application busy in Python pays no GIL hand-off to a library thread.
+Either way the executor waits on one waker (:mod:`._waker`) and runs each ready subscription's
+next message; a subscription is queued at most once, whatever the number of messages in its
+keep-last queue. A node added to a user's executor (:mod:`buffer_pubsub.executors`) has its
+callbacks run there instead, in parallel as their callback groups allow
+(:mod:`buffer_pubsub.callback_groups`).
 
 Discovery is the ROS 2 graph carried by ``@ros2_lv`` liveliness tokens: peers appear on PUT and
 vanish on DELETE, which Zenoh also sends when a peer process dies (SIGKILL included).
@@ -24,7 +26,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -32,22 +34,25 @@ from rosidl_buffer import BufferBackend, RosidlBufferError, local_host_id
 from rosidl_buffer.messages import Message, get_message_type, get_type_hash
 
 from . import _process, fast_lane as _fast_lane, wire
-from ._executor import Executor
+from ._executor import NodeExecutor, user_spin, wait_seconds
 from ._info import endpoint_gone, endpoint_info
 from ._waker import Waker
 from ._zenoh import run_bounded, typed_zenoh_errors, undeclare_quietly
+from .callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
 from .config import make_config, resolve_domain_id
 from .connectivity import open_session
 from .graph import NodeInfo, TopicEndpointInfo, node_info
 from .errors import (
     ExecutorModeError,
     InvalidEndpointError,
-    InvalidTimeoutError,
     NodeClosedError,
 )
 from .names import expand_topic_name, validate_namespace, validate_node_name
 from .publisher import Publisher
 from .subscription import Subscription
+
+if TYPE_CHECKING:
+    from .executors import Executor
 
 __all__ = ["Node"]
 
@@ -80,7 +85,11 @@ class Node:
     short runs them on the thread its Zenoh sample arrived on when nothing waits before it,
     skipping the hand-off to the node's thread (:mod:`buffer_pubsub._inline`); False always
     hands off. Either way one callback of the node runs at a time, in arrival order.
-    Use as a context manager or call :meth:`close`, which undeclares everything.
+    Added to an executor (``executor.add_node(node)``, :mod:`buffer_pubsub.executors`), the
+    node's callbacks run there instead, as their callback groups allow
+    (``default_callback_group``: one at a time).
+    Use as a context manager or call :meth:`close`, which undeclares everything (after the
+    callbacks running then ended, within its budget).
     """
 
     def __init__(
@@ -125,7 +134,11 @@ class Node:
         self._gate = threading.Lock() if executor == "thread" else None
         self._spin_lock = threading.Lock()  # executor="manual": the one thread that spins
         self._inline_callbacks = executor == "thread" and bool(inline_callbacks)
-        self._executor = Executor(waker, _nothing_periodic, self._gate)
+        self._executor = NodeExecutor(waker, _nothing_periodic, self._gate)
+        self._in_flight = self._executor.in_flight  # the threads running our callbacks now
+        self._owner: Executor | None = None  # the user's executor the node was added to
+        #: The group of subscriptions created without ``callback_group`` (as rclpy's).
+        self.default_callback_group: CallbackGroup = MutuallyExclusiveCallbackGroup()
         self._thread: threading.Thread | None = None
 
         try:
@@ -197,6 +210,11 @@ class Node:
         def left() -> float:  # every step shares one budget; the last still gets a moment
             return max(0.2, deadline - time.monotonic())
 
+        def leave_executor() -> None:  # the user's executor runs no more of our callbacks
+            owner = self._owner
+            if owner is not None:
+                owner._remove(self, deadline)
+
         def undeclare() -> None:
             for endpoint in endpoints:
                 try:  # one endpoint's failure must not leave the others declared
@@ -207,8 +225,12 @@ class Node:
 
         # Ctrl-C during a step lets the (bounded) steps finish, then propagates: a session left
         # open keeps Zenoh's callback threads, and the interpreter cannot exit past them.
+        # A callback running now (on any thread: Ctrl-C closes the node while one runs) ends
+        # before the endpoints are undeclared, so its publishes still go out.
         interrupted: KeyboardInterrupt | None = None
-        for step in (lambda: run_bounded(undeclare, left(), f"undeclaring node {self.name}"),
+        for step in (leave_executor,
+                     lambda: self._in_flight.wait_idle(left()),
+                     lambda: run_bounded(undeclare, left(), f"undeclaring node {self.name}"),
                      lambda: self._join_executor_thread(left()),
                      self._close_lane,
                      lambda: run_bounded(self.session.close, left(),
@@ -238,28 +260,33 @@ class Node:
         """Run the callbacks ready now, waiting up to ``timeout`` seconds for the first (as
         rclpy: None or negative waits until one is ready, 0 does not wait); returns how many ran.
         Only for ``Node(executor="manual")``, one spinning thread at a time."""
-        wait = _wait_s(timeout)
-        with self._spinning():
+        wait = wait_seconds(timeout)
+        with self._spinning(), user_spin():
             return self._executor.spin_once(wait)
 
     def spin(self, timeout: float | None = None) -> None:
         """Run callbacks on this thread until the node is closed (or ``timeout`` seconds pass;
         None or negative: no limit). Ctrl-C raises KeyboardInterrupt here, as in rclpy. Only
         for ``executor="manual"``, one spinning thread at a time."""
-        wait = _wait_s(timeout)
-        with self._spinning():
+        wait = wait_seconds(timeout)
+        with self._spinning(), user_spin():
             deadline = None if wait is None else time.monotonic() + wait
             while not self._closed:
                 left = None if deadline is None else deadline - time.monotonic()
                 if left is not None and left <= 0:
                     return
                 self._executor.spin_once(
-                    Executor.TICK_S if left is None else min(left, Executor.TICK_S))
+                    NodeExecutor.TICK_S if left is None else min(left, NodeExecutor.TICK_S))
 
     @contextlib.contextmanager
     def _spinning(self) -> Iterator[None]:
-        """This thread spins the node: refused on a node that spins itself, a closed one, or
-        one another thread spins (its callbacks would overlap: they run one at a time)."""
+        """This thread spins the node: refused on a node that spins itself, a closed one, one
+        in an executor, or one another thread spins (its callbacks would overlap: they run one
+        at a time)."""
+        if self._owner is not None:
+            raise ExecutorModeError(
+                f"node {self.name!r} is in {self._owner!r}, which runs its callbacks; spin the "
+                "executor, or remove the node from it first")
         if self.executor_mode != "manual":
             raise ExecutorModeError(
                 f"node {self.name!r} runs callbacks on its own thread; create it with "
@@ -272,6 +299,34 @@ class Node:
             yield
         finally:
             self._spin_lock.release()
+
+    # -- a user's executor (buffer_pubsub.executors) --------------------------------------------
+    @property
+    def executor(self) -> Executor | None:
+        """The executor this node was added to (None: the node runs its own callbacks)."""
+        return self._owner
+
+    def _join_executor(self, executor: Executor) -> None:
+        """``executor`` takes this node (called by ``add_node``); refused while the node is
+        closed, in another executor, or spun by another thread (executor="manual")."""
+        with self._lock:
+            self._check_open()
+            if self._owner is not None:
+                raise ExecutorModeError(f"node {self.name!r} is already in {self._owner!r}; "
+                                        "remove it there first")
+            if self.executor_mode == "manual" and not self._spin_lock.acquire(blocking=False):
+                raise ExecutorModeError(f"node {self.name!r} is spinning (node.spin() in another "
+                                        "thread): stop that spin before adding it to an executor")
+            self._owner = executor
+
+    def _leave_executor(self, executor: Executor) -> None:
+        """``executor`` gave the node's callbacks back (called by ``remove_node``)."""
+        with self._lock:
+            if self._owner is not executor:
+                return
+            self._owner = None
+            if self.executor_mode == "manual":
+                self._spin_lock.release()  # node.spin() may run again
 
     # -- endpoints -----------------------------------------------------------------------------
     def _resolve_type(self, msg_type: type[Message] | str) -> type[Message]:
@@ -349,6 +404,7 @@ class Node:
         history: str = wire.KEEP_LAST,
         raw: bool = False,
         max_rate: float | None = None,
+        callback_group: CallbackGroup | None = None,
     ) -> Subscription:
         """A subscription calling ``callback(msg)`` (``callback(msg, info)`` with ``with_info``)
         on this node's executor for every message of ``topic``.
@@ -365,10 +421,17 @@ class Node:
         it before they serialize for this subscription, so they save the work; for others
         (rmw_zenoh knows nothing of it) the subscription drops the extra messages on arrival,
         before decoding them. The keep-last ``depth`` applies to what passes.
+        ``callback_group``: which callbacks may run beside this one on a multi-threaded
+        executor (:mod:`buffer_pubsub.callback_groups`); default ``default_callback_group``.
         """
         self._check_open()
         if not callable(callback):
             raise InvalidEndpointError(f"callback must be callable, got {callback!r}")
+        if callback_group is None:
+            callback_group = self.default_callback_group
+        elif not isinstance(callback_group, CallbackGroup):
+            raise InvalidEndpointError(
+                f"callback_group must be a CallbackGroup, got {callback_group!r}")
         cls = self._resolve_type(msg_type)
         depth, history = self._check_qos(depth, history)
         fq_topic = self._topic(topic)
@@ -391,7 +454,7 @@ class Node:
             max_rate_hz=rate)
         with typed_zenoh_errors(f"cannot declare a subscription on {fq_topic}"):
             subscription = Subscription(self, cls, token, callback, depth, accepted, with_info,
-                                        history, raw=raw)
+                                        history, callback_group, raw=raw)
         with self._lock:
             closed = self._closed  # close() ran meanwhile: it did not see this one
             if not closed:
@@ -643,23 +706,6 @@ def _lane_waker(waker: Waker | None, option: bool | None
 #: The deepest queue a publisher or subscription may ask for (rmw's depth is a size_t; a keep-last
 #: queue grows with what it holds, never preallocated).
 MAX_DEPTH = 2**31 - 1
-
-
-def _wait_s(timeout: float | None) -> float | None:
-    """A spin timeout as rclpy reads it: None, negative or infinite waits without limit, 0
-    does not wait; NaN and non-numbers are refused (InvalidTimeoutError)."""
-    if timeout is None:
-        return None
-    try:
-        seconds = float(timeout)
-    except OverflowError:  # an int beyond any float (10**400): no limit, as inf
-        return None
-    except (TypeError, ValueError):
-        raise InvalidTimeoutError(
-            f"timeout must be a number of seconds or None, not {timeout!r}") from None
-    if math.isnan(seconds):
-        raise InvalidTimeoutError("timeout must be a number of seconds or None, not NaN")
-    return None if seconds < 0 or seconds >= threading.TIMEOUT_MAX else seconds
 
 
 #: Zenoh 1.10 delivers no network message over 1 GiB, whatever ``max_message_size`` says

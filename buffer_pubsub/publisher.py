@@ -76,8 +76,9 @@ def seal_and_list_backends(msg: Message, flat: tuple[str, ...] | None
     """Seal every buffer of ``msg`` (once per publish, every route); return the backend names
     they live in, their total size in bytes and their impls (for ``end_publish``), in one
     walk."""
-    if flat is not None:
-        buffers: Any = [getattr(msg, name) for name in flat]
+    if flat is not None:  # (one field: no comprehension, whose frame costs more than it)
+        buffers: Any = (getattr(msg, flat[0]),) if len(flat) == 1 else [
+            getattr(msg, name) for name in flat]
     else:
         buffers = list(iter_buffers(msg))
     if not buffers:
@@ -274,8 +275,11 @@ class Publisher:
         info = endpoint_info(token)
         stream = (wire.subscription_channel(token) if self._aware
                   else wire.SubscriptionChannel.BASE)
-        if stream == wire.SubscriptionChannel.CPU and token.is_ours and token.max_rate_hz:
-            stream = wire.SubscriptionChannel.OWN  # it listens there too, for its rate
+        if token.is_ours and (stream == wire.SubscriptionChannel.BASE and self._aware
+                              or stream == wire.SubscriptionChannel.CPU and token.max_rate_hz):
+            # Ours listen on their own stream too: one that advertises no backend ("any" with
+            # none installed) always, a CPU-only one that asked for a rate to get it there.
+            stream = wire.SubscriptionChannel.OWN
         peer = _Peer(token, info, stream)
         with self._lock:
             if self._closed or gid in self._peers:

@@ -47,13 +47,15 @@ from rosidl_buffer.messages import (
 
 from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info, unknown_publisher_info
+from ._executor import spinning_here
 from ._inline import InlinePolicy
 from ._rate import RateLimit
 from ._sequence import Deduplicator, SequenceTracker
 from ._zenoh import undeclare_quietly
-from .errors import PubSubError
+from .errors import NodeClosedError, PubSubError
 
 if TYPE_CHECKING:
+    from .callback_groups import CallbackGroup
     from .node import Node
 
 __all__ = ["MessageInfo", "Subscription", "SubscriptionCounters"]
@@ -75,6 +77,22 @@ REFUSED_LATE = "late"  # older than a message already delivered on its stream (k
 #: The stream (for sequence numbers) of each route: the lane carries what _buf/<gid> carries.
 _STREAM = {ROUTE_INTRA: "intra", ROUTE_BUFFER: "own", ROUTE_LANE: "own", ROUTE_CPU: "cpu",
            ROUTE_BASE: "base"}
+
+
+#: A publisher not looked up yet (None is a publisher not discovered).
+_UNRESOLVED: Any = object()
+#: Streams every publisher numbers on its own (see _numbered_per_stream).
+_EXACT_ROUTES = frozenset({ROUTE_INTRA, ROUTE_BASE})
+
+
+def _numbered_per_stream(route: str, publisher: wire.EndpointToken | None) -> bool:
+    """Does the publisher number this stream on its own (every step exact)? Ours do, in process
+    or not; on the base key every publisher does (a buffer-aware one writes it alone when it
+    writes it at all), and so does one that advertises no backends. On the buffer streams,
+    rmw_zenoh's publishers and publishers not discovered yet are judged by the stride of their
+    steps (see :mod:`._sequence`)."""
+    return route in _EXACT_ROUTES or publisher is not None and (
+        publisher.locality is not None or publisher.backends is None)
 
 
 @dataclass(frozen=True)
@@ -111,8 +129,12 @@ class Subscription:
 
     def __init__(self, node: Node, msg_type: type[Message], token: wire.EndpointToken,
                  callback: Callable[..., Any], depth: int, accepted: list[str],
-                 with_info: bool, history: str = wire.KEEP_LAST, *, raw: bool = False) -> None:
+                 with_info: bool, history: str = wire.KEEP_LAST,
+                 callback_group: CallbackGroup | None = None, *, raw: bool = False) -> None:
         self.node = node
+        #: Which callbacks may run beside this one on a multi-threaded executor.
+        self.callback_group = (node.default_callback_group if callback_group is None
+                               else callback_group)
         self.msg_type = msg_type
         self.raw = raw  # callbacks get the serialized CDR bytes (rclpy's raw=True)
         # At most max_rate_hz messages a second from each publisher (0: all). Our publishers
@@ -272,7 +294,8 @@ class Subscription:
                 rate = self._rates[gid] = RateLimit(self.max_rate_hz)
             if rate.admit(now):
                 return True
-            self._judge(attachment, route)
+            self._judge(attachment, route, _numbered_per_stream(
+                route, self.node._publisher_token(gid)))
             self.counters.decimated += 1
             return False
 
@@ -282,22 +305,24 @@ class Subscription:
         taken: released if it is dropped before delivery), with its publisher's info, or with
         the gid alone when its token has not arrived (rmw_zenoh does not wait either)."""
         payload, attachment, route, received_ns, _ = item
+        publisher = self.node._publisher_token(attachment.publisher_gid)  # once per message
         if route in _DESCRIPTOR_ROUTES:
             try:
-                msg = self._deserialize(payload, attachment, route)
+                msg = self._deserialize(payload, attachment, route, publisher)
             except Exception as exc:  # typed errors expected; a backend bug is counted too
-                self._count_error(exc, attachment, route)
+                self._count_error(exc, attachment, route, publisher)
                 return
             item = (msg, attachment, route, received_ns, True)
-        self._enqueue(item, inline)
+        self._enqueue(item, inline, publisher)
 
     def _count_error(self, exc: BaseException, attachment: wire.Attachment,
-                     arrived_on: str | None = None) -> None:
+                     arrived_on: str | None = None,
+                     publisher: wire.EndpointToken | None = None) -> None:
         """Count a message that failed to deserialize (``arrived_on``: its route, when it failed
         on arrival, before the queue saw its number: an error, not also a gap)."""
         with self._lock:
             if arrived_on is not None:
-                self._judge(attachment, arrived_on)
+                self._judge(attachment, arrived_on, _numbered_per_stream(arrived_on, publisher))
             self.counters.errors += 1
         self.last_error = exc
         _log.warning("%r: dropped a message from %s: %s", self,
@@ -309,12 +334,12 @@ class Subscription:
             return
         self._enqueue((msg, attachment, ROUTE_INTRA, time.time_ns(), False))
 
-    def _judge(self, attachment: wire.Attachment, route: str) -> bool:
-        """Count what ``attachment`` says of its stream (gaps, jumps); whether the message is
-        late, older than one already seen there (call with ``self._lock`` held)."""
-        gid = attachment.publisher_gid
-        verdict = self._sequences.track(_STREAM[route], gid, attachment.sequence_number,
-                                        self._numbered_per_stream(gid, route))
+    def _judge(self, attachment: wire.Attachment, route: str, exact: bool) -> bool:
+        """Count what ``attachment`` says of its stream (gaps, jumps; ``exact``: see
+        :func:`_numbered_per_stream`); whether the message is late, older than one already
+        seen there (call with ``self._lock`` held)."""
+        verdict = self._sequences.track(_STREAM[route], attachment.publisher_gid,
+                                        attachment.sequence_number, exact)
         if verdict.lost:
             if route == ROUTE_LANE:
                 self.counters.dropped += verdict.lost  # the lane's keep-last queue overwrote
@@ -325,26 +350,14 @@ class Subscription:
         return verdict.late
 
     def _from_ours(self, gid: bytes, route: str) -> bool:
-        """Is ``gid`` one of our publishers in another process? Only those may send a message
-        twice (see :mod:`._sequence`), and only their stamps are known to be unique; another
-        implementation may stamp every message alike."""
+        """Is ``gid`` one of our publishers in another process? (See :meth:`_enqueue`.)"""
         if route == ROUTE_INTRA:
             return False
         token = self.node._publisher_token(gid)
-        return token is not None and token.is_ours
+        return token is not None and token.locality is not None
 
-    def _numbered_per_stream(self, gid: bytes, route: str) -> bool:
-        """Does publisher ``gid`` number this stream on its own (every step exact)? Ours do, in
-        process or not; on the base key every publisher does (a buffer-aware one writes it
-        alone when it writes it at all), and so does one that advertises no backends. On the
-        buffer streams, rmw_zenoh's publishers and publishers not discovered yet are judged by
-        the stride of their steps (see :mod:`._sequence`)."""
-        if route == ROUTE_INTRA or route == ROUTE_BASE:
-            return True
-        token = self.node._publisher_token(gid)
-        return token is not None and (token.is_ours or token.backends is None)
-
-    def _enqueue(self, item: tuple[Any, ...], inline: bool = False) -> None:
+    def _enqueue(self, item: tuple[Any, ...], inline: bool = False,
+                 publisher: Any = _UNRESOLVED) -> None:
         """Queue ``(payload or message, attachment, route, received_ns, owned)``; ``owned``:
         a message decoded for us alone, whose buffers are released if it is dropped.
 
@@ -356,18 +369,26 @@ class Subscription:
         evicted = None
         run_now = False
         gate = self._gate
+        route = item[2]
+        attachment = item[1]
+        if route == ROUTE_INTRA:
+            publisher = None
+        elif publisher is _UNRESOLVED:
+            publisher = self.node._publisher_token(attachment.publisher_gid)
+        # Only our publishers in other processes may send a message twice (see _sequence), and
+        # only their stamps are known to be unique: another implementation may stamp alike.
+        ours = publisher is not None and publisher.locality is not None
+        exact = _numbered_per_stream(route, publisher)
         with self._lock:
-            route = item[2]
-            attachment = item[1]
             if self._closed:
                 closed = True
-            elif self._from_ours(attachment.publisher_gid, route) and self._copies.seen_before(
-                    attachment.publisher_gid, attachment.source_timestamp_ns):
+            elif ours and self._copies.seen_before(attachment.publisher_gid,
+                                                   attachment.source_timestamp_ns):
                 # a second copy (see _sequence): its stream's numbers still advance
-                self._judge(attachment, route)
+                self._judge(attachment, route, exact)
                 closed = True  # (not queued: released below, as a closed one is)
                 self._refuse(REFUSED_DUPLICATE)
-            elif self._judge(attachment, route) and self.history == wire.KEEP_LAST:
+            elif self._judge(attachment, route, exact) and self.history == wire.KEEP_LAST:
                 # Older than one already delivered on its stream: a route switch (Zenoh to the
                 # lane) let a later message overtake it. A keep-last reader gets each
                 # publisher's messages in order (its gap was counted when the later one came).
@@ -445,12 +466,15 @@ class Subscription:
             except Exception as exc:  # typed errors expected; a backend bug is counted too
                 self._count_error(exc, attachment)
                 return False
-        if self._closed:
+        node = self.node
+        if self._closed or node._closed:  # a closing node starts no callback
             if owned:
                 release_buffers(msg)  # imported for us alone, and nobody will read it
             return False
         with self._lock:
             self.counters.received += 1
+        in_flight = node._in_flight  # what close() waits for
+        thread = in_flight.enter()
         start = time.perf_counter()
         try:
             if self._with_info:
@@ -462,11 +486,13 @@ class Subscription:
         except Exception as exc:
             self._callback_failed(exc)
         except BaseException as exc:  # SystemExit, say: the user's own thread gets it (rclpy)
-            if self.node.executor_mode == "manual":
+            if spinning_here():
                 raise
-            # On the node's threads it would end the executor thread silently (and with it
+            # On the library's threads it would end the executor thread silently (and with it
             # every later delivery) or unwind Zenoh's: counted and logged, delivery goes on.
             self._callback_failed(exc)
+        finally:
+            in_flight.leave(thread)
         self._policy.ran(time.perf_counter() - start, inline)
         return True
 
@@ -474,17 +500,24 @@ class Subscription:
         with self._lock:
             self.counters.callback_errors += 1
         self.last_error = exc
+        if isinstance(exc, NodeClosedError) and self.node._closed:
+            # A callback that outlived close()'s wait published on its closed node: the end of
+            # the program (Ctrl-C), not an error to show.
+            _log.debug("%r: callback ran past its node's close: %s", self, exc)
+            return
         _log.error("%r: callback raised %s", self, type(exc).__name__,
                    exc_info=(type(exc), exc, exc.__traceback__))
 
-    def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str) -> Message:
+    def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str,
+                     publisher: Any = _UNRESOLVED) -> Message:
         # Only a payload built for us may hold descriptors, which need the publisher's info
         # (the gid alone when it is not discovered yet). CPU payloads need none.
         info = None
         if route in _DESCRIPTOR_ROUTES:
             gid = attachment.publisher_gid
-            token = self.node._publisher_token(gid)
-            info = (endpoint_info(token) if token is not None else
+            if publisher is _UNRESOLVED:
+                publisher = self.node._publisher_token(gid)
+            info = (endpoint_info(publisher) if publisher is not None else
                     unknown_publisher_info(gid, self.topic_name, self.msg_type.__msgtype__))
         return deserialize_message(payload, self.msg_type, backends=self.node.backends,
                                    endpoint_info=info)

@@ -21,6 +21,7 @@ from .errors import CpuBackendRequiredError, InvalidBufferDataError
 __all__ = ["Buffer"]
 
 T = TypeVar("T", bound=np.generic)
+_new_buffer = object.__new__
 
 
 def _values(value: Any, dtype: np.dtype, ndim: int | None) -> np.ndarray:
@@ -160,6 +161,14 @@ class Buffer(Generic[T]):
     def copy(self) -> Buffer[T]:
         """Deep clone in the same backend (``rosidl::Buffer``'s copy constructor)."""
         return Buffer(self._impl.clone())
+
+    def share(self) -> Buffer[T]:
+        """Another ``Buffer`` over the same storage (no copy): a holder of the same bytes whose
+        lifetime is its own. A publisher's loan pool hands out one per loan: a ``Buffer`` is the
+        token of whoever keeps it (see ``buffer_pubsub.loan``)."""
+        buffer = _new_buffer(Buffer)
+        buffer._impl = self._impl
+        return buffer
 
     # -- lifetime ------------------------------------------------------------------------------
     def seal(self) -> None:

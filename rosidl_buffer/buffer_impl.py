@@ -7,15 +7,30 @@ Mirrors ``rosidl::BufferImplBase<T>`` and ``rosidl::CpuBufferImpl<T>``: a backen
 from __future__ import annotations
 
 import abc
-import sys
+import ctypes
+import threading
+import weakref
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["BufferImplBase", "CpuBufferImpl", "CPU_BACKEND", "exact_array"]
+__all__ = ["BufferImplBase", "CpuBufferImpl", "CPU_BACKEND", "array_at", "exact_array"]
 
 CPU_BACKEND = "cpu"
+_BYTES = ctypes.c_uint8
+
+
+def array_at(address: int, nbytes: int, owner: Any = None) -> np.ndarray:
+    """A writable 1-D uint8 NumPy array over ``nbytes`` of host memory at ``address`` (no
+    copy). ``owner`` stays alive as long as the array and every view of it: their ``base`` is
+    the ctypes array this makes, which keeps it (what keeps the memory mapped, or a reader's
+    token). ``nbytes`` 0 gives an empty array over no memory."""
+    if nbytes <= 0 or not address:
+        return np.zeros(0, dtype=np.uint8)
+    raw = (_BYTES * nbytes).from_address(address)
+    raw._owner = owner  # type: ignore[attr-defined]
+    return np.frombuffer(raw, dtype=np.uint8)
 
 
 _RANGES: dict[tuple[np.dtype, np.dtype], tuple[int, int] | None] = {}
@@ -144,13 +159,24 @@ class BufferImplBase(abc.ABC):
 
     def reclaim(self) -> bool:
         """May this memory be written again for a new message (a publisher's loan)? True when
-        no reader holds it any more; the impl is then re-armed (writable, not published).
+        no reader holds it any more (no reader's token alive, nothing in flight to a peer); the
+        impl is then re-armed (writable, not published).
 
         The loan pool of a publisher (``buffer_pubsub``) calls it before it hands the same
-        storage out again, after it checked that nobody holds the message or the ``Buffer``.
-        Default: False (the backend cannot tell), so a loan takes new storage.
+        storage out again, after it checked that no ``Buffer`` an earlier loan handed out is
+        still held. Default: False (the backend cannot tell), so a loan takes new storage.
         """
         return False
+
+
+class _Readers:
+    """The tokens of the views a :class:`CpuBufferImpl` handed out since it tracks them."""
+
+    __slots__ = ("lock", "refs")
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.refs: list[weakref.ref[Any]] = []
 
 
 class CpuBufferImpl(BufferImplBase):
@@ -159,11 +185,18 @@ class CpuBufferImpl(BufferImplBase):
     ``_storage`` may be longer than the logical size (spare capacity) and may be a read-only view
     of received bytes: the first mutation then takes a private copy (copy-on-write), so a
     deserialized message never pays for a copy it does not need.
+
+    Reuse (:meth:`reclaim`, for a publisher's loans) is decided by tokens, never by counting
+    references: from the first ``reclaim`` on, every view :meth:`view` / :meth:`writable_view`
+    hands out holds a token of its own (the ``base`` of the view and of everything made from it),
+    and the storage is reusable when no token is alive. Views handed out before are left with a
+    copy: the first ``reclaim`` moves the storage into new memory.
     """
 
-    __slots__ = ("_storage", "_size", "dtype")
+    __slots__ = ("_storage", "_size", "dtype", "_readers")
 
     def __init__(self, data: npt.ArrayLike | None = None, dtype: npt.DTypeLike = np.uint8) -> None:
+        self._readers: _Readers | None = None  # tokens of handed-out views, once reclaimed
         self.dtype = np.dtype(dtype)
         if data is None:
             self._storage = np.empty(0, dtype=self.dtype)
@@ -183,6 +216,7 @@ class CpuBufferImpl(BufferImplBase):
     def wrap(cls, array: np.ndarray) -> CpuBufferImpl:
         """Adopt a 1-D array without copying (it may be read-only: writes then copy first)."""
         impl = cls.__new__(cls)
+        impl._readers = None
         impl.dtype = array.dtype
         impl._storage = array
         impl._size = array.shape[0]
@@ -203,11 +237,30 @@ class CpuBufferImpl(BufferImplBase):
     # -- CPU-only access, used by Buffer -------------------------------------------------------
     def view(self) -> np.ndarray:
         """The logical contents as a 1-D array view (read-only if the storage is borrowed)."""
-        return self._storage[: self._size]
+        if self._readers is None:
+            return self._storage[: self._size]
+        return self._tracked_view()
 
     def writable_view(self) -> np.ndarray:
         self._ensure_writable(self._size)
-        return self._storage[: self._size]
+        if self._readers is None:
+            return self._storage[: self._size]
+        return self._tracked_view()
+
+    def _tracked_view(self) -> np.ndarray:
+        """A view whose base is a token of its own (see the class docstring)."""
+        storage = self._storage
+        size = self._size
+        if size == 0:
+            return storage[:0]
+        view = array_at(storage.ctypes.data, size * self.dtype.itemsize, storage)
+        readers = self._readers
+        with readers.lock:  # type: ignore[union-attr]
+            readers.refs.append(weakref.ref(view.base))  # type: ignore[union-attr]
+        view = view.view(self.dtype)
+        if not storage.flags.writeable:
+            view.flags.writeable = False
+        return view
 
     def capacity(self) -> int:
         return self._storage.shape[0]
@@ -229,16 +282,25 @@ class CpuBufferImpl(BufferImplBase):
         self._size = size
 
     def reclaim(self) -> bool:
-        """Intra-process sharing is by reference: the memory is free when no NumPy view of the
-        storage is alive besides our own (readers of a shared message hold such views, or the
-        message, which the loan pool checks). Borrowed read-only bytes are never rewritten."""
-        owner = self._storage
-        if not owner.flags.writeable:
+        """Reusable when no view handed out since the first ``reclaim`` holds its token (see
+        the class docstring); the first call moves the storage into memory of its own, so views
+        handed out before keep reading what they were made over. Borrowed read-only bytes are
+        never rewritten (False)."""
+        storage = self._storage
+        if not storage.flags.writeable:
             return False
-        while isinstance(owner.base, np.ndarray):  # NumPy views point at the owning array
-            owner = owner.base
-        # References: ``self._storage`` or the storage's ``base``, the local name, the argument.
-        return sys.getrefcount(owner) <= 3
+        readers = self._readers
+        if readers is None:
+            self._storage = storage.copy()
+            self._readers = _Readers()
+            return True
+        with readers.lock:
+            refs = readers.refs
+            for ref in refs:
+                if ref() is not None:
+                    return False
+            refs.clear()
+        return True
 
     def _ensure_writable(self, capacity: int) -> None:
         if not self._storage.flags.writeable:

@@ -30,7 +30,7 @@ from .metadata import (
     write_metadata,
 )
 from .loan import loan_state, loaned_native
-from .storage import allocate_data, backend_of, live_write_handle, open_read, storage_device
+from .storage import NativeState, allocate_data, backend_of, live_write_handle, storage_device
 
 from rosidl_buffer import CpuBufferImpl
 
@@ -60,6 +60,9 @@ class Adapter(Generic[T]):
 
     #: Whether :meth:`host_input` builds read-only views over host memory directly.
     host_views = False
+    #: Whether the framework has every dtype NumPy has (then a layout NumPy can carry needs no
+    #: check of its dtype).
+    numpy_dtypes = False
 
     def host_input(self, storage: np.ndarray, layout: TensorLayout) -> T | None:
         """A read-only zero-copy native of ``layout`` (whose ``numpy_args`` is not None) over
@@ -151,9 +154,10 @@ def input_native(adapter: Adapter[T], msg: Any, layout: TensorLayout, clone: boo
 
 
 def from_output_tensor_msg(adapter: Adapter[T], msg: Any) -> T:
-    native = loaned_native(adapter, msg)  # a loan left as it was made: its cached view
-    if native is not None:
-        return native
+    if type(getattr(msg, "_native", None)) is NativeState:  # maybe a loan, left as it was made
+        native = loaned_native(adapter, msg)  # its cached view
+        if native is not None:
+            return native
     return output_native(adapter, msg, layout_of(msg))
 
 
@@ -161,21 +165,23 @@ def from_input_tensor_msg(adapter: Adapter[T], msg: Any, clone: bool = True) -> 
     layout = layout_of(msg)
     if not clone and adapter.host_views and layout.numpy_args is not None:
         # perf: the per-frame case of a subscriber (a received message in host memory) built
-        # straight over its bytes: no TensorView or DLPack round trip (~2.5 us instead of ~5 for
-        # CPU storage, ~5 instead of ~11 for warp storage on Warp's cpu device).
-        adapter.check_dtype(layout.dtype)  # the general path's typed error, before any read
+        # straight over its bytes: no TensorView or DLPack round trip.
+        if not adapter.numpy_dtypes:  # (NumPy carries every dtype numpy_args has)
+            adapter.check_dtype(layout.dtype)  # the general path's typed error, before any read
         impl = msg.data.get_impl()
         native = None
         if type(impl) is CpuBufferImpl:
             native = adapter.host_input(impl.view(), layout)
-        elif impl.get_backend_type() == "warp" and impl.device == "cpu":
-            handle = open_read(msg)  # the array keeps it, and so the storage, alive
-            try:
-                host = handle.host_array()
-                native = None if host is None else adapter.host_input(host, layout)
-            finally:
-                if native is None and handle is not live_write_handle(msg):
-                    handle.release()  # the general path below opens its own
+        else:
+            reader_host = getattr(impl, "reader_host", None)  # warp storage
+            if reader_host is not None:
+                # Our own unpublished write is read through its write handle; anything else
+                # through host memory that holds a reader's token (the view keeps it).
+                live = live_write_handle(msg) if type(getattr(
+                    msg, "_native", None)) is NativeState else None
+                host = live.host_array() if live is not None else reader_host()
+                if host is not None:  # None: device memory
+                    native = adapter.host_input(host, layout)
         if native is not None:
             return native
     return input_native(adapter, msg, layout, clone)

@@ -14,16 +14,18 @@ the framework module will use; a consumer that passes another stream to ``__dlpa
 stream wait for the handle's stream (an event, never a device synchronisation).
 
 Lifetime: the carrier references the storage (NumPy base chain) or the warp_buffer handle (attribute
-on the Warp array); every DLPack capsule references its carrier, so memory and handles live as
-long as the consumer's tensor, independent of the message object.
+on the Warp array); every DLPack capsule references its carrier, so memory, handles and the
+reader's token a read handle holds (:mod:`warp_buffer.lease`) live as long as the consumer's
+tensor, independent of the message object.
 """
 
 from __future__ import annotations
 
-import ctypes
 from typing import Any
 
 import numpy as np
+
+from rosidl_buffer.buffer_impl import array_at
 
 from .dtypes import DLDataTypeCode, DType, dtype_from_name
 from .errors import InvalidTensorMetadataError, UnsupportedDTypeError
@@ -213,21 +215,11 @@ def order_consumer(handle: Any, device: str, stream: int) -> None:
     external_stream(device, stream).wait_stream(ours)
 
 
-def _host_bytes(ptr: int | None, nbytes: int, owner: Any) -> np.ndarray:
-    """A writable 1-D uint8 NumPy array over host memory at ``ptr`` that keeps ``owner`` alive."""
-    if not ptr or nbytes == 0:
-        return np.zeros(0, dtype=np.uint8)
-    raw = (ctypes.c_uint8 * nbytes).from_address(ptr)
-    raw._owner = owner  # type: ignore[attr-defined]
-    return np.frombuffer(raw, dtype=np.uint8)
-
-
 def host_alias(array: np.ndarray) -> np.ndarray:
     """A writable alias of a read-only contiguous host array (same memory, keeps it alive), for
     consumers that import only legacy DLPack, which cannot flag read-only memory. Hand it out under
     the read-only contract of ``clone=False``."""
-    raw = _host_bytes(array.ctypes.data, array.nbytes, owner=array) if array.nbytes else \
-        np.zeros(0, np.uint8)
+    raw = array_at(array.ctypes.data, array.nbytes, array)
     return np.ndarray(array.shape, array.dtype, buffer=raw, strides=array.strides)
 
 

@@ -38,6 +38,7 @@ from .storage import allocate_data, backend_of, host_bytes
 
 __all__ = [
     "IMAGE_MSG_TYPE",
+    "NATIVE_BIGENDIAN",
     "ImageFormat",
     "allocate_image_msg",
     "from_input_image_msg",
@@ -48,7 +49,8 @@ __all__ = [
 ]
 
 IMAGE_MSG_TYPE = "sensor_msgs/msg/Image"
-_NATIVE_BIGENDIAN = int(sys.byteorder == "big")
+#: ``is_bigendian`` of an image in this machine's byte order.
+NATIVE_BIGENDIAN = int(sys.byteorder == "big")
 
 _NAMED = {
     "mono8": (1, "uint8"), "mono16": (1, "uint16"),
@@ -154,7 +156,7 @@ def _validate(height: int, width: int, encoding: str, is_bigendian: int, step: i
             f"a {height}x{width} {encoding} image with step {step} needs {need} bytes of data, "
             f"the message has {nbytes}")
     strides = (row, fmt.channels, 1) if fmt.channels > 1 else (row, 1)
-    native = fmt.dtype.itemsize == 1 or int(bool(is_bigendian)) == _NATIVE_BIGENDIAN
+    native = fmt.dtype.itemsize == 1 or int(bool(is_bigendian)) == NATIVE_BIGENDIAN
     return TensorLayout(fmt.dtype, fmt.shape(height, width), strides, 0), native
 
 
@@ -168,16 +170,30 @@ def _sizes(**sizes: Any) -> tuple[int, ...]:
             f"image sizes must be non-negative whole numbers, got {given}") from None
 
 
-def allocate_image_msg(adapter: _api.Adapter[Any], height: int, width: int, encoding: str,
-                       backend: str = "cpu", device: Any = None, step: int | None = None) -> Any:
+def image_spec(adapter: _api.Adapter[Any], height: int, width: int, encoding: str,
+               step: int | None = None) -> tuple[int, int, int, TensorLayout]:
+    """``(height, width, step, layout)`` of a new image (``allocate_image_msg``'s arguments,
+    checked: sizes, encoding, the framework's dtype, a step that holds a row)."""
     fmt = image_format(encoding)
     adapter.check_dtype(fmt.dtype)
     height, width = _sizes(height=height, width=width)
     step = width * fmt.pixel_bytes if step is None else _sizes(step=step)[0]
-    _row_stride(fmt, width, step)
+    row = _row_stride(fmt, width, step)
+    strides = (row, fmt.channels, 1) if fmt.channels > 1 else (row, 1)
+    return height, width, step, TensorLayout(fmt.dtype, fmt.shape(height, width), strides, 0)
+
+
+def new_image_msg(height: int, width: int, encoding: str, step: int, data: Any) -> Any:
+    """An Image with these (checked) sizes over ``data``, in this machine's byte order."""
     return image_msg_type()(height=height, width=width, encoding=encoding,
-                            is_bigendian=_NATIVE_BIGENDIAN, step=step,
-                            data=allocate_data(step * height, backend, device))
+                            is_bigendian=NATIVE_BIGENDIAN, step=step, data=data)
+
+
+def allocate_image_msg(adapter: _api.Adapter[Any], height: int, width: int, encoding: str,
+                       backend: str = "cpu", device: Any = None, step: int | None = None) -> Any:
+    height, width, step, _layout = image_spec(adapter, height, width, encoding, step)
+    return new_image_msg(height, width, encoding, step,
+                         allocate_data(step * height, backend, device))
 
 
 def from_output_image_msg(adapter: _api.Adapter[Any], msg: Any) -> Any:
@@ -208,7 +224,7 @@ def from_input_image_msg(adapter: _api.Adapter[Any], msg: Any, clone: bool = Tru
     # An empty image's copy has 0 strides: its row is still width pixels long
     row = msg.width * image_format(msg.encoding).pixel_bytes
     temp = image_msg_type()(height=msg.height, width=msg.width, encoding=msg.encoding,
-                            is_bigendian=_NATIVE_BIGENDIAN, step=row,
+                            is_bigendian=NATIVE_BIGENDIAN, step=row,
                             data=copy.reshape(-1).view(np.uint8))
     # The copy is the caller's (clone=True): a writable view of it, as every clone is
     return _api.output_native(adapter, temp, image_layout(temp)[0])

@@ -209,7 +209,8 @@ def layout_of(msg: Any) -> TensorLayout:
     :class:`UnsupportedDTypeError` for a dtype this package cannot handle and
     :class:`InvalidTensorMetadataError` for inconsistent shape/strides/byte_offset.
     """
-    check_tensor_msg(msg)
+    if not _TENSOR_CLASS or type(msg) is not _TENSOR_CLASS[0]:  # (the check's common case,
+        check_tensor_msg(msg)  # inline: once per message)
     shape, strides = msg.shape, msg.strides
     if (type(shape) is np.ndarray and type(strides) is np.ndarray and shape.dtype is _INT64
             and strides.dtype is _INT64 and shape.ndim == 1 and strides.ndim == 1):

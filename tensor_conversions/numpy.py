@@ -24,12 +24,20 @@ from .errors import UnsupportedBackendError, UnsupportedValueError
 
 __all__ = [
     "allocate_image_msg",
+    "allocate_pointcloud_msg",
+    "allocate_tensor_msg",
     "from_input_image_msg",
     "from_input_pointcloud_msg",
+    "from_input_tensor_msg",
     "from_output_image_msg",
+    "from_output_pointcloud_msg",
+    "from_output_tensor_msg",
+    "loan_image_msg",
+    "loan_pointcloud_msg",
+    "loan_tensor_msg",
     "to_image_msg",
-"allocate_tensor_msg", "from_input_tensor_msg", "from_output_tensor_msg",
-           "to_tensor_msg"]
+    "to_tensor_msg",
+]
 
 
 def _host_only(view: TensorView, what: str) -> None:
@@ -55,9 +63,11 @@ class _NumpyAdapter(_api.Adapter[np.ndarray]):
                 "or the torch/warp module")
 
     host_views = True
+    numpy_dtypes = True
 
     def host_input(self, storage: np.ndarray, layout: TensorLayout) -> np.ndarray:
-        array = layout.ndarray_over(storage)
+        shape, dtype, offset, strides = layout.numpy_args  # (ndarray_over: called with them)
+        array = np.ndarray(shape, dtype, buffer=storage, offset=offset, strides=strides)
         array.flags.writeable = False
         return array
 
@@ -184,6 +194,19 @@ def to_image_msg(value: np.ndarray, encoding: str, *, backend: str | None = None
     return _image.to_image_msg(_ADAPTER, value, encoding, backend=backend, device=device)
 
 
+def loan_image_msg(publisher: Any, height: int, width: int, encoding: str,
+                   backend: str = "warp", device: Any = None, step: int | None = None) -> Any:
+    """``with loan_image_msg(pub, height, width, encoding) as msg:`` a loaned
+    ``sensor_msgs/msg/Image`` from ``pub``'s pool (the arguments of :func:`allocate_image_msg`,
+    warp storage on ``device``), published when the block ends; an exception publishes nothing.
+    :func:`from_output_image_msg` of it returns the same writable view every loan of that block
+    (built once). The loan ends at publish, as for :func:`loan_tensor_msg`; see
+    :mod:`tensor_conversions.loan`.
+    """
+    return _loan.loan_image_msg(_ADAPTER, publisher, height, width, encoding, backend, device,
+                                step)
+
+
 # ------------------------------------------------------------ sensor_msgs/msg/PointCloud2
 def from_input_pointcloud_msg(msg: Any, fields: Sequence[str] = ("x", "y", "z"),
                               clone: bool = True) -> np.ndarray:
@@ -192,3 +215,31 @@ def from_input_pointcloud_msg(msg: Any, fields: Sequence[str] = ("x", "y", "z"),
     the layout allows (then ``clone`` copies it), else one float32 host copy; see
     :mod:`tensor_conversions.pointcloud`."""
     return _pointcloud.from_input_pointcloud_msg(_ADAPTER, msg, fields, clone)
+
+
+def allocate_pointcloud_msg(width: int, fields: Sequence[str], dtype: Any,
+                            height: int = 1, backend: str = "cpu", device: Any = None) -> Any:
+    """A new ``sensor_msgs/msg/PointCloud2`` of ``height * width`` points whose ``fields``
+    (names) are packed values of one ``dtype`` (``point_step = len(fields) * itemsize``, this
+    machine's byte order), storage zeroed (``backend``/``device`` as for tensors)."""
+    return _pointcloud.allocate_pointcloud_msg(_ADAPTER, width, fields, dtype, height, backend,
+                                               device)
+
+
+def from_output_pointcloud_msg(msg: Any, fields: Sequence[str] | None = None) -> np.ndarray:
+    """A writable zero-copy ``(N, F)`` view of the cloud's points (``fields``: all by default)
+    for filling it in place; the fields must be one strided view (as
+    :func:`allocate_pointcloud_msg` makes them), else :class:`InvalidTensorMetadataError`."""
+    return _pointcloud.from_output_pointcloud_msg(_ADAPTER, msg, fields)
+
+
+def loan_pointcloud_msg(publisher: Any, width: int, fields: Sequence[str], dtype: Any,
+                        height: int = 1, backend: str = "warp", device: Any = None) -> Any:
+    """``with loan_pointcloud_msg(pub, width, ("x", "y", "z"), dtype) as msg:`` a loaned
+    PointCloud2 from ``pub``'s pool (the arguments of :func:`allocate_pointcloud_msg`, warp
+    storage on ``device``), published when the block ends. :func:`from_output_pointcloud_msg`
+    of it returns the same writable ``(N, F)`` view every loan of that block. The loan ends at
+    publish, as for :func:`loan_tensor_msg`; see :mod:`tensor_conversions.loan`.
+    """
+    return _loan.loan_pointcloud_msg(_ADAPTER, publisher, width, fields, dtype, height, backend,
+                                     device)

@@ -5,10 +5,13 @@ the ``warp_buffer`` package, on any Warp device, ``"cpu"`` included). A request 
 served raises :class:`UnsupportedBackendError`; storage is never silently put elsewhere.
 
 A warp buffer takes ONE write handle in its life, so writable views of one message share it.
-Views hold warp_buffer's handles directly (a handle releases itself when collected). The message remembers it weakly in its ``_native`` slot (no registry keyed by
-``id()``): while any view over the handle lives, later views (and ``to_tensor_msg``) reuse it; the
-handle is released (the write is complete) when the last view is collected, at publish (the
-transport seals the buffer), or earlier through :func:`release_output`.
+Views hold warp_buffer's handles directly (a handle releases itself when collected). The message
+remembers it weakly in its ``_native`` slot, in its one state object (:class:`NativeState`, no
+registry keyed by ``id()``), which also carries a loaned message's loan (:mod:`.loan`): while
+any view over the handle lives, later views (and ``to_tensor_msg``) reuse it; the handle is
+released (the write is complete) when the last view is collected, at publish (the transport
+seals the buffer), or earlier through :func:`release_output`. Read views hold a reader's token
+of the storage (a read handle's, or the storage's own, see :mod:`warp_buffer.lease`).
 
 Streams: handles are opened on the stream the framework will run on (torch's current stream,
 Warp's, CuPy's), so the writer's completion is recorded on the stream that really wrote, and a
@@ -29,6 +32,7 @@ from .errors import StorageNotWritableError, UnsupportedBackendError
 
 __all__ = [
     "BACKENDS",
+    "NativeState",
     "allocate_data",
     "backend_of",
     "host_bytes",
@@ -117,30 +121,33 @@ def host_bytes(buffer: Buffer, *, writable: bool) -> np.ndarray:
 
 
 # -------------------------------------------------------------------------------------- warp
-class _NativeState:
-    """What tensor_conversions keeps on a message (its ``_native`` slot): the write handle of
-    ``buffer``, weakly. Dropped by deepcopy and pickling (handles belong to one message)."""
+class NativeState:
+    """What tensor_conversions keeps on a message (its ``_native`` slot, one type): the write
+    handle of ``buffer``, weakly, and a loaned message's loan (:class:`.loan.LoanState`, None
+    otherwise). Dropped by deepcopy and pickling (handles belong to one message, a copy is not
+    loaned)."""
 
-    __slots__ = ("buffer", "write")
+    __slots__ = ("buffer", "write", "loan")
 
-    def __init__(self) -> None:
+    def __init__(self, loan: Any = None) -> None:
         self.buffer: Buffer | None = None
         self.write: weakref.ref[Any] | None = None
+        self.loan = loan
 
-    def __deepcopy__(self, memo: dict[int, Any]) -> _NativeState:
-        return _NativeState()
+    def __deepcopy__(self, memo: dict[int, Any]) -> NativeState:
+        return NativeState()
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return (_NativeState, ())
+        return (NativeState, ())
 
 
 _lock = threading.Lock()
 
 
-def _state(msg: Any) -> _NativeState:
+def _state(msg: Any) -> NativeState:
     state = getattr(msg, "_native", None)
-    if type(state) is not _NativeState:
-        state = _NativeState()
+    if type(state) is not NativeState:
+        state = NativeState()
         object.__setattr__(msg, "_native", state)
     return state
 
@@ -148,7 +155,7 @@ def _state(msg: Any) -> _NativeState:
 def live_write_handle(msg: Any) -> Any:
     """The write handle that views of ``msg.data`` hold now, if any (and still usable)."""
     state = getattr(msg, "_native", None)
-    if type(state) is not _NativeState or state.write is None or state.buffer is not msg.data:
+    if type(state) is not NativeState or state.write is None or state.buffer is not msg.data:
         return None
     handle = state.write()
     if handle is None:

@@ -73,7 +73,8 @@ def to_raw(value: Any) -> np.ndarray:
         array = np.ascontiguousarray(value).reshape(-1)
         return array.view(np.uint8).reshape(*shape, value.dtype.itemsize).copy()
     t = value if isinstance(value, torch.Tensor) else torch.from_dlpack(value)
-    flat = t.contiguous().reshape(-1)
+    # a copy: a read-only input view refuses .numpy()
+    flat = t.clone(memory_format=torch.contiguous_format).reshape(-1)
     size = flat.element_size()
     if flat.dtype.is_complex:
         flat = torch.view_as_real(flat).reshape(-1)

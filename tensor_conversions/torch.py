@@ -5,11 +5,22 @@ device's torch counterpart (``cuda:N``, or CPU for Warp's ``cpu`` device). Every
 :data:`tensor_conversions.SUPPORTED_DTYPES` is supported, bfloat16 and complex included (complex
 only in CPU storage: Warp has no complex type).
 
-PyTorch tensors cannot be read-only: a ``clone=False`` input view aliases the message storage and
-must be treated as read-only by convention. One exception to the alias: torch needs complex
-elements aligned to their size (complex128: 16 bytes), which CDR's 4-byte alignment of received
-bytes often breaks; such a tensor comes back as one aligned copy (and a writable view over
-misaligned complex storage is refused with :class:`InvalidTensorMetadataError`).
+**Zero-copy input views are read-only, and torch enforces it.** A ``clone=False`` input view
+(``from_input_tensor_msg``, ``from_input_image_msg``, ``from_input_pointcloud_msg``) aliases the
+message's storage, which for a message received from another process is the publisher's memory
+mapped read-only. PyTorch has no read-only tensor flag (NumPy's ``writeable``), so such a view
+is made with torch's refusal of mutable data pointers on its storage: every write through it or
+any view of it (``fill_``, ``t[i] = v``, ``add_``, ``copy_``, ``out=``) raises ``RuntimeError``
+("Cannot access data pointer of Tensor ...") instead of killing the process with SIGSEGV. Reads
+and computations that make new tensors (``conv2d``, ``sum``, ``.float()``, ``clone()``) work.
+Calls that need a mutable pointer raise the same error: ``.numpy()``, ``data_ptr()``,
+``__dlpack__`` (so ``wp.from_torch``) and pickling; use the ``numpy`` / ``warp`` modules for those
+consumers, or ``clone=True`` (the default), which returns a private, writable copy.
+
+One exception to the alias: torch needs complex elements aligned to their size (complex128: 16
+bytes), which CDR's 4-byte alignment of received bytes often breaks; such a tensor comes back as
+one aligned copy (and a writable view over misaligned complex storage is refused with
+:class:`InvalidTensorMetadataError`).
 """
 
 from __future__ import annotations
@@ -36,15 +47,19 @@ from .metadata import TensorLayout
 
 __all__ = [
     "allocate_image_msg",
-    "from_input_image_msg",
-    "from_input_pointcloud_msg",
-    "from_output_image_msg",
-    "to_image_msg",
-
+    "allocate_pointcloud_msg",
     "allocate_tensor_msg",
     "dtype_to_torch",
+    "from_input_image_msg",
+    "from_input_pointcloud_msg",
     "from_input_tensor_msg",
+    "from_output_image_msg",
+    "from_output_pointcloud_msg",
     "from_output_tensor_msg",
+    "loan_image_msg",
+    "loan_pointcloud_msg",
+    "loan_tensor_msg",
+    "to_image_msg",
     "to_tensor_msg",
     "torch_to_dtype",
 ]
@@ -129,6 +144,12 @@ def _over_bytes(view: TensorView) -> torch.Tensor:
     return elements.as_strided(layout.shape, layout.strides)
 
 
+# torch has no read-only tensor, but a storage can refuse its mutable data pointer (torch's own
+# FakeTensor uses this): every kernel that writes asks for it, so writes raise instead of
+# faulting on memory mapped read-only. Private API, checked at import: torch is pinned.
+_refuse_writes = torch._C._set_throw_on_mutable_data_ptr
+
+
 def _needs_bytes(view: TensorView) -> bool:
     """Past Warp's 4 dimensions, where a Warp array carries the tensor."""
     return len(view.layout.shape) > MAX_WARP_DIMS and view.warp_carried
@@ -163,7 +184,8 @@ class _TorchAdapter(_api.Adapter[torch.Tensor]):
         # (from_numpy would warn).
         if not storage.flags.writeable or layout.dtype.code == DLDataTypeCode.COMPLEX:
             return None  # complex: the general path checks the alignment
-        return torch.from_numpy(layout.ndarray_over(storage))
+        # (writable-looking: warp storage's host array cannot say its mapping is read-only)
+        return self.readonly(torch.from_numpy(layout.ndarray_over(storage)))
 
     def from_view(self, view: TensorView) -> torch.Tensor:
         if _misaligned(view):
@@ -171,6 +193,10 @@ class _TorchAdapter(_api.Adapter[torch.Tensor]):
                 raise _misaligned_error(view)
             return view.reshape_result(_aligned_copy(view))  # one copy, documented
         return _alias(view)
+
+    def readonly(self, tensor: torch.Tensor) -> torch.Tensor:
+        _refuse_writes(tensor)
+        return tensor
 
     def clone(self, view: TensorView) -> torch.Tensor:
         if _misaligned(view):
@@ -232,7 +258,8 @@ def loan_tensor_msg(publisher: Any, shape: Sequence[int] | int, dtype: torch.dty
 
 def from_input_tensor_msg(msg: Any, clone: bool = True) -> torch.Tensor:
     """The tensor of ``msg``: an independent contiguous copy (default) or, with ``clone=False``,
-    a zero-copy alias of the storage (treat as read-only) that keeps the storage alive."""
+    a zero-copy alias of the storage that keeps the storage alive and refuses writes
+    (RuntimeError; so do ``.numpy()`` and ``data_ptr()``: see the module docstring)."""
     return _api.from_input_tensor_msg(_ADAPTER, msg, clone)
 
 
@@ -270,7 +297,7 @@ def from_output_image_msg(msg: Any) -> torch.Tensor:
 
 def from_input_image_msg(msg: Any, clone: bool = True) -> torch.Tensor:
     """The image as an HWC copy (default) or, with ``clone=False``, a zero-copy alias of the
-    storage (treat as read-only) whose row stride is ``step``."""
+    storage whose row stride is ``step``, which refuses writes (RuntimeError)."""
     return _image.from_input_image_msg(_ADAPTER, msg, clone)
 
 
@@ -281,11 +308,52 @@ def to_image_msg(value: torch.Tensor, encoding: str, *, backend: str | None = No
     return _image.to_image_msg(_ADAPTER, value, encoding, backend=backend, device=device)
 
 
+def loan_image_msg(publisher: Any, height: int, width: int, encoding: str,
+                   backend: str = "warp", device: Any = None, step: int | None = None) -> Any:
+    """``with loan_image_msg(pub, height, width, encoding) as msg:`` a loaned
+    ``sensor_msgs/msg/Image`` from ``pub``'s pool (the arguments of :func:`allocate_image_msg`,
+    warp storage on ``device``), published when the block ends; an exception publishes nothing.
+    :func:`from_output_image_msg` of it returns the same writable view every loan of that block
+    (built once). The loan ends at publish, as for :func:`loan_tensor_msg`; see
+    :mod:`tensor_conversions.loan`.
+    """
+    return _loan.loan_image_msg(_ADAPTER, publisher, height, width, encoding, backend, device,
+                                step)
+
+
 # ------------------------------------------------------------ sensor_msgs/msg/PointCloud2
 def from_input_pointcloud_msg(msg: Any, fields: Sequence[str] = ("x", "y", "z"),
                               clone: bool = True) -> torch.Tensor:
     """An ``(N, F)`` tensor of the cloud's points (``F``: a column per field, ``count`` of
-    them for a multi-count field): a zero-copy strided view where
-    the layout allows (then ``clone`` copies it), else one float32 host copy; see
+    them for a multi-count field): a zero-copy strided view where the layout allows (then
+    ``clone`` copies it; the view refuses writes), else one float32 host copy; see
     :mod:`tensor_conversions.pointcloud`."""
     return _pointcloud.from_input_pointcloud_msg(_ADAPTER, msg, fields, clone)
+
+
+def allocate_pointcloud_msg(width: int, fields: Sequence[str], dtype: torch.dtype | str,
+                            height: int = 1, backend: str = "cpu", device: Any = None) -> Any:
+    """A new ``sensor_msgs/msg/PointCloud2`` of ``height * width`` points whose ``fields``
+    (names) are packed values of one ``dtype`` (``point_step = len(fields) * itemsize``, this
+    machine's byte order), storage zeroed (``backend``/``device`` as for tensors)."""
+    return _pointcloud.allocate_pointcloud_msg(_ADAPTER, width, fields, dtype, height, backend,
+                                               device)
+
+
+def from_output_pointcloud_msg(msg: Any, fields: Sequence[str] | None = None) -> torch.Tensor:
+    """A writable zero-copy ``(N, F)`` view of the cloud's points (``fields``: all by default)
+    for filling it in place; the fields must be one strided view (as
+    :func:`allocate_pointcloud_msg` makes them), else :class:`InvalidTensorMetadataError`."""
+    return _pointcloud.from_output_pointcloud_msg(_ADAPTER, msg, fields)
+
+
+def loan_pointcloud_msg(publisher: Any, width: int, fields: Sequence[str], dtype: torch.dtype | str,
+                        height: int = 1, backend: str = "warp", device: Any = None) -> Any:
+    """``with loan_pointcloud_msg(pub, width, ("x", "y", "z"), dtype) as msg:`` a loaned
+    PointCloud2 from ``pub``'s pool (the arguments of :func:`allocate_pointcloud_msg`, warp
+    storage on ``device``), published when the block ends. :func:`from_output_pointcloud_msg`
+    of it returns the same writable ``(N, F)`` view every loan of that block. The loan ends at
+    publish, as for :func:`loan_tensor_msg`; see :mod:`tensor_conversions.loan`.
+    """
+    return _loan.loan_pointcloud_msg(_ADAPTER, publisher, width, fields, dtype, height, backend,
+                                     device)

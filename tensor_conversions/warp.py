@@ -25,15 +25,19 @@ import_warp()  # at import: Warp starts quietly, before the application's first 
 
 __all__ = [
     "allocate_image_msg",
-    "from_input_image_msg",
-    "from_input_pointcloud_msg",
-    "from_output_image_msg",
-    "to_image_msg",
-
+    "allocate_pointcloud_msg",
     "allocate_tensor_msg",
     "dtype_to_warp",
+    "from_input_image_msg",
+    "from_input_pointcloud_msg",
     "from_input_tensor_msg",
+    "from_output_image_msg",
+    "from_output_pointcloud_msg",
     "from_output_tensor_msg",
+    "loan_image_msg",
+    "loan_pointcloud_msg",
+    "loan_tensor_msg",
+    "to_image_msg",
     "to_tensor_msg",
     "warp_to_dtype",
 ]
@@ -180,6 +184,19 @@ def to_image_msg(value: wp.array, encoding: str, *, backend: str | None = None,
     return _image.to_image_msg(_ADAPTER, value, encoding, backend=backend, device=device)
 
 
+def loan_image_msg(publisher: Any, height: int, width: int, encoding: str,
+                   backend: str = "warp", device: Any = None, step: int | None = None) -> Any:
+    """``with loan_image_msg(pub, height, width, encoding) as msg:`` a loaned
+    ``sensor_msgs/msg/Image`` from ``pub``'s pool (the arguments of :func:`allocate_image_msg`,
+    warp storage on ``device``), published when the block ends; an exception publishes nothing.
+    :func:`from_output_image_msg` of it returns the same writable view every loan of that block
+    (built once). The loan ends at publish, as for :func:`loan_tensor_msg`; see
+    :mod:`tensor_conversions.loan`.
+    """
+    return _loan.loan_image_msg(_ADAPTER, publisher, height, width, encoding, backend, device,
+                                step)
+
+
 # ------------------------------------------------------------ sensor_msgs/msg/PointCloud2
 def from_input_pointcloud_msg(msg: Any, fields: Sequence[str] = ("x", "y", "z"),
                               clone: bool = True) -> wp.array:
@@ -188,3 +205,31 @@ def from_input_pointcloud_msg(msg: Any, fields: Sequence[str] = ("x", "y", "z"),
     the layout allows (then ``clone`` copies it), else one float32 host copy; see
     :mod:`tensor_conversions.pointcloud`."""
     return _pointcloud.from_input_pointcloud_msg(_ADAPTER, msg, fields, clone)
+
+
+def allocate_pointcloud_msg(width: int, fields: Sequence[str], dtype: Any,
+                            height: int = 1, backend: str = "cpu", device: Any = None) -> Any:
+    """A new ``sensor_msgs/msg/PointCloud2`` of ``height * width`` points whose ``fields``
+    (names) are packed values of one ``dtype`` (``point_step = len(fields) * itemsize``, this
+    machine's byte order), storage zeroed (``backend``/``device`` as for tensors)."""
+    return _pointcloud.allocate_pointcloud_msg(_ADAPTER, width, fields, dtype, height, backend,
+                                               device)
+
+
+def from_output_pointcloud_msg(msg: Any, fields: Sequence[str] | None = None) -> wp.array:
+    """A writable zero-copy ``(N, F)`` view of the cloud's points (``fields``: all by default)
+    for filling it in place; the fields must be one strided view (as
+    :func:`allocate_pointcloud_msg` makes them), else :class:`InvalidTensorMetadataError`."""
+    return _pointcloud.from_output_pointcloud_msg(_ADAPTER, msg, fields)
+
+
+def loan_pointcloud_msg(publisher: Any, width: int, fields: Sequence[str], dtype: Any,
+                        height: int = 1, backend: str = "warp", device: Any = None) -> Any:
+    """``with loan_pointcloud_msg(pub, width, ("x", "y", "z"), dtype) as msg:`` a loaned
+    PointCloud2 from ``pub``'s pool (the arguments of :func:`allocate_pointcloud_msg`, warp
+    storage on ``device``), published when the block ends. :func:`from_output_pointcloud_msg`
+    of it returns the same writable ``(N, F)`` view every loan of that block. The loan ends at
+    publish, as for :func:`loan_tensor_msg`; see :mod:`tensor_conversions.loan`.
+    """
+    return _loan.loan_pointcloud_msg(_ADAPTER, publisher, width, fields, dtype, height, backend,
+                                     device)

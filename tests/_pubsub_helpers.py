@@ -253,7 +253,11 @@ class Child:
         argv = [sys.executable, "-m", module, role]
         for key, value in options.items():
             argv += [f"--{key.replace('_', '-')}", str(value)]
-        self.proc = subprocess.Popen(argv, cwd=ROOT, env=child_env(), stdin=subprocess.PIPE,
+        self._start(role, argv, child_env(), stderr)
+
+    def _start(self, name: str, argv: list[str], env: dict[str, str], stderr: Any) -> None:
+        self.name = name
+        self.proc = subprocess.Popen(argv, cwd=ROOT, env=env, stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=stderr, text=True)
         self._lines: queue.Queue[str | None] = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
@@ -273,9 +277,9 @@ class Child:
             try:
                 line = self._lines.get(timeout=max(0.01, deadline - time.monotonic()))
             except queue.Empty:
-                raise TimeoutError(f"child {self.proc.args[3]} did not print {prefix}") from None
+                raise TimeoutError(f"child {self.name} did not print {prefix}") from None
             if line is None:
-                raise RuntimeError(f"child {self.proc.args[3]} exited ({self.proc.wait()}) "
+                raise RuntimeError(f"child {self.name} exited ({self.proc.wait()}) "
                                    f"before {prefix}")
             if line.startswith(prefix):
                 return line

@@ -234,9 +234,10 @@ def test_the_bag_carries_what_ros2_bag_info_and_play_need(recorded_bag):
         meta = entry["topic_metadata"]
         assert meta["type"] in (TENSOR, STRING) and meta["serialization_format"] == "cdr"
         assert meta["type_description_hash"] == get_type_hash(meta["type"])
+        # the publisher's own profile, from the graph (the test publishers keep all, depth COUNT)
         (qos,) = meta["offered_qos_profiles"]
-        assert (qos["reliability"], qos["durability"], qos["history"]) == (
-            "reliable", "volatile", "keep_last")
+        assert (qos["reliability"], qos["durability"], qos["history"], qos["depth"]) == (
+            "reliable", "volatile", "keep_all", COUNT)
 
     done = run_bag(0, "info", str(recorded_bag))
     assert done.returncode == 0 and done.stderr == "", done.stderr

@@ -134,3 +134,42 @@ def test_a_value_the_wire_type_cannot_hold_is_a_serialization_error_naming_its_f
     point = get_message_type("geometry_msgs/msg/Point32")(x=float("inf"), y=float("nan"))
     back = deserialize_message(serialize_message(point), type(point))
     assert back.x == float("inf") and back.y != back.y
+
+
+def test_a_fixed_layout_descriptor_is_packed_with_one_struct_call_and_sized_once(monkeypatch):
+    """A descriptor of primitives only (the warp backend's) is sized once per type, packed and
+    unpacked with its precompiled struct (at phase 0 the warp descriptor's LAYOUT): the bytes and
+    the decoded values are those of the field-by-field path, the reference."""
+    from plugins.fake_backend import FakeBufferImpl
+    from rosidl_buffer.messages import _cdr
+    from warp_buffer import descriptor as desc
+
+    codec = _codec(desc.DESCRIPTOR_TYPE)
+    assert codec.fixed is not None and codec.fixed[0][0].format == desc.LAYOUT.format
+    sent = desc.make(tuple(range(1, len(desc.FIELDS) + 1)))
+    received = []
+
+    class Backend:
+        def get_descriptor_type(self):
+            return desc.descriptor_type()
+
+        def from_descriptor_with_endpoint(self, descriptor, endpoint_info):
+            received.append(desc.fields_of(descriptor))
+            return FakeBufferImpl(b"x")
+
+    def round_trip():
+        msg = _tensor()
+        msg.data = Buffer(FakeBufferImpl(b"abcd"))
+        data = serialize_message(msg, route=lambda buffer: ("warp", sent))
+        deserialize_message(data, TENSOR, backends={"warp": Backend()}, endpoint_info=object())
+        return bytes(data)
+
+    def no_sizing(*args):
+        raise AssertionError("the descriptor was sized again")
+
+    monkeypatch.setattr(_cdr, "_descriptor_size", no_sizing)
+    fast = round_trip()
+    monkeypatch.undo()
+    monkeypatch.setattr(codec, "fixed", None)  # the field-by-field path
+    assert round_trip() == fast
+    assert received == [desc.fields_of(sent)] * 2

@@ -180,7 +180,8 @@ def test_past_max_loans_a_loan_is_a_fresh_unpooled_message(domain, topic, backen
         held = []
         for _ in range(4):
             with pub.loan(_cpu_factory, max_loans=2) as msg:
-                held.append(msg)
+                held.append(msg.data)  # the loan's Buffer is a hold (the message object is not:
+                # it goes back to the pool at publish, as rclcpp's loaned messages do)
         assert pub.loan_stats() == {"created": 2, "reused": 0, "unpooled": 2, "pooled": 2}
 
 
@@ -653,3 +654,145 @@ def test_an_in_process_reader_keeping_a_warp_array_of_the_block_is_a_hold(
         values = [float(np.frombuffer(h.numpy()[:4].tobytes(), np.float32)[0]) for h in held]
         held.clear()
     assert values == [float(i) for i in range(6)]
+
+
+# --------------------------------------------------------------------------- pool keys (issue 24)
+def test_a_factory_written_inside_the_frame_loop_is_one_pool(domain, topic, backends):
+    """``pub.loan(lambda: ...)`` written in the frame loop made a new pool per frame (a new
+    function object each time) and pooled a new message in each, never freed: 300 frames grew
+    RSS by 1.2 GB. A factory is keyed by its call site (code and captured values)."""
+    with Node("loan_lambda", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        for frame in range(60):
+            with pub.loan(lambda: _cpu_factory()) as msg:
+                msg.data.numpy()[:] = frame
+            del msg
+        stats = pub.loan_stats()
+        assert stats["created"] <= 2 and stats["pooled"] <= 2, stats
+        assert stats["reused"] >= 58 and stats["unpooled"] == 0, stats
+        assert pub._loans.pools() == 1
+
+
+def test_pools_are_bounded_whatever_the_factory_keys(domain, topic, backends):
+    """Keys that differ every frame (a factory capturing the frame number) still bound the
+    pools, and with them the pooled messages (max_loans alone bounded one key's)."""
+    from buffer_pubsub import loan
+
+    MAX_POOLS = getattr(loan, "MAX_POOLS", 16)  # noqa: N806 - (the module's bound)
+    with Node("loan_keys", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        for frame in range(3 * MAX_POOLS):
+            with pub.loan(lambda frame=frame: _cpu_factory()):
+                pass
+        stats = pub.loan_stats()
+        assert stats["pooled"] <= MAX_POOLS < 3 * MAX_POOLS == stats["created"] + stats[
+            "unpooled"]
+        assert pub._loans.pools() <= MAX_POOLS
+
+
+def test_what_a_factory_makes_decides_its_pool():
+    import functools
+
+    from buffer_pubsub.loan import loan_key
+
+    def make(height, width, encoding="rgb8"):
+        return (height, width, encoding)
+
+    loop = [(lambda: make(720, 1280)) for _ in range(3)]
+    assert len({loan_key(f) for f in loop}) == 1  # one call site, the same values
+    sizes = [(lambda h=h: make(h, 1280)) for h in (480, 720)]
+    assert loan_key(sizes[0]) != loan_key(sizes[1])  # other values: another pool
+
+    def closure(h):
+        return lambda: make(h, 1280)
+
+    assert loan_key(closure(480)) == loan_key(closure(480)) != loan_key(closure(720))
+    assert loan_key(functools.partial(make, 1, 2)) == loan_key(functools.partial(make, 1, 2))
+    assert loan_key(functools.partial(make, 1, 2)) != loan_key(functools.partial(make, 1, 3))
+    array = np.zeros(3)  # unhashable captured values are compared by identity
+    same, other = [(lambda a=a: a) for a in (array, array)], (lambda a=np.zeros(3): a)
+    assert loan_key(same[0]) == loan_key(same[1]) != loan_key(other)
+
+    class Spec:
+        loan_key = ("mine", 1)
+
+        def __call__(self):
+            return None
+
+    assert loan_key(Spec()) == ("mine", 1)
+
+
+# --------------------------------------------------------------------------- image and cloud loans
+@pytest.mark.parametrize("framework", ["torch", "numpy"])
+def test_image_loans_are_pooled_and_reused_with_no_allocation(domain, topic, backends,
+                                                              framework):
+    """An Image loaned with allocate_image_msg's arguments is pooled like a tensor: the same
+    blocks and cached views go round (``unpooled`` was every loan)."""
+    module = tc if framework == "torch" else tn
+    got = []
+    with Node("loan_image", domain_id=domain, backends=backends) as node:
+        node.create_subscription("sensor_msgs/msg/Image", topic, lambda m: got.append(
+            (m.height, m.width, m.encoding, m.step,
+             int(tn.from_input_image_msg(m, clone=False)[-1, -1, -1]))),
+            depth=100, acceptable_buffer_backends="warp")
+        pub = node.create_publisher("sensor_msgs/msg/Image", topic)
+        assert pub.wait_for_subscriptions(1)
+        outputs = set()
+        before = None
+        for frame in range(30):
+            if frame == 4:
+                before = pool_stats()["cpu"]["created"]
+            with module.loan_image_msg(pub, 48, 64, "rgb8", device="cpu", step=200) as msg:
+                out = module.from_output_image_msg(msg)
+                assert tuple(out.shape) == (48, 64, 3)
+                out[...] = frame
+                outputs.add(id(out))
+            del out, msg
+            assert _wait(lambda: len(got) == frame + 1)
+        stats = pub.loan_stats()
+        after = pool_stats()["cpu"]["created"]
+    assert stats["unpooled"] == 0 and stats["reused"] >= 27 and stats["created"] <= 3, stats
+    assert after == before, "an image loan allocated in steady state"
+    assert len(outputs) <= stats["created"]  # each block's view is built once
+    assert got == [(48, 64, "rgb8", 200, frame) for frame in range(30)]
+
+
+def test_point_cloud_loans_are_pooled_and_their_points_written_in_place(domain, topic,
+                                                                       backends):
+    got = []
+    with Node("loan_cloud", domain_id=domain, backends=backends) as node:
+        node.create_subscription("sensor_msgs/msg/PointCloud2", topic, lambda m: got.append(
+            tn.from_input_pointcloud_msg(m, ("x", "y", "z")).copy()), depth=100,
+            acceptable_buffer_backends="warp")
+        pub = node.create_publisher("sensor_msgs/msg/PointCloud2", topic)
+        assert pub.wait_for_subscriptions(1)
+        for frame in range(12):
+            with tc.loan_pointcloud_msg(pub, 100, ("x", "y", "z", "intensity"), torch.float32,
+                                        device="cpu") as msg:
+                points = tc.from_output_pointcloud_msg(msg)
+                assert tuple(points.shape) == (100, 4)
+                points.fill_(float(frame))
+            del points, msg
+            assert _wait(lambda: len(got) == frame + 1)
+        stats = pub.loan_stats()
+    assert stats["unpooled"] == 0 and stats["reused"] >= 9, stats
+    assert [float(g[0, 0]) for g in got] == [float(f) for f in range(12)]
+    assert all(g.shape == (100, 3) for g in got)
+
+
+def test_allocate_pointcloud_msg_makes_packed_fields_of_one_dtype():
+    msg = tn.allocate_pointcloud_msg(5, ("x", "y", "z"), np.float32, height=2)
+    assert (msg.height, msg.width, msg.point_step, msg.row_step) == (2, 5, 12, 60)
+    assert [(f.name, f.offset, f.datatype, f.count) for f in msg.fields] == [
+        ("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1)]
+    tn.from_output_pointcloud_msg(msg)[:] = np.arange(30, dtype=np.float32).reshape(10, 3)
+    np.testing.assert_array_equal(tn.from_input_pointcloud_msg(msg, ("y",)),
+                                  np.arange(1, 30, 3, dtype=np.float32).reshape(10, 1))
+    from tensor_conversions.errors import InvalidTensorMetadataError, UnsupportedDTypeError
+
+    with pytest.raises(InvalidTensorMetadataError):
+        tn.allocate_pointcloud_msg(5, ("x", "x"), np.float32)
+    with pytest.raises(UnsupportedDTypeError):
+        tn.allocate_pointcloud_msg(5, ("x",), np.int64)
+    with pytest.raises(InvalidTensorMetadataError):
+        tn.from_output_pointcloud_msg(msg, ("x", "z"))  # not adjacent: no one strided view

@@ -500,3 +500,31 @@ def test_a_raw_subscription_gets_the_serialized_bytes(domain, topic, backends):
         assert wait_until(lambda: got)
     assert type(got[0]) is bytes and got[0] == bytes(serialize_message(frame))
     assert check_frame(deserialize_message(got[0], TENSOR))["index"] == 3
+
+
+def test_our_subscription_without_backends_does_not_move_everyone_to_the_base_key(
+        domain, topic, backends):
+    """A subscription of ours that accepts "any" where no backend is installed advertises none,
+    as rmw_zenoh's; it listens on its own stream, which our publishers know (it is ours): they
+    serve it there, and the others keep their streams. A foreign subscription without backends
+    (it listens on the base key only) moves everyone to the base key."""
+    with Node("nobackends_pub", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+
+        def remote_subscription(entity_id: int, ours: bool) -> wire.EndpointToken:
+            token = wire.EndpointToken(
+                domain_id=domain, zid="0" * 32, node_id=0, entity_id=entity_id,
+                kind=wire.SUBSCRIPTION_KIND, namespace="", node_name="remote", topic=topic,
+                type_name=TENSOR, type_hash=pub._token.type_hash, qos=wire.QoSProfile.of(10),
+                locality=wire.Locality("elsewhere", 1, 0) if ours else None)
+            with node._lock:
+                node._graph[token.gid] = token
+            pub._on_peer(token, True)
+            return token
+
+        ours = remote_subscription(1, ours=True)
+        assert [p.token for p in pub._remote.own] == [ours] and not pub._remote.base
+        (route,) = pub.routes()
+        assert route.via == "own stream (_buf/<gid>)"
+        remote_subscription(2, ours=False)
+        assert pub._remote.base

@@ -29,8 +29,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text(encoding="utf-8")
 DOCS = {p: p.read_text(encoding="utf-8") for p in sorted((ROOT / "docs").glob("*.md"))}
 #: Pages the README's placeholder sections point at, written by work in progress.
-PENDING_PAGES = {"docs/executors.md", "docs/examples.md",
-                 "docs/lease.md"}
+PENDING_PAGES: set[str] = set()
 MAX_README_WORDS = 2000
 BLOCK = re.compile(r"^```(\w+)[^\n]*\n(.*?)^```", re.S | re.M)
 ILLUSTRATIVE = "# illustrative"

@@ -226,7 +226,7 @@ for dtype, need in ((torch.complex128, 16), (torch.complex64, 8)):
         misaligned += address % need != 0
         for clone in (True, False):
             out = tt.from_input_tensor_msg(received, clone=clone)
-            assert out.data_ptr() % need == 0 and torch.equal(out.clone(), value), (dtype, n)
+            assert out.const_data_ptr() % need == 0 and torch.equal(out.clone(), value), (dtype, n)
             assert torch.equal((out * 2).sum(), (value * 2).sum())
 # a local message whose byte_offset puts complex128 off its alignment
 msg = tt.allocate_tensor_msg((4,), torch.complex128)
@@ -270,7 +270,7 @@ def test_torch_tensors_of_more_than_four_dimensions_round_trip(backend, dtype):
     alias = tt.from_input_tensor_msg(msg, clone=False)
     assert torch.equal(alias, value) and alias.shape == value.shape
     if backend == "cpu":  # zero-copy: the alias is the message's own bytes
-        assert alias.data_ptr() == msg.data._host_view().ctypes.data
+        assert alias.const_data_ptr() == msg.data._host_view().ctypes.data
     out = tt.allocate_tensor_msg(value.shape, dtype, backend=backend, device=device)
     view = tt.from_output_tensor_msg(out)
     view.copy_(value.permute(0, 1, 2, 3, 4))

@@ -274,7 +274,7 @@ def test_torch_view_of_warp_host_storage_is_zero_copy_and_typed_for_missing_dtyp
     msg = _filled("warp", "cpu", values)
     view = tt.from_input_tensor_msg(msg, clone=False)
     base, _ = _storage_span(msg)
-    assert view.data_ptr() == base and view.dtype == torch.float32
+    assert view.const_data_ptr() == base and view.dtype == torch.float32
     assert view.shape == (3, 4) and torch.equal(view, torch.from_numpy(values))
     assert False not in general_calls  # the fast path, not input_native
     del view

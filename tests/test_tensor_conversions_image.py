@@ -52,7 +52,7 @@ def _ptr(value) -> int:
     if isinstance(value, np.ndarray):
         return value.ctypes.data
     if isinstance(value, torch.Tensor):
-        return value.data_ptr()
+        return value.const_data_ptr()  # (read-only input views refuse data_ptr())
     return value.ptr
 
 

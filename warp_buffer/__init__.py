@@ -8,7 +8,9 @@ a Warp device (``cuda:N`` where a GPU exists, ``cpu`` otherwise; the default fol
   CUDA event (cpu work is synchronous);
 - :func:`to_buffer` copies any DLPack-capable source (wp.array, torch, NumPy) into a handle;
 - :mod:`warp_buffer.ipc` exports a buffer to a same-host process with zero payload copies (one
-  sealed memfd arena per process, CUDA IPC) and imports such exports.
+  sealed memfd arena per process, CUDA IPC) and imports such exports;
+- :mod:`warp_buffer.lease` is the lifetime of local memory: one owner per block, the
+  transitions of its write and publish, readers' tokens, and when a block is written again.
 
 Environment switches
 --------------------
@@ -31,7 +33,7 @@ Environment switches
 
 from __future__ import annotations
 
-from . import cuda, errors, ipc, kernels
+from . import cuda, errors, ipc, kernels, lease
 from .api import (
     ReadHandle,
     WriteHandle,
@@ -96,6 +98,7 @@ __all__ = [
     "from_output_buffer",
     "ipc",
     "kernels",
+    "lease",
     "pool_stats",
     "to_buffer",
     "trim_pools",

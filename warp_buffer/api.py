@@ -14,12 +14,13 @@ and a read::
 
 Handles release on ``with`` exit, on :meth:`release` and on garbage collection. Releasing a write
 handle records the write's completion (a CUDA event on its stream; cpu work is synchronous); a
-read handle orders its stream after that record.
+read handle orders its stream after that record. A read handle holds a reader's token of the
+buffer (:mod:`warp_buffer.lease`), and so does everything made from it (``array``, ``view()``,
+``host_array()``): the bytes stay as they were read until the last of them is gone.
 """
 
 from __future__ import annotations
 
-import ctypes
 import math
 import sys
 from collections.abc import Sequence
@@ -29,7 +30,7 @@ import numpy as np
 import warp as wp
 
 from rosidl_buffer import Buffer
-from rosidl_buffer.buffer_impl import CpuBufferImpl
+from rosidl_buffer.buffer_impl import CpuBufferImpl, array_at
 
 from . import cuda, kernels
 from .buffer_impl import WarpBufferImpl, wrap_bytes
@@ -131,6 +132,7 @@ class _Handle:
     """What both handles share: the storage as ``wp.array``, views, pointer and lifetime."""
 
     _kind = "handle"
+    _token: Any = None  # a read handle's token: what its arrays and views keep
 
     def __init__(self, buffer: Buffer, impl: WarpBufferImpl, stream: Any,
                  promoted: Buffer | None) -> None:
@@ -178,12 +180,14 @@ class _Handle:
         scalar = getattr(dtype, "_wp_scalar_type_", dtype)
         if base.ptr % wp.types.type_size_in_bytes(scalar):
             raise HandleError(f"the buffer's address is not aligned for {dtype}")
+        keep = base if self._token is None else (base, self._token)
         return wp.array(ptr=base.ptr, dtype=dtype, shape=shape, device=base.device,
-                        deleter=_KeepAlive(base))
+                        deleter=_KeepAlive(keep))
 
     def host_array(self) -> np.ndarray | None:
         """The bytes as a 1-D uint8 NumPy array over the host memory itself (no copy) that keeps
-        this handle, and so the storage, alive; None when the storage is device memory.
+        this handle, and so the storage and a read handle's token, alive; None when the storage
+        is device memory.
 
         What a host consumer (NumPy, or torch on cpu) needs, without a ``wp.array``: about 1 us
         against about 10 for :attr:`array`, per frame. Its flags say writable (legacy DLPack
@@ -194,9 +198,7 @@ class _Handle:
         host = impl._host
         if host is None:
             return None
-        raw = (ctypes.c_uint8 * host.size).from_address(impl._ptr or host.ctypes.data)
-        raw._keep = (self, host)  # type: ignore[attr-defined]  # the handle and the memory
-        return np.frombuffer(raw, dtype=np.uint8)
+        return array_at(impl._ptr or host.ctypes.data, host.size, self)
 
     @property
     def ptr(self) -> int:
@@ -231,6 +233,9 @@ class _Handle:
     def _on_release(self) -> None:
         pass
 
+    def _on_collect(self) -> None:
+        """What release does, from a finalizer: no lock taken (it may run anywhere)."""
+
     def __enter__(self) -> Any:
         return self
 
@@ -238,10 +243,11 @@ class _Handle:
         self.release()
 
     def __del__(self) -> None:
-        if sys.is_finalizing():
+        if sys.is_finalizing() or self._released:
             return
+        self._released = True
         try:
-            self.release()
+            self._on_collect()
         except Exception:  # pragma: no cover - interpreter shutdown
             pass
 
@@ -275,24 +281,51 @@ class WriteHandle(_Handle):
     def _on_release(self) -> None:
         self._impl._close_writer(self._state)
 
+    def _on_collect(self) -> None:
+        self._impl._lease.end_write_quietly(self._state)  # type: ignore[union-attr]
+
 
 class ReadHandle(_Handle):
     """Read access to a warp buffer, ordered after its writer. See :func:`from_input_buffer`.
 
-    Releasing it records the read's last use on its stream (CUDA): the buffer's block is not
-    reused, nor an import's hold dropped, before the reads queued so far completed."""
+    It holds a reader's token, and so do its ``array``, its views and its ``host_array()``:
+    the bytes are not rewritten (a loan re-armed) nor an import's hold dropped while any of
+    them lives. Releasing it records the read's last use on its stream (CUDA): the block is
+    not reused, nor an import's hold dropped, before the reads queued so far completed."""
 
     _kind = "read"
+    _arr: wp.array | None = None
 
     def __init__(self, buffer: Buffer, impl: WarpBufferImpl, stream: Any,
                  promoted: Buffer | None, explicit: Any = None) -> None:
         super().__init__(buffer, impl, stream, promoted)
         self._explicit = explicit  # the stream the user named (None: the current ones)
+        self._token = impl.reader_token()
+
+    @property
+    def array(self) -> wp.array:
+        """The buffer's bytes: a 1-D ``wp.array`` of uint8 on :attr:`device` (no copy), which
+        holds this handle's token."""
+        impl = self._usable()
+        lease = impl._lease
+        if lease is None or not lease.rearmable:
+            return impl._array  # the import's own array holds its token; a plain buffer's,
+        array = self._arr  # its lease
+        if array is None:
+            array = self._arr = wrap_bytes(impl._array.ptr, impl.size(), impl._device,
+                                           self._token)
+        return array
 
     def _on_release(self) -> None:
         impl = self._impl
         if not impl._device.is_cpu:
             impl._record_use(cuda.write_stream(impl._device, self._explicit))
+
+    def _on_collect(self) -> None:
+        impl = self._impl
+        if not impl._device.is_cpu:  # recorded without a lock (cuda.note_use)
+            cuda.note_use(impl._block if impl._block is not None else impl,
+                          cuda.write_stream(impl._device, self._explicit))
 
 
 def _require_buffer(buffer: Any) -> Buffer:

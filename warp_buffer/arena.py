@@ -18,10 +18,12 @@ File layout (little endian)::
                               starts there (0: none); checked by an importer under its lock
     [data_offset, file_size)  the blocks
 
-Holds: a reader takes a read lock on the first byte of a block (OFD lock, :mod:`warp_buffer.
-memory`); the publisher recycles a block only once its non-blocking write-lock probe on that byte
-succeeds, and clears the block's generation under that lock, so a late import of a recycled
-block finds another generation and raises :class:`~warp_buffer.errors.StaleBufferError`.
+Holds: a reader takes a read lock on a byte of a block's lock range, its first
+:data:`LOCK_SPAN` bytes in the file (OFD lock, :mod:`warp_buffer.memory`; each hold of a process
+its own byte, :mod:`warp_buffer.attach`); the publisher recycles a block only once its
+non-blocking write-lock probe on that range succeeds, and clears the block's generation under
+that lock, so a late import of a recycled block finds another generation and raises
+:class:`~warp_buffer.errors.StaleBufferError`.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ import threading
 import time
 from typing import Any
 
-import numpy as np
+from rosidl_buffer.buffer_impl import array_at
 
 from . import memory
 from ._env import env_float
@@ -55,12 +57,15 @@ __all__ = [
     "existing_arena",
     "arena_bytes",
     "alive",
-    "host_view",
 ]
 
 _log = logging.getLogger(__name__)
+_SETLK, _request = memory.F_OFD_SETLK, memory.lock_request
 
 MIN_BLOCK = 4096
+#: The bytes of a block's lock range (at the block's file offset; a CUDA block's is a range of
+#: its own): one per hold a reader process has on the block, so a hold ends with one unlock.
+LOCK_SPAN = MIN_BLOCK
 HEADER_PAGE = 4096
 MAX_PEERS = 1024
 SLOT_STRIDE = 64  # one cache line per peer: peers never share a line they write
@@ -166,12 +171,9 @@ class PeerSlot:
     # How many of the latest descriptors the peer can still import (its delivery queue, and a
     # few in hand); older ones it can never read: they pin nothing. 0: no limit.
     window: int = 0
+    # The numbers of the descriptors sent to it, handed out by the block's lease
+    # (warp_buffer.lease.Lease.export): ``next(numbers)`` is atomic under the GIL.
     numbers: Any = dataclasses.field(default_factory=lambda: itertools.count(1))
-
-    def next_sequence(self) -> int:
-        number = next(self.numbers)  # atomic under the GIL, unlike += on an attribute
-        self.issued = max(self.issued, number)
-        return self.epoch << SEQ_BITS | number
 
 
 class Arena:
@@ -200,7 +202,7 @@ class Arena:
             self.base + GENS_OFFSET)
         self.acks = (ctypes.c_uint64 * (MAX_PEERS * SLOT_STRIDE // 8)).from_address(
             self.base + ACKS_OFFSET)
-        self.host = host_view(self.base, size)
+        self.host = array_at(self.base, size)
         self._lock = threading.Lock()
         self._buddy = _Buddy(self.geometry.data_bytes)
         self._generations = itertools.count(1)
@@ -239,20 +241,24 @@ class Arena:
         """Start an export of the ``capacity``-byte block at ``offset``: a generation never used
         before, whose low bits hold log2(capacity) (see :func:`generation_fits`)."""
         generation = next(self._generations) << GENERATION_ORDER_BITS | capacity.bit_length() - 1
-        self.gens[self.geometry.gen_index(offset)] = generation
+        self.gens[(offset - self.data_offset) // MIN_BLOCK] = generation  # (gen_index, inline)
         return generation
 
     def try_retire(self, offset: int) -> bool:
-        """End the export of the block at ``offset`` if no reader holds it (write-lock probe);
-        later imports of it then find generation 0 and fail as stale."""
+        """End the export of the block at ``offset`` if no reader holds it (a write-lock probe
+        on its lock range); later imports of it then find generation 0 and fail as stale.
+        (memory.try_lock and unlock, inline: once per reuse of a block.)"""
+        fd = self.fd
         try:
-            memory.try_lock(self.fd, offset, exclusive=True)
-        except memory.LockBusy:
-            return False
+            fcntl.fcntl(fd, _SETLK, _request(fcntl.F_WRLCK, os.SEEK_SET, offset, LOCK_SPAN, 0))
+        except OSError as exc:
+            if exc.errno in memory.BUSY:
+                return False
+            raise
         try:
-            self.gens[self.geometry.gen_index(offset)] = 0
+            self.gens[(offset - self.data_offset) // MIN_BLOCK] = 0
         finally:
-            memory.unlock(self.fd, offset)
+            fcntl.fcntl(fd, _SETLK, _request(fcntl.F_UNLCK, os.SEEK_SET, offset, LOCK_SPAN, 0))
         return True
 
     # -- peers ------------------------------------------------------------------------------
@@ -330,11 +336,6 @@ def alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
-
-
-def host_view(address: int, nbytes: int) -> np.ndarray:
-    """A uint8 NumPy view of ``nbytes`` at ``address`` (no copy; slicing it is cheap)."""
-    return np.frombuffer((ctypes.c_uint8 * nbytes).from_address(address), dtype=np.uint8)
 
 
 _arena: Arena | None = None

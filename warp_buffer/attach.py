@@ -8,19 +8,23 @@ Its mapping keeps the memory alive: frames held or queued here stay readable aft
 exits or dies.
 
 Letting a session go only drops this module's reference: the mappings and the file description
-are released when the last object using them is gone (reference counts), so a NumPy view kept
-past ``release()`` keeps reading the bytes it was made over, never whatever a later mapping puts
-at that address, and an import racing the let-go still finds the arena mapped.
+are released when the last object using them is gone (a hold keeps its arena), so a NumPy view
+kept past ``release()`` keeps reading the bytes it was made over, never whatever a later mapping
+puts at that address, and an import racing the let-go still finds the arena mapped.
 
-A hold is a read lock (OFD, on the block's first byte) taken on this process's own open file
-description of the arena, counted per block so that several imports of one block in one process
-share one lock. The kernel drops the lock if the process dies.
+A hold (:class:`Hold`, an import's token) is a read lock (OFD) on one byte of the block's lock
+range (its first 4 KiB of the file: :data:`LOCK_SPAN`), taken on this process's own open file
+description of the arena; each hold of this process locks a byte of its own, so a hold ends by
+unlocking its byte, without counting the others and without a Python lock: its finalizer only
+makes that system call. The publisher's reclaim probe write-locks the whole range. The kernel
+drops the locks if the process dies.
 """
 
 from __future__ import annotations
 
-import collections
 import ctypes
+import fcntl
+import itertools
 import os
 import threading
 from typing import Any
@@ -31,6 +35,7 @@ from . import handoff, memory
 from .arena import (
     ACKS_OFFSET,
     GENS_OFFSET,
+    LOCK_SPAN,
     MAX_PEERS,
     SLOT_STRIDE,
     Arena,
@@ -40,7 +45,9 @@ from .arena import (
 )
 from .errors import ExportError, StaleBufferError
 
-__all__ = ["AttachedArena", "Hold", "attach", "attached_sessions", "forget_idle"]
+__all__ = ["AttachedArena", "Hold", "attach", "attached", "attached_sessions", "forget_idle"]
+
+_SETLK, _request = memory.F_OFD_SETLK, memory.lock_request
 
 
 class _DataMapping:
@@ -80,17 +87,19 @@ class AttachedArena:
         # ``owned``: the mappings are ours to unmap (False for our own arena, imported here)
         self._head = (base, geometry.data_offset) if owned else None
         self.data_offset = geometry.data_offset
+        self.data_base = data_base  # where file offset data_offset is mapped here
         self.gens = (ctypes.c_uint64 * (geometry.data_bytes // 4096)).from_address(
             base + GENS_OFFSET)
         self.acks = (ctypes.c_uint64 * (MAX_PEERS * SLOT_STRIDE // 8)).from_address(
             base + ACKS_OFFSET)
-        self._data_base = data_base
         # Views of imports are read-only slices of this array (their base): while one lives,
         # the data stays mapped (_DataMapping).
         self.data = np.asarray(_DataMapping(data_base, geometry.data_bytes, owned))
-        self._holds: dict[int, int] = {}
+        # (block offset, lock byte) of every hold alive here: a new hold takes a byte none of
+        # them has (taken under _lock; a hold's end removes its own, without a lock).
+        self._live: set[tuple[int, int]] = set()
+        self._keys = itertools.count()
         self._lock = threading.Lock()
-        self._deferred: collections.deque[int] = collections.deque()
 
     @classmethod
     def fetch(cls, owner_pid: int, session: int) -> AttachedArena:
@@ -126,70 +135,43 @@ class AttachedArena:
 
     def address(self, offset: int) -> int:
         """Address of file offset ``offset`` (in the data region) in this process."""
-        return self._data_base + (offset - self.data_offset)
-
-    def host_array(self, offset: int, nbytes: int) -> np.ndarray:
-        """A read-only NumPy view of ``nbytes`` at file offset ``offset`` (no copy)."""
-        rel = offset - self.data_offset
-        return self.data[rel:rel + nbytes]
+        return self.data_base + (offset - self.data_offset)
 
     # -- holds ------------------------------------------------------------------------------
-    def hold(self, offset: int, slot: int = -1, sequence: int = 0) -> None:
-        """Take (or share) this process's read lock on the block at ``offset``; raises
-        :class:`StaleBufferError` while the publisher is recycling it. With a peer ``slot``,
-        then record that this process imported delivery ``sequence`` of that peer (also when the
-        lock fails: the descriptor was consumed either way). The lock comes first: once the
-        publisher sees the acknowledgement, its write-lock probe meets our lock."""
+    def hold(self, offset: int, slot: int = -1, sequence: int = 0) -> Hold:
+        """Take a read lock on a byte of the block at ``offset`` of its own and return the hold;
+        raises :class:`StaleBufferError` while the publisher is recycling the block. With a
+        peer ``slot``, then record that this process imported delivery ``sequence`` of that peer
+        (also when the lock fails: the descriptor was consumed either way). The lock comes
+        first: once the publisher sees the acknowledgement, its write-lock probe meets it."""
+        live = self._live
         with self._lock:
-            self._flush_deferred()
             try:
-                count = self._holds.get(offset, 0)
-                if count == 0:
-                    try:
-                        memory.try_lock(self.fd, offset, exclusive=False)
-                    except memory.LockBusy:
-                        raise StaleBufferError(f"block {offset:#x} of process {self.owner_pid} "
-                                               "is being recycled") from None
-                self._holds[offset] = count + 1
+                key = next(self._keys) % LOCK_SPAN
+                while (offset, key) in live:  # (only when LOCK_SPAN holds of one block live here)
+                    key = next(self._keys) % LOCK_SPAN
+                try:  # (memory.try_lock, inline: once per import)
+                    fcntl.fcntl(self.fd, _SETLK, _request(fcntl.F_RDLCK, os.SEEK_SET,
+                                                          offset + key, 1, 0))
+                except OSError as exc:
+                    if exc.errno not in memory.BUSY:
+                        raise
+                    raise StaleBufferError(f"block {offset:#x} of process {self.owner_pid} "
+                                           "is being recycled") from None
+                live.add((offset, key))
             finally:
                 if slot >= 0:
                     index = slot * (SLOT_STRIDE // 8)
                     if self.acks[index] < sequence:
                         self.acks[index] = sequence
-
-    def drop(self, offset: int) -> None:
-        """Give one hold back (the lock goes with the last one). Safe from a finalizer: if the
-        lock is busy (another thread, or a collection inside our own critical section) the drop
-        is queued and done by the next hold or drop."""
-        if not self._lock.acquire(blocking=False):
-            self._deferred.append(offset)
-            return
-        try:
-            self._drop(offset)
-            self._flush_deferred()
-        finally:
-            self._lock.release()
-
-    def _flush_deferred(self) -> None:
-        while self._deferred:
-            self._drop(self._deferred.popleft())
-
-    def _drop(self, offset: int) -> None:
-        count = self._holds.get(offset, 0)
-        if count <= 1:
-            self._holds.pop(offset, None)
-            # Not in a forked child (the lock is its parent's too), nor on a closed description
-            # (its locks went with it; the number may be another file's now).
-            if count == 1 and self.fd >= 0 and self._pid == os.getpid():
-                memory.unlock(self.fd, offset)
-        else:
-            self._holds[offset] = count - 1
+        hold = _new_hold(Hold)  # (Hold's __init__, inline: once per import)
+        hold.arena, hold.offset, hold._key = self, offset, [key]
+        return hold
 
     @property
     def held(self) -> int:
-        with self._lock:
-            self._flush_deferred()
-            return len(self._holds)
+        """Holds alive in this process."""
+        return len(self._live)
 
     def take_own_locks(self) -> None:
         """In a forked child: move this process's holds onto a description of its own. The
@@ -205,9 +187,9 @@ class AttachedArena:
             fd = memory.reopen(inherited)
         except OSError:
             return  # out of fds: the shared description stays (the parent's locks cover us)
-        for offset in list(self._holds):
+        for offset, key in list(self._live):
             try:
-                memory.try_lock(fd, offset, exclusive=False)
+                memory.try_lock(fd, offset + key, exclusive=False)
             except OSError:  # pragma: no cover - a read lock beside the parent's never conflicts
                 pass
         self.fd, self._pid = fd, os.getpid()
@@ -226,32 +208,53 @@ class AttachedArena:
 
 
 class Hold:
-    """One import's hold on a block: released by :meth:`release`, as the deleter of the array
-    over the block, or when collected, whichever comes first."""
+    """An import's token: its read lock on one byte of the block (see the module docstring).
+    It keeps its arena (its mappings and description) alive, and ends when it is collected
+    (everything made of the import is gone) or released (:meth:`release`), whichever comes
+    first."""
 
-    __slots__ = ("arena", "offset", "live", "__weakref__")
+    __slots__ = ("arena", "offset", "_key", "__weakref__")
 
-    def __init__(self, arena: AttachedArena, offset: int) -> None:
+    def __init__(self, arena: AttachedArena, offset: int, key: int = 0) -> None:
         self.arena = arena
         self.offset = offset
-        self.live = True
+        self._key = [key]  # emptied by the one release that ends the hold (list.pop is atomic)
 
-    def release(self, *_args: Any) -> None:
-        if self.live:
-            self.live = False
-            self.arena.drop(self.offset)
+    @property
+    def live(self) -> bool:
+        return bool(self._key)
 
-    __call__ = release  # as a wp.array deleter: (ptr, size)
-
-    def __del__(self) -> None:
+    def release(self) -> None:
+        """End the hold now (idempotent): one unlock, no Python lock (it is also the token's
+        finalizer). Not in a forked child that kept its parent's description, nor on a closed
+        one (its locks went with it; the number may be another file's now). The byte is free
+        for a new hold of this process only after the unlock. Whatever still uses the import's
+        memory then reads bytes the publisher may recycle: drop the token instead if you can."""
         try:
-            self.release()
-        except Exception:  # pragma: no cover - interpreter shutdown
+            key = self._key.pop()
+        except IndexError:
+            return
+        arena = self.arena
+        fd, offset = arena.fd, self.offset
+        try:
+            if fd >= 0 and arena._pid == os.getpid():  # (memory.unlock, inline)
+                fcntl.fcntl(fd, _SETLK, _request(fcntl.F_UNLCK, os.SEEK_SET, offset + key, 1, 0))
+        except Exception:  # pragma: no cover - interpreter shutdown: nothing left to unlock
             pass
+        finally:
+            arena._live.discard((offset, key))
+
+    def __call__(self, ptr: int = 0, size: int = 0) -> None:
+        """As the ``deleter`` of an array over the import: it only keeps the hold alive."""
+
+    __del__ = release  # every import ends here: the token is gone
 
 
+_new_hold = object.__new__
 _sessions: dict[tuple[int, int], AttachedArena] = {}
 _sessions_lock = threading.Lock()
+#: The arena of a session attached already (None otherwise): one dict lookup per import.
+attached = _sessions.get
 
 
 def attach(owner_pid: int, session: int) -> AttachedArena:
@@ -274,12 +277,13 @@ def attach(owner_pid: int, session: int) -> AttachedArena:
 
 
 def forget_idle() -> int:
-    """Let go of sessions whose owner is gone and of which nothing is held here; returns how
-    many (called when a new session is attached, so the address space stays bounded). Each is
-    unmapped once nothing of this process uses it any more (see the module docstring)."""
+    """Let go of sessions whose owner is gone; returns how many (called when a new session is
+    attached, so the address space stays bounded). Each is unmapped once nothing of this
+    process uses it any more (its holds keep it: see the module docstring); a descriptor of a
+    session let go is refused as stale."""
     dropped = 0
     for key, arena in list(_sessions.items()):
-        if arena.held == 0 and not alive(arena.owner_pid):
+        if not alive(arena.owner_pid):
             _sessions.pop(key, None)
             del arena
             dropped += 1

@@ -1,36 +1,40 @@
 """``WarpBufferImpl``: a ``rosidl_buffer`` storage impl whose bytes are a Warp array.
 
-The storage is a 1-D ``wp.array`` of uint8 on a Warp device, over a block leased from the
-device's pool (:mod:`warp_buffer.pool`) or over memory imported from another process
-(:mod:`warp_buffer.ipc`). The lease (or the import's hold) is owned by the impl and is the
-``deleter`` of its array, so the memory is recycled, or the hold dropped, exactly when the impl
-and the last array over it, views and DLPack consumers included, are gone;
-:meth:`WarpBufferImpl.release` drops an import's hold at once. On cpu the ``wp.array`` is made
-lazily (on first use), so allocating and importing cost no Warp call, and host copies
-(``to_cpu``, ``clone``, ``to_buffer``) are plain NumPy copies at memory speed.
+The storage is a 1-D ``wp.array`` of uint8 on a Warp device, over local memory or over memory
+imported from another process (:mod:`warp_buffer.ipc`).
 
-Write ordering lives here too. A buffer takes one write handle, ever; its write ends when the
-handle is released, or the buffer is sealed (published) or read while the handle is still open.
-On CUDA the end of the write is an event recorded on the writer's stream; on the cpu device Warp
-kernels are synchronous, so the write is complete when the handle is released and nothing needs
-recording.
+- Local memory (a block of the device's pool, :mod:`warp_buffer.pool`, or a cpu clone's private
+  memory) has one owner, this impl, and a :class:`~warp_buffer.lease.Lease` that holds its
+  state: the one write handle, the seal at publish, the readers' tokens, the return of the block
+  to the pool once the lease is gone (impl, arrays and tokens alike).
+- An import holds a token of the publisher's block (:class:`warp_buffer.attach.Hold`: a read
+  lock in the publisher's arena): the impl's own token, which :meth:`WarpBufferImpl.release`
+  drops; arrays and views made of the import hold it too, so what they read stays valid until
+  they are gone.
+
+On cpu the ``wp.array`` is made lazily (on first use), so allocating and importing cost no Warp
+call, and host copies (``to_cpu``, ``clone``, ``to_buffer``) are plain NumPy copies at memory
+speed. Write ordering: a buffer takes one write handle, ever; its write ends when the handle is
+released, or the buffer is sealed (published) or read while the handle is still open. On CUDA
+the end of the write is an event recorded on the writer's stream; on the cpu device Warp kernels
+are synchronous, so the write is complete when the handle is released and nothing is recorded.
 """
 
 from __future__ import annotations
 
-import threading
 from typing import Any
 
 import numpy as np
 import warp as wp
 
-from rosidl_buffer.buffer_impl import BufferImplBase, CpuBufferImpl
+from rosidl_buffer.buffer_impl import BufferImplBase, CpuBufferImpl, array_at
 
 from . import cuda, kernels
 from .errors import DeviceUnavailableError, EmptyBufferError, HandleReleasedError, WriteHandleError
+from .lease import PUBLISHED, READ, Lease, WriteState
 from .pool import get_pool, ipc_disabled
 
-__all__ = ["WARP_BACKEND", "WarpBufferImpl", "WriteState", "resolve_device"]
+__all__ = ["WARP_BACKEND", "WarpBufferImpl", "WriteState", "resolve_device", "wrap_bytes"]
 
 WARP_BACKEND = "warp"
 _new_impl = object.__new__
@@ -48,8 +52,8 @@ def resolve_device(device: Any = None) -> Any:
 
 
 def wrap_bytes(ptr: int, nbytes: int, device: Any, owner: Any) -> wp.array:
-    """A 1-D uint8 ``wp.array`` over ``nbytes`` at ``ptr``; ``owner(ptr, size)`` runs when the
-    array (and every view of it) is collected, and keeps ``owner`` alive until then."""
+    """A 1-D uint8 ``wp.array`` over ``nbytes`` at ``ptr`` that keeps ``owner`` alive (its
+    ``deleter``: called with ``(ptr, size)`` when the array and every view of it are gone)."""
     return wp.array(ptr=ptr, dtype=wp.uint8, shape=(nbytes,), device=device, deleter=owner)
 
 
@@ -66,28 +70,7 @@ class _HostKeep:
         self.base = None
 
 
-class _LazyLock:
-    """The impl's ``_lock``, made on first use (an impl that is never exported, written through a
-    handle or re-read, a cpu clone, never needs one). ``dict.setdefault`` is atomic, so two
-    threads racing for the first use get the same lock."""
-
-    def __get__(self, impl: Any, owner: Any = None) -> Any:
-        if impl is None:
-            return self
-        return impl.__dict__.setdefault("_lock", threading.RLock())
-
-
-class WriteState:
-    """The state of one buffer's (only) write, shared by the impl and its write handle."""
-
-    __slots__ = ("stream", "sealed")
-
-    def __init__(self, stream: Any) -> None:
-        # The CUDA stream the user named for the writes, None for "the current one" (resolved
-        # when the write completes: Warp's current stream joined with torch's, see
-        # cuda.write_stream); always None on cpu.
-        self.stream = stream
-        self.sealed: str | None = None  # why writes ended early: "published" or "read"
+_RELEASED = "this buffer was released; its memory is no longer accessible through it"
 
 
 class WarpBufferImpl(BufferImplBase):
@@ -100,92 +83,109 @@ class WarpBufferImpl(BufferImplBase):
 
     # State every impl starts with, as class attributes: an import builds no more than it needs
     # (an instance attribute shadows one when it changes).
-    _event: Any = None  # CUDA event recorded when the last write completed
-    _writer: WriteState | None = None  # the open write, if any
-    _write_opened = False
-    _published = False
-    _read = False
+    _lease: Lease | None = None  # local memory's lease; None for an import
+    _import_event: Any = None  # an import's CUDA event (the publisher's write completion)
+    _read = False  # an import was read (local memory: its lease knows)
+    _import_published = False  # an import was published again (from a local copy)
     _released = False
     _staging: Any = None  # host staging copy for CUDA exports
     cuda_uses: Any = None  # an import's readers' last-use events (cuda.BlockUses), CUDA only
-    # Storage a private cpu clone does not have (set per instance by __init__ otherwise).
     _arr: wp.array | None = None
-    _owner: Any = None
+    _owner: Any = None  # what the lazy array keeps alive: the lease, an import's hold, a clone's
     _ptr = 0  # 0: a private clone's, read from its NumPy array when first needed
     _block: Any = None
     _import: Any = None
-    _hold: Any = None
-    _lock = _LazyLock()  # an instance attribute once made
+    _hold: Any = None  # an import's token (its hold on the publisher's block)
     _reexport: WarpBufferImpl | None = None  # local copy of an import, to re-publish
 
     def __init__(self, array: wp.array | None, device: Any, *, block: Any = None,
                  imported: Any = None, hold: Any = None, ptr: int = 0, size: int = 0,
                  host: np.ndarray | None = None, owner: Any = None) -> None:
-        self._arr = array
-        self._owner = owner if owner is not None else hold  # deleter of the lazy array
+        if array is not None:
+            self._arr = array
         self._device = device
         self._ptr = array.ptr if array is not None else ptr
         self._size = array.shape[0] if array is not None else size
         self._block = block  # the leased pool block, None for imports
         self._import = imported  # the descriptor this buffer was imported from
-        self._hold = hold  # an import's hold on the publisher's block
+        self._hold = hold
         self._host = host  # NumPy view of host storage, for plain host copies
+        if imported is None:
+            lease = owner if type(owner) is Lease else Lease(None, block, device)
+            self._lease = lease
+            self._owner = owner if owner is not None else lease
+        else:
+            self._owner = owner if owner is not None else hold
 
     @classmethod
-    def allocate(cls, nbytes: int, device: Any = None) -> WarpBufferImpl:
-        """A new impl of ``nbytes`` (uninitialised) from the pool of ``device``."""
+    def allocate(cls, nbytes: int, device: Any = None, rearmable: bool = False
+                 ) -> WarpBufferImpl:
+        """A new impl of ``nbytes`` (uninitialised) from the pool of ``device``; ``rearmable``:
+        its lease can be written again after a publish (a loan)."""
         if nbytes <= 0:
             raise EmptyBufferError(f"a warp buffer holds at least one byte, not {nbytes}")
         device = resolve_device(device)
-        lease = get_pool(device).acquire(nbytes)  # validates the size first
+        lease = get_pool(device).acquire(nbytes, rearmable)  # validates the size first
         block = lease.block
         host = block.host
         if host is None:  # CUDA: the array now (its users are Warp calls anyway)
-            return cls(wrap_bytes(block.data_ptr, nbytes, device, lease), device, block=block)
-        # cpu: the wp.array is made on first use; the lease returns the block when both this
-        # impl and that array are gone.
+            return cls(wrap_bytes(block.data_ptr, nbytes, device, lease), device, block=block,
+                       owner=lease)
+        # cpu: the wp.array is made on first use; the block goes back when this impl, that
+        # array and every reader's token are gone (the lease is collected).
         return cls(None, device, block=block, ptr=block.data_ptr, size=nbytes,
                    host=host[:nbytes], owner=lease)
 
     @classmethod
     def imported(cls, ptr: int, size: int, device: Any, hold: Any, descriptor: Any,
                  host: np.ndarray | None) -> WarpBufferImpl:
-        """An impl over imported memory; its ``wp.array`` is made on first use."""
-        return cls(None, device, imported=descriptor, hold=hold, ptr=ptr, size=size, host=host)
+        """An impl over imported memory holding ``hold``; its ``wp.array`` is made on first
+        use. ``host`` (host memory) must keep ``hold`` in its base chain (see
+        :func:`rosidl_buffer.buffer_impl.array_at`): views of it are the import's readers."""
+        impl = _new_impl(cls)
+        impl._device = device
+        impl._ptr, impl._size = ptr, size
+        impl._import, impl._hold, impl._owner, impl._host = descriptor, hold, hold, host
+        return impl
 
     def _adopt_block(self) -> bool:
         """Move private host storage (a clone's) into a pool block, so it can be exported
-        without a further copy to each peer: one copy, on the first export only. Call with the
-        lock held, once the write ended (the bytes no longer change). Arrays already made over
-        the private memory keep it alive and still read the same bytes. False when the pool
-        gives private memory too (IPC disabled, no arena room)."""
-        if self._block is not None or self._import is not None or not self._device.is_cpu:
+        without a further copy to each peer: one copy, on the first export only. Call once the
+        write ended (the bytes no longer change). Arrays already made over the private memory
+        keep it alive and still read the same bytes. False when the pool gives private memory
+        too (IPC disabled, no arena room)."""
+        lease = self._lease
+        if self._block is not None or lease is None or not self._device.is_cpu:
             return self._block is not None and self._block.shared
-        lease = get_pool(self._device).acquire(self._size)
-        block = lease.block
+        acquired = get_pool(self._device).acquire(self._size)
+        block = acquired.block
         if not block.shared:
             return False  # the lease goes back with this frame
         host = block.host[:self._size]
         np.copyto(host, self._host)
+        # One lease for this owner: the new block joins it (the acquired one gives up its own).
+        lease.adopt(block, acquired.pool)
+        acquired.pool = None
         self._block, self._owner, self._host = block, lease, host
         self._ptr, self._arr = block.data_ptr, None
         return True
 
     @property
     def _array(self) -> wp.array:
-        if self._released:
-            raise HandleReleasedError("this buffer was released; its memory is no longer "
-                                      "accessible through it")
         array = self._arr
         if array is None:
-            with self._lock:
-                if self._arr is None:
-                    owner, ptr = self._owner, self._ptr
-                    if owner is None and self._block is None and self._import is None:
-                        owner = _HostKeep(self._host)  # a private clone's memory
-                        ptr = self._ptr = self._host.ctypes.data
-                    self._arr = wrap_bytes(ptr, self._size, self._device, owner)
-                array = self._arr
+            if self._released:
+                raise HandleReleasedError(_RELEASED)
+            owner, ptr = self._owner, self._ptr
+            if self._block is None and self._import is None:
+                if owner is self._lease:  # a private clone's memory: the array keeps it
+                    owner = self._owner = _HostKeep(self._host)
+                ptr = self._ptr = self._host.ctypes.data
+            array = wrap_bytes(ptr, self._size, self._device, owner)
+            if self._arr is None:  # (two threads may both build one: either is valid)
+                self._arr = array
+        elif self._released:
+            raise HandleReleasedError(_RELEASED)
         return array
 
     # -- BufferImplBase ------------------------------------------------------------------------
@@ -197,8 +197,7 @@ class WarpBufferImpl(BufferImplBase):
 
     def _check_live(self) -> None:
         if self._released:
-            raise HandleReleasedError("this buffer was released; its memory is no longer "
-                                      "accessible through it")
+            raise HandleReleasedError(_RELEASED)
 
     def to_cpu(self) -> CpuBufferImpl:
         """A CPU copy: a plain host copy on the cpu device (memory speed), a device-to-host copy
@@ -227,10 +226,11 @@ class WarpBufferImpl(BufferImplBase):
         first export (one more copy then, none per peer)."""
         host = self._host
         if host is not None and not self._released:
-            impl = _new_impl(WarpBufferImpl)  # no pool call, no lock: class defaults
-            impl._device = self._device
+            impl = _new_impl(WarpBufferImpl)  # no pool call: class defaults, a private lease
+            impl._device = device = self._device
             impl._size = self._size
             impl._host = host.copy()
+            impl._lease = impl._owner = Lease(None, None, device)
             return impl
         return self._clone_pooled()
 
@@ -249,29 +249,69 @@ class WarpBufferImpl(BufferImplBase):
         return other
 
     def seal(self) -> None:
-        """End the write now (the transport calls it on every publish route): an open write
-        handle is closed and its completion recorded; no write afterwards."""
-        if self._sealed_host():
-            return  # sealed already (every route seals; the first one did the work)
-        self._mark_published()
-
-    def _sealed_host(self) -> bool:
-        """Host memory already published with no writer: sealing again would change nothing
-        (read without the lock: no write handle opens once published)."""
-        return self._published and self._writer is None and self._host is not None
+        """End the write now: the lease's one transition to PUBLISHED (the transport calls it
+        once per publish): an open write handle is closed and its completion recorded; no write
+        afterwards. An import is read-only already: nothing to do."""
+        lease = self._lease
+        if lease is not None:
+            lease.seal()
 
     def release(self) -> None:
-        """Drop an import's hold on the publisher's block now (idempotent); the imported buffer
-        is unusable afterwards (:class:`HandleReleasedError`). A local buffer holds nothing to
-        give back early (its memory returns to the pool when it and its views are collected,
-        and an intra-process message shares it with its publisher): a no-op."""
-        hold = self._hold
-        if hold is None:
+        """Drop this buffer's own token (idempotent): an import's hold on the publisher's block
+        ends once no array or view made of it holds the token any more; the buffer is unusable
+        afterwards (:class:`HandleReleasedError`). A local buffer holds no token of its own to
+        give back early (its memory returns to the pool when it, its arrays and its readers'
+        tokens are gone, and an intra-process message shares it with its publisher): a no-op."""
+        if self._import is None:
             return
         self._released = True  # a plain store: later accesses check it
-        hold.release()  # CUDA imports: stream-ordered (ipc._CudaHold)
+        # Our references go; what views of the import keep stays theirs.
+        self._hold = self._owner = self._arr = self._host = None
+
+    def reader_host(self) -> np.ndarray | None:
+        """The bytes as a 1-D uint8 NumPy array over host memory (no copy) that holds a
+        reader's token, for a consumer that only reads; None for device memory. Ends the write
+        (a reader took the buffer): the fast path of a host reader, one call.
+
+        Its flags say writable (legacy DLPack cannot carry read-only): an import's memory is
+        mapped read-only, a published buffer's is not to be written."""
+        host = self._host
+        if host is None:
+            if self._released:
+                raise HandleReleasedError(_RELEASED)
+            return None
+        lease = self._lease
+        if lease is None:  # an import: its host view holds the import's token already
+            self._read = True
+            return host
+        if lease.state < READ or lease.writer is not None:
+            lease.mark_read()
+        # The token keeps the lease, and so the block, for as long as the view lives.
+        return array_at(self._ptr or host.ctypes.data, self._size, lease.hold())
+
+    def reader_token(self) -> Any:
+        """A reader's token (keep it while anything made over the bytes lives): the lease's
+        (:meth:`warp_buffer.lease.Lease.hold`), or an import's own hold."""
+        lease = self._lease
+        return self._hold if lease is None else lease.hold()
+
+    def owner_view(self) -> Any:
+        """The owner's own view of the bytes, for a loan's cached writable views (the owner
+        writes without a handle): host memory as a 1-D uint8 NumPy array that keeps this impl
+        (and so its lease and block) alive, device memory as this impl's ``wp.array``. Not a
+        reader's token: it does not keep a published loan from its next loan."""
+        host = self._host
+        if host is not None:
+            return array_at(self._ptr or host.ctypes.data, self._size, self)
+        return self._array
 
     # -- public properties ---------------------------------------------------------------------
+    @property
+    def lease(self) -> Lease | None:
+        """The lease of local memory (its write, its seal, its readers' tokens); None for an
+        import (whose token is its hold on the publisher's block)."""
+        return self._lease
+
     @property
     def array(self) -> wp.array:
         """The storage: a 1-D ``wp.array`` of uint8, ``size()`` long (no synchronisation)."""
@@ -289,11 +329,13 @@ class WarpBufferImpl(BufferImplBase):
 
     @property
     def is_published(self) -> bool:
-        return self._published
+        lease = self._lease
+        return lease.state == PUBLISHED if lease is not None else self._import_published
 
     @property
     def is_read(self) -> bool:
-        return self._read
+        lease = self._lease
+        return lease.state >= READ if lease is not None else self._read
 
     @property
     def is_released(self) -> bool:
@@ -302,13 +344,12 @@ class WarpBufferImpl(BufferImplBase):
     @property
     def is_exportable(self) -> bool:
         """Can this buffer be shared with a same-host process without a CPU copy?"""
+        block = self._block
+        if block is not None:
+            return bool(block.shared)  # (a CUDA block: an IPC handle or a host staging block)
         if self._import is not None:
             return True  # through a local copy
-        if self._device.is_cpu:
-            if self._block is None:  # a private clone: moves into the arena on export
-                return not ipc_disabled()
-            return bool(self._block.shared)
-        return True  # CUDA: an IPC handle or a host staging block
+        return not ipc_disabled()  # a private clone: moves into the arena on export
 
     def __repr__(self) -> str:
         origin = "imported" if self._import is not None else "local"
@@ -316,78 +357,64 @@ class WarpBufferImpl(BufferImplBase):
         return f"WarpBufferImpl(size={self.size()}, device={self.device!r}, {origin}{state})"
 
     # -- write / read ordering (used by the handles and the IPC layer) --------------------------
+    @property
+    def _event(self) -> Any:
+        """The CUDA event recorded when the write completed (an import's: the publisher's)."""
+        lease = self._lease
+        return self._import_event if lease is None else lease.event
+
+    @_event.setter
+    def _event(self, event: Any) -> None:
+        lease = self._lease
+        if lease is None:
+            self._import_event = event
+        else:
+            lease.event = event
+
     def _open_writer(self, stream: Any) -> WriteState:
-        with self._lock:
-            self._check_live()
-            if self._import is not None:
-                raise WriteHandleError(
-                    "this buffer was imported from another process and is read-only; "
-                    "clone() it for a writable copy"
-                )
-            if self._published:
-                raise WriteHandleError("this buffer was published; it can no longer be written")
-            if self._read:
-                raise WriteHandleError("this buffer was read; it can no longer be written")
-            if self._write_opened:
-                raise WriteHandleError("a buffer accepts one write handle, ever")
-            self._write_opened = True
-            self._writer = WriteState(stream)
-            return self._writer
+        self._check_live()
+        lease = self._lease
+        if lease is None:
+            raise WriteHandleError("this buffer was imported from another process and is "
+                                   "read-only; clone() it for a writable copy")
+        return lease.open_write(stream)
 
     def _close_writer(self, state: WriteState) -> None:
-        with self._lock:
-            if self._writer is state:
-                self._writer = None
-                self._complete_write(state.stream)
-
-    def _seal(self, reason: str) -> None:
-        """End an open write now (publish or read): record its completion; later accesses
-        through the write handle raise."""
-        with self._lock:
-            writer, self._writer = self._writer, None
-            if writer is not None:
-                writer.sealed = reason
-                self._complete_write(writer.stream)
+        self._lease.close_write(state)  # type: ignore[union-attr]
 
     def _mark_published(self) -> None:
-        with self._lock:
-            self._seal("published")
-            self._published = True
+        """Sealed by a publish: the lease's transition; an import is only marked (a re-export
+        publishes a local copy)."""
+        lease = self._lease
+        if lease is None:
+            self._import_published = True
+        else:
+            lease.seal()
 
     def _mark_read(self) -> None:
-        if self._import is not None:  # read-only from birth: no writer to seal, no lock needed
-            self._check_live()
+        self._check_live()
+        lease = self._lease
+        if lease is None:  # read-only from birth: no writer to seal
             self._read = True
-            return
-        with self._lock:
-            self._check_live()
-            self._seal("read")
-            self._read = True
+        else:
+            lease.mark_read()
 
     def _complete_write(self, stream: Any) -> None:
-        """Record that every write enqueued so far has completed (CUDA: an event on the stream
-        the write ran on: ``stream``, or for None Warp's current stream joined with torch's;
-        cpu kernels are synchronous, so there is nothing to record). The block's one event is
+        """Record that every write enqueued so far on ``stream`` completed (CUDA; None: Warp's
+        current stream joined with torch's; cpu work is synchronous). The block's one event is
         re-recorded per write."""
-        if self._device.is_cpu:
-            return
-        stream = cuda.write_stream(self._device, stream)
-        event = self._block.event if self._block is not None else wp.Event(self._device)
-        stream.record_event(event)
-        self._event = event
+        if not self._device.is_cpu:
+            self._lease.complete_write(stream)  # type: ignore[union-attr]
 
     def _wait_for_writer(self, stream: Any) -> None:
         """Order work on ``stream`` (CUDA) after the writer's; nothing to wait for on cpu."""
         if self._device.is_cpu:
             return
-        with self._lock:
-            writer = self._writer
-            if writer is not None:
-                writes = cuda.write_stream(self._device, writer.stream)
-                if writes.cuda_stream != stream.cuda_stream:
-                    stream.wait_stream(writes)
-            elif self._event is not None:
-                stream.wait_event(self._event)
+        lease = self._lease
+        if lease is not None:
+            lease.order_after_write(stream)
+        elif self._import_event is not None:
+            stream.wait_event(self._import_event)
 
     def _record_use(self, stream: Any) -> None:
         """Work on ``stream`` read this buffer (a read handle's release, a clone's or staging

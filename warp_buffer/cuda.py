@@ -52,7 +52,9 @@ from __future__ import annotations
 
 import collections
 import ctypes
+import itertools
 import logging
+import os
 import sys
 import threading
 import time
@@ -444,29 +446,45 @@ class BlockUses:
     (default ``wp.Event``) and the stream objects are duck-typed: tests use fakes.
     """
 
-    __slots__ = ("_events", "_factory", "_lock")
+    __slots__ = ("_events", "_factory", "_lock", "_noted")
 
     def __init__(self, event_factory: Callable[[Any], Any] = _new_event) -> None:
         self._events: dict[Any, Any] = {}  # stream key -> event
         self._factory = event_factory
         self._lock = threading.Lock()
+        # (stream key, event) recorded by note() without the lock, merged under it
+        self._noted: collections.deque[tuple[Any, Any]] = collections.deque()
 
     @staticmethod
     def _key(stream: Any) -> Any:
         return (id(stream.device), int(stream.cuda_stream or 0))
+
+    def _merge(self) -> None:  # under the lock: a noted use supersedes an earlier one
+        noted = self._noted
+        while noted:
+            key, event = noted.popleft()
+            self._events[key] = event
 
     def record_use(self, stream: Any) -> None:
         if stream is None:
             return  # cpu work is synchronous: done when it returned
         key = self._key(stream)
         with self._lock:
+            self._merge()
             event = self._events.get(key)
             if event is None:
                 event = self._events[key] = self._factory(stream.device)
             stream.record_event(event)
 
+    def note(self, stream: Any) -> None:
+        """:meth:`record_use` from a finalizer (a read handle collected): a new event recorded
+        now, handed over through a lock-free queue."""
+        if stream is not None:
+            self._noted.append((self._key(stream), stream.record_event()))
+
     def ready_for_reuse(self) -> bool:
         with self._lock:
+            self._merge()
             done = [key for key, event in self._events.items() if event.is_complete]
             for key in done:
                 del self._events[key]
@@ -475,12 +493,14 @@ class BlockUses:
     def order_after(self, stream: Any) -> None:
         """Make ``stream``'s later work wait for every recorded use (device-side)."""
         with self._lock:
+            self._merge()
             for event in self._events.values():
                 stream.wait_event(event)
 
     @property
     def pending(self) -> int:
         with self._lock:
+            self._merge()
             return len(self._events)
 
 
@@ -498,6 +518,17 @@ def record_use(block: Any, stream: Any) -> None:
     _uses_of(block).record_use(stream)
 
 
+def note_use(block: Any, stream: Any) -> None:
+    """:func:`record_use` without a lock, for a finalizer (see :meth:`BlockUses.note`)."""
+    uses = getattr(block, "cuda_uses", None)
+    if uses is None:  # (created once; a racing creator's use lands in the one kept)
+        uses = BlockUses()
+        if getattr(block, "cuda_uses", None) is None:
+            block.cuda_uses = uses
+        uses = block.cuda_uses
+    uses.note(stream)
+
+
 def ready_for_reuse(block: Any) -> bool:
     """True when every use recorded on ``block`` completed (or none was recorded)."""
     uses = getattr(block, "cuda_uses", None)
@@ -509,10 +540,11 @@ class ReleaseQueue:
 
     A reader in another process ``defer``s dropping its hold on a block (its lock, its mapping)
     until the release event recorded on its stream completed, so the publisher sees the hold
-    go only after the reader's kernels finished with the bytes. A daemon thread polls the
-    pending events (every ``poll_s``) while there are any; :meth:`poll` runs what is ready on the
-    caller's thread, and :meth:`flush` waits for everything (shutdown). ``defer`` takes no lock
-    that ``poll`` holds, so it may run from a ``wp.array`` deleter during garbage collection.
+    go only after the reader's kernels finished with the bytes. A daemon thread, started by the
+    first deferral, polls the pending events (every ``poll_s``) while there are any and sleeps
+    on an eventfd otherwise; :meth:`poll` runs what is ready on the caller's thread, and
+    :meth:`flush` waits for everything (shutdown). ``defer`` takes no lock (it runs from token
+    finalizers): an atomic queue append and an eventfd write.
     """
 
     def __init__(self, poll_s: float = 0.0002) -> None:
@@ -520,19 +552,20 @@ class ReleaseQueue:
         self._incoming: collections.deque[tuple[Any, Callable[[], None]]] = collections.deque()
         self._pending: list[tuple[Any, Callable[[], None]]] = []  # under _lock
         self._lock = threading.Lock()
-        self._start_lock = threading.RLock()  # re-entrant: a deleter may defer meanwhile
-        self._thread: threading.Thread | None = None
+        self._starts = itertools.count()  # the first deferral (ticket 0) starts the thread
+        self._wake = -1  # the thread's eventfd, once it runs
 
     def defer(self, event: Any, callback: Callable[[], None]) -> None:
         if event is None or event.is_complete:
             callback()
             return
         self._incoming.append((event, callback))  # deque appends are atomic
-        with self._start_lock:
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._run, daemon=True,
-                                                name="warp_buffer-cuda-release")
-                self._thread.start()
+        if next(self._starts) == 0:
+            self._wake = os.eventfd(0, os.EFD_CLOEXEC)
+            threading.Thread(target=self._run, daemon=True,
+                             name="warp_buffer-cuda-release").start()
+        elif self._wake >= 0:
+            os.eventfd_write(self._wake, 1)
 
     def poll(self) -> int:
         """Run the callbacks whose events completed; returns how many ran."""
@@ -569,15 +602,20 @@ class ReleaseQueue:
             self.poll()
             if len(self):
                 time.sleep(self._poll_s)
-                continue
-            with self._start_lock:  # a defer now either is seen here or starts a new thread
-                if len(self):
-                    continue
-                self._thread = None
-                return
+            else:  # idle: a deferral writes the eventfd (counts add up: no wake-up is lost)
+                os.eventfd_read(self._wake)
 
 
 _release_queue = ReleaseQueue()
+
+
+def _after_fork_in_child() -> None:
+    # The parent's release thread is not the child's: the child's first deferral starts its own.
+    _release_queue._starts = itertools.count()
+    _release_queue._wake = -1
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def flush_releases(timeout: float = 5.0) -> bool:
@@ -954,6 +992,9 @@ class VmmMemory:
     def close(self) -> None:
         with self._lock:
             ptr, handle, self.ptr, self._handle = self.ptr, self._handle, 0, 0
+        self._release(ptr, handle)
+
+    def _release(self, ptr: int, handle: int) -> None:
         if sys.is_finalizing() or _driver_lib is None:
             return
         lib = _driver_lib
@@ -965,8 +1006,10 @@ class VmmMemory:
                 lib.cuMemRelease(_u64(handle))
 
     def __del__(self) -> None:
+        # Unreachable: nobody else can use it, so no lock (a finalizer takes none).
+        ptr, handle, self.ptr, self._handle = self.ptr, self._handle, 0, 0
         try:
-            self.close()
+            self._release(ptr, handle)
         except Exception:  # pragma: no cover - interpreter shutdown
             pass
 
@@ -985,9 +1028,9 @@ class HostRegistration:
         self._open = True
 
     def close(self) -> None:
-        if self._open and not sys.is_finalizing():
-            self._open = False
-            _driver().cuMemHostUnregister(ctypes.c_void_p(self.addr))
+        if self._open and not sys.is_finalizing() and _driver_lib is not None:
+            self._open = False  # (registered through the driver: it is loaded, no lock needed)
+            _driver_lib.cuMemHostUnregister(ctypes.c_void_p(self.addr))
 
     def __del__(self) -> None:
         try:

@@ -2,16 +2,19 @@
 
 The message (``warp_buffer_backend_msgs/msg/WarpBufferDescriptor``, shipped by the backend
 package) has fixed-size fields only, so its CDR encoding is one fixed struct, :data:`LAYOUT`
-(little endian, the natural alignment needs no padding at an 8-byte boundary): the generic CDR
-codec writes and reads it as one primitive run, and a transport that carries descriptors outside
-CDR (a shared-memory lane) can :func:`pack` and :func:`unpack` it directly, through the native
-core (:mod:`warp_buffer._core`, which checks each field's width). Tests check that the bytes are
-those of the generic codec.
+(little endian, the natural alignment needs no padding at an 8-byte boundary): inside a message
+the CDR codec packs and unpacks it with one precompiled struct call (the same run at the
+alignment phase where the field falls), sized once, and a transport that carries descriptors
+outside CDR can :func:`pack` and :func:`unpack` it directly, through the native core
+(:mod:`warp_buffer._core`, which checks each field's width). Tests check that the bytes are
+those of the generic codec's field-by-field path.
 """
 
 from __future__ import annotations
 
+import collections
 import hashlib
+import itertools
 import operator
 import struct
 from typing import Any
@@ -35,6 +38,7 @@ __all__ = [
     "FIELDS",
     "LAYOUT",
     "descriptor_type",
+    "fields_of",
     "make",
     "pack",
     "unpack",
@@ -63,44 +67,38 @@ LAYOUT = struct.Struct("<BBHIQQQQQQQ" + "Q" * 2 * HANDLE_WORDS)
 NO_HANDLES = (0,) * (2 * HANDLE_WORDS)
 
 _type: Any = None
-_make: Any = None  # make's body, compiled for the class (see _compile_make)
+_setters: tuple[Any, ...] = ()  # each slot's own setter, in FIELDS order
+_call = operator.call
+_repeat = itertools.repeat
+_drain = collections.deque(maxlen=0).extend  # runs an iterator at C speed, keeps nothing
 
 
 def descriptor_type() -> type:
     """The generated descriptor class (looked up once)."""
-    global _type, _make
+    global _type, _setters
     if _type is None:
         cls = get_message_type(DESCRIPTOR_TYPE)
         if tuple(cls.__slots__) != FIELDS:  # pragma: no cover - the .msg and this disagree
             raise DescriptorError(f"{DESCRIPTOR_TYPE} fields {cls.__slots__} != {FIELDS}")
-        _make = _compile_make(cls)
+        _setters = tuple(cls.__dict__[name].__set__ for name in FIELDS)
         _type = cls
     return _type
 
 
-def _compile_make(cls: type) -> Any:
-    """``make`` unrolled for ``cls``: one call of each slot's own setter (the fastest way to
-    fill a message without its validating ``__setattr__``), no loop: ~1.4 us instead of ~2.5
-    for the 27 fields, on every export (and in :func:`unpack`)."""
-    names = [f"v{i}" for i in range(len(FIELDS))]
-    body = "".join(f"    s{i}(m, {name})\n" for i, name in enumerate(names))
-    source = (f"def make(values):\n    m = new(cls)\n    {', '.join(names)}, = values\n"
-              f"{body}    return m\n")
-    scope: dict[str, Any] = {"new": cls.__new__, "cls": cls}
-    scope.update({f"s{i}": cls.__dict__[name].__set__ for i, name in enumerate(FIELDS)})
-    exec(source, scope)  # noqa: S102 - source built above from FIELDS only
-    return scope["make"]
-
-
 def make(values: tuple[int, ...]) -> Any:
     """A descriptor from its field values, all of :data:`FIELDS` in order (no per-field
-    validation: the values come from this process's own bookkeeping, or from :data:`LAYOUT`)."""
-    if _make is None:
-        descriptor_type()
-    return _make(values)
+    validation: the values come from this process's own bookkeeping, or from :data:`LAYOUT`).
+    Each slot's own setter, called from C (no validating ``__setattr__``, no Python frame per
+    field): ~1.5 us for the 27 fields, on every export."""
+    cls = _type if _type is not None else descriptor_type()
+    descriptor = cls.__new__(cls)
+    _drain(map(_call, _setters, _repeat(descriptor), values))
+    return descriptor
 
 
-_get_fields = operator.attrgetter(*FIELDS)
+#: The field values of a descriptor, in :data:`FIELDS` order (one C call, unchecked).
+fields_of = operator.attrgetter(*FIELDS)
+_get_fields = fields_of
 
 
 def values_of(descriptor: Any) -> tuple[int, ...]:

@@ -21,17 +21,20 @@ Zero payload copies between processes of one user on one host:
   block (pinned with ``cuMemHostRegister``, so the copy is asynchronous), which the peer reads as
   in ``KIND_HOST`` (it arrives on ``cpu``).
 
-The descriptor (:mod:`warp_buffer.descriptor`) is the record: it carries numbers only. An import
-validates it against the session's geometry, takes its hold (a read lock on the block's first
-byte), then checks the block's generation: a recycled block raises :class:`StaleBufferError`, and
-is never delivered as an empty or wrong buffer. Every failure is a typed
-:class:`~warp_buffer.errors.ExportError`.
+The descriptor (:mod:`warp_buffer.descriptor`) is the record: it carries numbers only. An export
+is the lease's transition to "published to a peer" (:meth:`warp_buffer.lease.Lease.export`: the
+block's generation, and the delivery the peer owes). An import validates the descriptor against
+the session's geometry, takes its hold (a read lock on a byte of the block's lock range: the
+import's token, :class:`warp_buffer.attach.Hold`), then checks the block's generation: a recycled
+block raises :class:`StaleBufferError`, and is never delivered as an empty or wrong buffer. Every
+failure is a typed :class:`~warp_buffer.errors.ExportError`.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import struct
 import threading
 import weakref
 from typing import Any
@@ -39,6 +42,7 @@ from typing import Any
 import warp as wp
 
 from rosidl_buffer import Buffer
+from rosidl_buffer.buffer_impl import array_at
 from rosidl_buffer.endpoint import local_host_id as _real_host_id
 
 from . import arena as _arena
@@ -46,8 +50,9 @@ from . import attach as _attach
 from . import cuda as _cuda
 from . import descriptor as _desc
 from . import handoff
-from .arena import MAX_PEERS, NO_PEER, PeerSlot, current_arena, existing_arena
+from .arena import MAX_PEERS, MIN_BLOCK, NO_PEER, PeerSlot, current_arena, existing_arena
 from .buffer_impl import WarpBufferImpl, wrap_bytes
+from .lease import PUBLISHED
 from .errors import (
     DescriptorError,
     ExportBoundsError,
@@ -73,7 +78,11 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 _PID_MAX = 1 << 22  # Linux's pid_max ceiling
+_ORDER_MASK = (1 << _arena.GENERATION_ORDER_BITS) - 1
 _server_lock = threading.Lock()
+# Local copies made once per buffer (a clone moved into a block, an import's re-export copy, a
+# CUDA buffer's staging copy): made under this lock, so two exports never make two.
+_copy_lock = threading.Lock()
 
 
 def local_host_id() -> str:
@@ -122,47 +131,61 @@ def export_buffer(buffer: Buffer | WarpBufferImpl, kind: int | None = None, *,
                   peer_device_uuids: frozenset[str] | set[str] = frozenset()) -> Any:
     """Export ``buffer`` for one same-host peer and return the descriptor to send it.
 
-    Seals the buffer (an open write handle is closed; no write after this). ``peer`` is the
-    receiving subscription's delivery slot (:func:`peer_slot`): the block is then not recycled
-    before that peer imported this descriptor or a later one, or is gone. Without it the block is
-    only protected once imported. ``kind`` None picks the cheapest mechanism: host on cpu; on
-    CUDA, CUDA IPC when the device supports it, its UUID is in ``peer_device_uuids`` and its
-    memory can be exported (else staging: never an error). An imported buffer is re-exported
-    from a local copy made once. Raises :class:`ExportUnavailableError` when the buffer cannot
-    be exported.
+    The buffer is sealed if it was not yet (an open write handle is closed; no write after
+    this: the transport seals it once per publish before). ``peer`` is the receiving
+    subscription's delivery slot (:func:`peer_slot`): the block is then not recycled before that
+    peer imported this descriptor or a later one, or is gone. Without it the block is only
+    protected once imported. ``kind`` None picks the cheapest mechanism: host on cpu; on CUDA,
+    CUDA IPC when the device supports it, its UUID is in ``peer_device_uuids`` and its memory
+    can be exported (else staging: never an error). An imported buffer is re-exported from a
+    local copy made once. Raises :class:`ExportUnavailableError` when the buffer cannot be
+    exported.
     """
-    impl = _impl_of(buffer)
-    with impl._lock:
-        impl._mark_published()
-        if impl._import is not None or _inherited(impl):
-            if impl._reexport is None:
-                copy = impl._clone_pooled()  # exportable as it is (a plain clone may not be)
-                copy._mark_published()
-                impl._reexport = copy
-            impl = impl._reexport
-        return _export_local(impl, kind, frozenset(peer_device_uuids), peer)
+    impl = buffer.get_impl() if type(buffer) is Buffer else buffer
+    lease = getattr(impl, "_lease", None)
+    block = None if lease is None else lease.block
+    if lease is None or block is not None and block.arena is not None \
+            and block.arena.pid != os.getpid():
+        impl = _local_copy(_impl_of(impl))  # an import, or memory inherited at a fork
+    else:
+        if lease.state != PUBLISHED or lease.writer is not None:
+            lease.seal()
+        if kind is None and block is not None and block.shared and impl._host is not None:
+            return _describe(_desc.KIND_HOST, impl, block, peer)  # (the common case, inline)
+    return _export_local(impl, kind, peer_device_uuids, peer)
 
 
-def _inherited(impl: WarpBufferImpl) -> bool:
-    """Whether ``impl`` lives in an arena this process inherited at a fork: that memory is its
-    parent's session, which only the parent may describe (a descriptor naming it from here is
-    refused by the peer, and serving it would bind the parent's socket name), so it is
-    re-exported from a copy in this process's own arena, as an import is."""
-    arena = getattr(impl._block, "arena", None)
-    return arena is not None and arena.pid != os.getpid()
+def _local_copy(impl: WarpBufferImpl) -> WarpBufferImpl:
+    """The local copy ``impl`` is re-exported from (made once, published)."""
+    impl._mark_published()
+    with _copy_lock:
+        if impl._reexport is None:
+            copy = impl._clone_pooled()  # exportable as it is (a plain clone may not be)
+            copy._mark_published()
+            impl._reexport = copy
+        return impl._reexport
 
 
-def _export_local(impl: WarpBufferImpl, kind: int | None, peer_uuids: frozenset[str],
+def _export_local(impl: WarpBufferImpl, kind: int | None, peer_uuids: frozenset[str] | set[str],
                   peer: PeerSlot | None) -> Any:
+    block = impl._block
+    if block is not None and impl._host is not None:  # cpu, a block of the arena (or private)
+        if kind is not None and kind != _desc.KIND_HOST:
+            raise ExportUnavailableError(f"a cpu buffer cannot be exported as kind {kind!r}")
+        if not block.shared:
+            raise ExportUnavailableError("this buffer lives in private memory (IPC is disabled, "
+                                         "or the arena had no room)")
+        return _describe(_desc.KIND_HOST, impl, block, peer)
     device = impl._device
-    if device.is_cpu:
+    if device.is_cpu:  # a private clone moves into the arena now (once)
         if kind not in (None, _desc.KIND_HOST):
             raise ExportUnavailableError(f"a cpu buffer cannot be exported as kind {kind!r}")
-        if not impl._adopt_block():  # a private clone moves into the arena now (once)
+        with _copy_lock:
+            adopted = impl._adopt_block()
+        if not adopted:
             raise ExportUnavailableError("this buffer lives in private memory (IPC is disabled, "
                                          "or the arena had no room)")
         return _describe(_desc.KIND_HOST, impl, impl._block, peer)
-    block = impl._block
     device_word = _desc.uuid_word(device.uuid)
     if kind is None:
         if block.ipc_supported and device.uuid in peer_uuids:
@@ -182,8 +205,10 @@ def _export_local(impl: WarpBufferImpl, kind: int | None, peer_uuids: frozenset[
         raise ExportUnavailableError(f"a CUDA buffer cannot be exported as kind {kind!r}")
     staging = impl._staging
     if staging is None:
-        staging = _stage(impl)
-        impl._staging = staging
+        with _copy_lock:
+            staging = impl._staging
+            if staging is None:
+                staging = impl._staging = _stage(impl)
     return _describe(kind, staging, staging._block, peer, device_word)
 
 
@@ -232,11 +257,11 @@ def _pin(block: Any) -> None:
 def _describe(kind: int, impl: WarpBufferImpl, block: Any, peer: PeerSlot | None,
               device_word: int = 0, handles: tuple[int, ...] = _desc.NO_HANDLES) -> Any:
     try:
-        generation = block.begin_export()
+        generation, slot, sequence = impl._lease.export(peer)  # type: ignore[union-attr]
     except OSError as exc:
         raise ExportUnavailableError(f"cannot export this block: {exc}") from None
     arena = block.arena
-    if arena.pid != os.getpid():  # see _inherited: never describe or serve another's session
+    if arena.pid != os.getpid():  # inherited at a fork: never describe or serve another's
         raise ExportUnavailableError(f"this block is in the memory of process {arena.pid}, "
                                      "which this process was forked from")
     if arena.server is None:
@@ -245,32 +270,32 @@ def _describe(kind: int, impl: WarpBufferImpl, block: Any, peer: PeerSlot | None
                 handoff.start_server(arena)
             except OSError as exc:
                 raise ExportUnavailableError(f"cannot serve the arena to peers: {exc}") from None
-    if peer is None:
-        slot, sequence = NO_PEER, 0
-    else:
-        slot, sequence = peer.index, peer.next_sequence()
-        block.pending[slot] = sequence
     return _desc.make((_desc.VERSION, kind, slot, arena.pid, arena.session, block.offset,
-                       block.capacity, impl.size(), generation, sequence, device_word) + handles)
+                       block.capacity, impl._size, generation, sequence, device_word) + handles)
 
 
 # ------------------------------------------------------------------------------------ import
 def import_buffer(descriptor: Any) -> WarpBufferImpl:
     """Read the export ``descriptor`` names in place and return a read-only
-    :class:`WarpBufferImpl` over it (zero copies). Its hold on the block lasts until
-    :meth:`WarpBufferImpl.release`, or until the impl and every array over it are collected, or
-    this process dies.
+    :class:`WarpBufferImpl` over it (zero copies). Its hold on the block (its token) lasts until
+    :meth:`WarpBufferImpl.release` and the collection of everything made of it (arrays, views),
+    or until this process dies.
 
     Raises :class:`StaleBufferError` (recycled, or the publisher gone before this process
     attached to its memory), :class:`ForeignExportError` (another user serves the session, an
     unsealed arena), :class:`ExportBoundsError` (oversize), :class:`DescriptorError` (malformed)
     or :class:`ExportUnavailableError` (no such GPU here).
     """
-    if type(descriptor) is not _desc.descriptor_type():
+    if type(descriptor) is not (_desc._type or _desc.descriptor_type()):
         raise DescriptorError(f"expected a {_desc.DESCRIPTOR_TYPE}, got "
                               f"{type(descriptor).__name__}")
+    values = _desc.fields_of(descriptor)
+    try:
+        _desc.LAYOUT.pack(*values)  # what the wire can carry (a hand-made one may hold anything)
+    except struct.error as exc:
+        raise DescriptorError(f"a descriptor field the wire cannot carry: {exc}") from None
     (version, kind, slot, owner_pid, session, offset, capacity, size, generation, sequence,
-     device_word, *handles) = _desc.values_of(descriptor)
+     device_word, *handles) = values
     if version != _desc.VERSION:
         raise DescriptorError(f"descriptor version {version} (this reader knows {_desc.VERSION})")
     if kind not in _desc.KINDS:
@@ -280,27 +305,28 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
                               f"{session:#x}, generation {generation})")
     if slot != NO_PEER and not 0 <= slot < MAX_PEERS:
         raise DescriptorError(f"peer slot {slot}")
-    arena = _attach.attach(owner_pid, session)
+    arena = _attach.attached((owner_pid, session)) or _attach.attach(owner_pid, session)
     cuda = kind in _desc.CUDA_ZERO_COPY
-    block_bytes = 4096 if cuda else capacity
-    problem = arena.geometry.check_block(offset, block_bytes)
+    problem = arena.geometry.check_block(offset, MIN_BLOCK if cuda else capacity)
     if problem is not None:
         raise ExportBoundsError(f"descriptor of process {owner_pid}: {problem}")
     if not 0 < size <= capacity:
         raise ExportBoundsError(f"size {size} outside 1..{capacity}")
-    arena.hold(offset, -1 if slot == NO_PEER else slot, sequence)
-    hold = _attach.Hold(arena, offset)
+    hold = arena.hold(offset, -1 if slot == NO_PEER else slot, sequence)
     try:
-        if arena.gens[arena.geometry.gen_index(offset)] != generation:
+        if arena.gens[(offset - arena.data_offset) // MIN_BLOCK] != generation:
             raise StaleBufferError(f"block {offset:#x} of process {owner_pid} was recycled "
                                    "(a later publish reuses it)")
-        if not _arena.generation_fits(generation, capacity):
+        if generation & _ORDER_MASK != capacity.bit_length() - 1:  # (generation_fits)
             raise ExportBoundsError(f"descriptor of process {owner_pid}: capacity {capacity} "
                                     f"is not that of block {offset:#x}")
         if cuda:
             return _import_cuda(descriptor, kind, capacity, size, device_word, handles, hold)
-        return WarpBufferImpl.imported(arena.address(offset), size, _cpu_device(), hold,
-                                       descriptor, arena.host_array(offset, size))
+        address = arena.data_base + (offset - arena.data_offset)
+        # The host view holds the token (and through it the arena's mapping): every view of
+        # the import made from it keeps the block held and mapped.
+        return WarpBufferImpl.imported(address, size, _cpu or _cpu_device(), hold, descriptor,
+                                       array_at(address, size, hold))
     except BaseException:
         hold.release()
         raise
@@ -404,11 +430,12 @@ def _import_cuda(descriptor: Any, kind: int, capacity: int, size: int, device_wo
 
 
 class _CudaHold:
-    """An imported CUDA buffer's hold: keeps the opened allocation and event, and releases the
+    """An imported CUDA buffer's token: keeps the opened allocation and event, and releases the
     arena hold (the lock the publisher's reclaim probes) only once the work queued on the
     current streams, and every read recorded on the buffer, completed (stream-ordered release:
-    :func:`warp_buffer.cuda.release_after`). The deleter of the imported array, and what
-    ``release()`` drops."""
+    :func:`warp_buffer.cuda.release_after`, which takes no lock). Held by the import, the
+    imported array (its deleter) and every view; it ends when the last of them is gone, or
+    :meth:`release`."""
 
     __slots__ = ("hold", "keep", "impl", "__weakref__")
 
@@ -437,4 +464,11 @@ class _CudaHold:
 
         _cuda.release_after(stream, drop)
 
-    __call__ = release  # as a wp.array deleter: (ptr, size)
+    def __call__(self, ptr: int = 0, size: int = 0) -> None:
+        """As the ``deleter`` of the imported array: it only keeps the token alive."""
+
+    def __del__(self) -> None:
+        try:
+            self.release()
+        except Exception:  # pragma: no cover - interpreter shutdown
+            pass

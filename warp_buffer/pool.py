@@ -52,6 +52,7 @@ from ._env import env_flag, env_float
 from . import cuda, handoff
 from . import descriptor as _desc
 from .errors import EmptyBufferError, ExportError, ExportUnavailableError, InvalidSizeError
+from .lease import Exports, Lease
 
 __all__ = [
     "MIN_BLOCK",
@@ -94,51 +95,16 @@ def size_class(nbytes: int) -> int:
     return max(MIN_BLOCK, 1 << (nbytes - 1).bit_length())
 
 
-class Block:
-    """One allocation of a pool, with the state of its current export.
-
-    ``offset`` is the block's file offset in the arena (0: not in the arena); ``generation`` the
-    current export's (0: not exported since leased); ``pending`` maps each peer slot the block
-    was sent to onto the delivery sequence of the last descriptor it was sent with.
-    """
+class Block(Exports):
+    """One allocation of a pool; its export state (generation, peers pending, the reclaim probe)
+    is :class:`warp_buffer.lease.Exports`. ``offset`` is the block's file offset in the arena
+    (0: not in the arena)."""
 
     device: Any  # wp.Device
     capacity: int
     data_ptr: int
     shared: bool
-    cuda_uses: Any = None  # last-use events of local readers (cuda.BlockUses), CUDA blocks
     cuda_pin: Any = None  # a host block pinned for CUDA staging (cuda.HostRegistration)
-
-    def __init__(self) -> None:
-        self.arena: _arena.Arena | None = None
-        self.offset = 0
-        self.generation = 0
-        self.pending: dict[int, int] = {}
-
-    # -- export bookkeeping (called with the owning impl's lock held) --------------------------
-    def begin_export(self) -> int:
-        """The generation of the current export, started on the first export of the lease."""
-        if self.generation == 0:
-            self.ensure_arena_range()
-            self.generation = self.arena.new_generation(  # type: ignore[union-attr]
-                self.offset, self.capacity)
-        return self.generation
-
-    def try_reclaim(self) -> bool:
-        """May the block be reused or freed now? Ends its export if so."""
-        if self.generation == 0:
-            return True
-        arena = self.arena
-        if self.pending and not arena.delivered(self.pending):  # type: ignore[union-attr]
-            return False  # a descriptor is still on its way to a live peer
-        if not arena.try_retire(self.offset):  # type: ignore[union-attr]
-            return False  # a reader holds it
-        self.generation = 0
-        self.pending = {}
-        return True
-
-    def ensure_arena_range(self) -> None:
-        """Give the block its arena range (host blocks have one from the start)."""
 
     @property
     def host(self) -> np.ndarray | None:
@@ -371,30 +337,10 @@ def cuda_block(device: Any, capacity: int) -> CudaBlock:
     return CudaBlock(device, capacity)
 
 
-class Lease:
-    """One buffer's use of one block, owned by the impl and used as the ``deleter`` of its
-    ``wp.array``: the block returns to the pool exactly when both are collected."""
-
-    __slots__ = ("pool", "block", "_done", "__weakref__")
-
-    def __init__(self, pool: BlockPool, block: Block) -> None:
-        self.pool = pool
-        self.block = block
-        self._done = False
-
-    def __call__(self, ptr: int = 0, size: int = 0) -> None:
-        if not self._done:
-            self._done = True
-            self.pool._give_back(self.block)
-
-    def __del__(self) -> None:  # the impl went before any array was made over the block
-        self()
-
-
 class BlockPool:
     """Size-classed blocks of one device (see the module docstring for the reuse rules).
 
-    Blocks come back from garbage collection (a ``wp.array`` deleter), which may run at any
+    Blocks come back when their lease's owner is gone (a finalizer), which may run at any
     allocation, on any thread, even while this pool's lock is held by the same thread: so a
     returned block only goes onto a lock-free queue, drained under the lock by the next pool
     operation.
@@ -416,7 +362,10 @@ class BlockPool:
         self._floor: int | None = 0 if device.is_cpu else None
 
     # -- allocation ----------------------------------------------------------------------------
-    def acquire(self, nbytes: int) -> Lease:
+    def acquire(self, nbytes: int, rearmable: bool = False) -> Lease:
+        """A block of at least ``nbytes``, leased (:class:`warp_buffer.lease.Lease`): free
+        blocks first, whose export :meth:`Block.try_reclaim` retires; ``rearmable``: the lease
+        may be re-armed after its publish (a loan), so its readers hold tokens."""
         capacity = size_class(nbytes)
         floor = self._floor
         if floor is None:
@@ -447,7 +396,7 @@ class BlockPool:
         _janitor.ensure_running()
         if drained:  # free memory grew since the last allocation: hold it to the cap
             self._enforce_idle_cap()
-        return Lease(self, block)
+        return Lease(self, block, self.device, rearmable)
 
     def _take_free(self, capacity: int) -> Block | None:
         queue = self._free.get(capacity)
@@ -470,7 +419,7 @@ class BlockPool:
         return cuda_block(self.device, capacity)
 
     def _give_back(self, block: Block) -> None:
-        # Runs from a deleter: no locks, no threads, nothing that can block (see the class doc).
+        # Runs from a finalizer (the lease's): no locks, no threads, nothing that can block.
         if not self._defunct and not sys.is_finalizing():
             self._returned.append((block, time.monotonic()))
 

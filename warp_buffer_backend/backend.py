@@ -47,6 +47,7 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
+_WARP_TYPES: dict[type, bool] = {}  # impl type -> is it a WarpBufferImpl
 #: Descriptors a peer may hold beyond its delivery queue: taken off it, not yet imported (a
 #: reader descheduled in between loses the oldest of them if more than this are sent meanwhile).
 IN_HAND = 16
@@ -271,12 +272,17 @@ class WarpBufferBackend(BufferBackend):
         self, impl: BufferImplBase, endpoint_info: EndpointInfo
     ) -> Any | None:
         """A descriptor of ``impl`` for the subscription ``endpoint_info``, or None (CPU bytes)
-        when the peer cannot be served. A warp buffer is sealed either way."""
-        if not isinstance(impl, WarpBufferImpl):
+        when the peer cannot be served. The publish sealed the buffer before (its lease's one
+        transition); an export of a buffer nobody sealed seals it."""
+        kind = type(impl)
+        warp = _WARP_TYPES.get(kind)
+        if warp is None:  # (isinstance against the ABC costs a Python call: judged once a type)
+            warp = _WARP_TYPES[kind] = isinstance(impl, WarpBufferImpl)
+        if not warp:
             return None
-        impl.seal()
         peer = self._peers.get(endpoint_info.gid) or self._peer(endpoint_info)
         if not peer.decision.accepted or not impl.is_exportable:
+            impl.seal()  # served by CPU bytes: still the end of its write (once: a no-op now)
             return None
         # Through a keep-last queue that overwrites (the transport says so, per route), a peer
         # can import only its latest descriptors: the queue's, and a few taken off it but not

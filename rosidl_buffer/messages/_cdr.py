@@ -16,11 +16,19 @@ Wire form of a buffer field:
 
 Serialization runs in two passes, sizing then writing into one preallocated ``bytearray``, so a
 payload is copied exactly once. Deserialization returns buffers that alias the input bytes.
+
+A descriptor type made of primitives only (the warp backend's) has a fixed layout: it is sized
+once per type, and packed and unpacked with one precompiled ``struct`` call (the run's struct
+at the alignment phase where the field falls), its message built by the slots' own setters from
+C. The field-by-field path is the reference: it gives the same bytes, and the typed error for a
+value the struct refuses.
 """
 
 from __future__ import annotations
 
+import collections
 import functools
+import itertools
 import keyword
 import operator
 import struct
@@ -59,7 +67,7 @@ _ORIGIN = len(CDR_HEADER)  # alignment counts from the end of the header
 BUFFER_DESCRIPTOR_MARKER = 0xFFFFFFFF
 BUFFER_DESCRIPTOR_MARKER_2 = 0x524F5332  # "ROS2"
 _U32 = struct.Struct("<I")
-_MARKERS = struct.Struct("<II")
+_HEADER = struct.Struct("<III")  # a descriptor form's two markers and its backend name's length
 _NUMPY_COPY_THRESHOLD = 1 << 16
 _ZEROS = tuple(bytes(n) for n in range(8))  # padding, by length
 _LITTLE_ENDIAN = sys.byteorder == "little"
@@ -111,16 +119,37 @@ class _ReadContext:
         return _ReadContext(self.data, self.owner, self.backends, self.endpoint_info, False)
 
 
-class _Decision:
-    """What pass one decided for one buffer field, replayed by pass two."""
+# What pass one decided for one buffer field, replayed by pass two: ``(host bytes, None, None)``
+# for the CPU form, ``(None, encoded backend name, descriptor, its decisions or None for a fixed
+# layout)`` for a descriptor.
+_CPU_IMPLS: dict[type, bool] = {}  # impl type -> is it CPU storage (judged once per type)
+_IMPLS: dict[type, bool] = {}  # type a backend returned -> is it a BufferImplBase
+_NAMES: dict[str, bytes] = {}  # backend name -> its CDR string bytes after the length
+_call = operator.call
+_repeat = itertools.repeat
+_drain = collections.deque(maxlen=0).extend  # runs an iterator at C speed, keeps nothing
+_new_buffer = Buffer.__new__
 
-    __slots__ = ("host", "backend_name", "descriptor", "descriptor_decisions")
 
-    def __init__(self, host: np.ndarray | None, backend_name: str = "", descriptor: Any = None):
-        self.host = host
-        self.backend_name = backend_name
-        self.descriptor = descriptor
-        self.descriptor_decisions: list[Any] = []
+def _judge_cpu(kind: type) -> bool:
+    """Is ``kind`` (an impl type) CPU storage? Judged once per type (``_CPU_IMPLS``)."""
+    found = _CPU_IMPLS[kind] = issubclass(kind, CpuBufferImpl)
+    return found
+
+
+def _name_bytes(name: Any, field: str) -> bytes:
+    """A backend name's CDR string bytes after the length (remembered: ``_NAMES``)."""
+    found = _encode_string(name, 0, field) + b"\0"
+    if type(name) is str and len(_NAMES) < 64:
+        _NAMES[name] = found
+    return found
+
+
+def _buffer_of(impl: BufferImplBase) -> Buffer:
+    """A Buffer over ``impl`` (``Buffer._of``, without its call: once per received field)."""
+    buffer = _new_buffer(Buffer)
+    buffer._impl = impl
+    return buffer
 
 
 # --------------------------------------------------------------------------- field operations
@@ -314,11 +343,17 @@ class _NumericArray(_Field):
 def _write_array(array: np.ndarray, out: bytearray, pos: int, counted: bool, width: int) -> int:
     n = array.shape[0]
     if counted:
-        pos = _pad(out, pos, 4)
+        pad = -(pos - _ORIGIN) % 4  # (the padding of _pad, inline: once per array per message)
+        if pad:
+            out[pos:pos + pad] = _ZEROS[pad]
+            pos += pad
         _U32.pack_into(out, pos, n)
         pos += 4
     if n:
-        pos = _pad(out, pos, width)
+        pad = -(pos - _ORIGIN) % width
+        if pad:
+            out[pos:pos + pad] = _ZEROS[pad]
+            pos += pad
         nbytes = n * width
         if nbytes >= _NUMPY_COPY_THRESHOLD:
             # NumPy's copy runs at memcpy speed; bytearray slice assignment is several times slower.
@@ -393,47 +428,73 @@ def _descriptor_size(codec: _MessageCodec, descriptor: Any) -> int:
 
 
 class _BufferField(_Field):
-    """An unbounded ``uint8[]``: CPU sequence, or marker + backend name + descriptor."""
+    """An unbounded ``uint8[]``: CPU sequence, or markers + backend name + descriptor (a
+    fixed-layout descriptor in one struct call, see the module docstring)."""
 
     def __init__(self, spec: FieldSpec) -> None:
         super().__init__(spec)
         self.backend_name = _String(spec)  # the name written before a descriptor
+        self._descriptor_types: dict[Any, Any] = {}  # backend -> its descriptor's codec
 
     def size(self, value: Buffer, pos: int, ctx: _SizeContext) -> int:
-        if not isinstance(value, Buffer):
+        if value.__class__ is not Buffer and not isinstance(value, Buffer):
             value = Buffer(value)
-        route = ctx.route(value) if ctx.route is not None and not value.is_cpu() else None
+        route = ctx.route
+        if route is not None:
+            kind = type(value._impl)
+            cpu = _CPU_IMPLS.get(kind)
+            route = None if (_judge_cpu(kind) if cpu is None else cpu) else route(value)
         if route is None:
             host = value._host_view()
-            ctx.decisions.append(_Decision(host))
+            ctx.decisions.append((host, None, None))
             return _align(pos, 4) + 4 + host.nbytes
         backend_name, descriptor = route
-        decision = _Decision(None, backend_name, descriptor)
-        ctx.decisions.append(decision)
-        pos = _align(pos, 4) + 8
-        pos = self.backend_name.size(backend_name, pos, ctx)
+        name = _NAMES.get(backend_name) if type(backend_name) is str else None
+        if name is None:
+            name = _name_bytes(backend_name, self.name)
+        pos += 12 + (-(pos - _ORIGIN) % 4) + len(name)  # two markers, the name's length, name
         codec = _codec(descriptor.__msgtype__)
-        nbytes = _descriptor_size(codec, descriptor)
+        if codec.fixed is not None:  # sized once per type
+            nbytes = codec.fixed_size
+            end = pos + codec.fixed[(pos - _ORIGIN) & 7][1]
+            descriptor_decisions = None
+        else:
+            nbytes = _descriptor_size(codec, descriptor)
+            # The descriptor's own fields (a uint8[] included) are always written as plain CDR.
+            descriptor_ctx = _SizeContext(None, [])
+            end = codec.size(descriptor, pos, descriptor_ctx)
+            descriptor_decisions = descriptor_ctx.decisions[::-1]
         if nbytes > MAX_BUFFER_DESCRIPTOR_SIZE:
             raise DescriptorTooLargeError(
                 f"field {self.name!r}: descriptor of backend {backend_name!r} serializes to "
                 f"{nbytes} bytes, over the {MAX_BUFFER_DESCRIPTOR_SIZE}-byte limit"
             )
-        # The descriptor's own fields (a uint8[] included) are always written as plain CDR.
-        descriptor_ctx = _SizeContext(None, [])
-        end = codec.size(descriptor, pos, descriptor_ctx)
-        decision.descriptor_decisions = descriptor_ctx.decisions[::-1]
+        ctx.decisions.append((None, name, descriptor, descriptor_decisions))
         return end
 
     def write(self, value: Any, out: bytearray, pos: int, decisions: list[Any]) -> int:
-        decision: _Decision = decisions.pop()
-        if decision.host is not None:
-            return _write_array(decision.host, out, pos, True, 1)
-        pos = _pad(out, pos, 4)
-        _MARKERS.pack_into(out, pos, BUFFER_DESCRIPTOR_MARKER, BUFFER_DESCRIPTOR_MARKER_2)
-        pos = self.backend_name.write(decision.backend_name, out, pos + 8, decisions)
-        codec = _codec(decision.descriptor.__msgtype__)
-        return codec.write(decision.descriptor, out, pos, decision.descriptor_decisions)
+        decision = decisions.pop()
+        host = decision[0]
+        if host is not None:
+            return _write_array(host, out, pos, True, 1)
+        _, name, descriptor, descriptor_decisions = decision
+        pad = -(pos - _ORIGIN) % 4
+        if pad:
+            out[pos:pos + pad] = _ZEROS[pad]
+            pos += pad
+        end = pos + 12 + len(name)
+        _HEADER.pack_into(out, pos, BUFFER_DESCRIPTOR_MARKER, BUFFER_DESCRIPTOR_MARKER_2,
+                          len(name))
+        out[pos + 12:end] = name
+        codec = _codec(descriptor.__msgtype__)
+        if descriptor_decisions is None:  # fixed layout: one struct call
+            packer, length = codec.fixed[(end - _ORIGIN) & 7]
+            try:
+                packer.pack_into(out, end, *codec.values(descriptor))
+            except (struct.error, TypeError, OverflowError):
+                return codec.write(descriptor, out, end, [])  # the field's own typed error
+            return end + length
+        return codec.write(descriptor, out, end, descriptor_decisions)
 
     @staticmethod
     def _second_marker(ctx: _ReadContext, pos: int) -> bool:
@@ -443,25 +504,68 @@ class _BufferField(_Field):
         return pos + 4 <= len(data) and _U32.unpack_from(data, pos)[0] == BUFFER_DESCRIPTOR_MARKER_2
 
     def read(self, ctx: _ReadContext, pos: int) -> tuple[Any, int]:
+        data = ctx.data
+        pos += -(pos - _ORIGIN) % 4
+        end = len(data)
+        if pos + 4 <= end:  # the common forms in one pass; anything else: _read_checked
+            n = _U32.unpack_from(data, pos)[0]
+            if n != BUFFER_DESCRIPTOR_MARKER:
+                if pos + 4 + n <= end:
+                    view = np.frombuffer(ctx.owner, dtype=np.uint8, count=n, offset=pos + 4)
+                    return _buffer_of(CpuBufferImpl.wrap(view)), pos + 4 + n
+            elif pos + 12 <= end and ctx.top_level:
+                _, second, length = _HEADER.unpack_from(data, pos)
+                if second == BUFFER_DESCRIPTOR_MARKER_2 and length and pos + 12 + length <= end:
+                    return self._read_descriptor(ctx, pos + 12, length)
+        return self._read_checked(ctx, pos)
+
+    def _read_checked(self, ctx: _ReadContext, pos: int) -> tuple[Any, int]:
+        """The field read step by step: every malformed form's typed error."""
         n, pos = _read_count(ctx, pos, self.name)
         if n != BUFFER_DESCRIPTOR_MARKER or not self._second_marker(ctx, pos):
             _need(ctx, pos, n, self.name)
             view = np.frombuffer(ctx.owner, dtype=np.uint8, count=n, offset=pos)
-            return Buffer._of(CpuBufferImpl.wrap(view)), pos + n
+            return _buffer_of(CpuBufferImpl.wrap(view)), pos + n
         if not ctx.top_level:
             raise DeserializationError(
                 f"field {self.name!r}: a backend descriptor in a nested message (only top-level "
                 "uint8[] fields travel in backend form)")
-        backend_name, pos = _read_string(ctx, pos + 4, self.name)
+        return self._read_descriptor(ctx, pos + 4, None)
+
+    def _read_descriptor(self, ctx: _ReadContext, pos: int, length: int | None
+                         ) -> tuple[Any, int]:
+        """A descriptor form: the backend name at ``pos`` (after its ``length``, read already;
+        None: at ``pos`` with its length), then the descriptor, rebuilt by the backend."""
+        data = ctx.data
+        if length is not None and data[pos + length - 1] == 0:
+            try:
+                backend_name = bytes(data[pos:pos + length - 1]).decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise DeserializationError(f"field {self.name!r}: invalid UTF-8: {exc}") from None
+            pos += length
+        else:
+            backend_name, pos = _read_string(ctx, pos - (0 if length is None else 4), self.name)
         backend = (ctx.backends or {}).get(backend_name)
         if backend is None:
             raise DeserializationError(
                 f"field {self.name!r}: buffer from backend {backend_name!r}, which this reader "
                 f"does not have (available: {sorted(ctx.backends or {})})"
             )
-        descriptor_codec = _codec(backend.get_descriptor_type().__msgtype__)
-        descriptor, pos = descriptor_codec.read(ctx, pos)
-        nbytes = _descriptor_size(descriptor_codec, descriptor)
+        descriptor_codec = self._descriptor_types.get(backend)
+        if descriptor_codec is None:
+            descriptor_codec = self._descriptor_types[backend] = _codec(
+                backend.get_descriptor_type().__msgtype__)
+        fixed = descriptor_codec.fixed
+        unpacker, size = fixed[(pos - _ORIGIN) & 7] if fixed is not None else (None, 0)
+        if unpacker is not None and pos + size <= len(data):  # one struct call
+            nbytes = descriptor_codec.fixed_size
+            descriptor = descriptor_codec.new(descriptor_codec.cls)
+            _drain(map(_call, descriptor_codec.setters, _repeat(descriptor),
+                       unpacker.unpack_from(data, pos)))
+            pos += size
+        else:
+            descriptor, pos = descriptor_codec.read(ctx, pos)
+            nbytes = _descriptor_size(descriptor_codec, descriptor)
         if nbytes > MAX_BUFFER_DESCRIPTOR_SIZE:
             raise DeserializationError(
                 f"field {self.name!r}: descriptor is {nbytes} bytes, over the "
@@ -472,11 +576,17 @@ class _BufferField(_Field):
                 f"field {self.name!r}: a backend descriptor needs the publisher's endpoint info"
             )
         impl = backend.from_descriptor_with_endpoint(descriptor, ctx.endpoint_info)
-        if not isinstance(impl, BufferImplBase):
+        kind = type(impl)
+        valid = _IMPLS.get(kind)  # (isinstance against the ABC costs a call: once per type)
+        if valid is None:
+            valid = _IMPLS[kind] = issubclass(kind, BufferImplBase)
+        if not valid:
             raise DeserializationError(
                 f"field {self.name!r}: backend {backend_name!r} returned "
                 f"{type(impl).__name__}, not a BufferImplBase")
-        return Buffer._of(impl), pos
+        buffer = _new_buffer(Buffer)  # (_buffer_of, inline: once per received descriptor)
+        buffer._impl = impl
+        return buffer, pos
 
 
 # --------------------------------------------------------------------------- message codec
@@ -568,6 +678,17 @@ class _MessageCodec:
         self.size: Callable[[Any, int, _SizeContext], int] = namespace["size"]
         self.write: Callable[[Any, bytearray, int, list[Any]], int] = namespace["write"]
         self.read: Callable[[_ReadContext, int], tuple[Any, int]] = namespace["read"]
+        # A type of primitives only has a fixed layout: (struct, length) by alignment phase, its
+        # size alone, its values in field order (one C call) and its slots' setters.
+        run = self.steps[0] if len(self.steps) == 1 else None
+        self.fixed: tuple[tuple[struct.Struct, int], ...] | None = None
+        if type(run) is _PrimitiveRun:
+            self.fixed = run.layouts
+            self.fixed_size = run.layouts[0][1]  # as serialized alone (from the origin)
+            self.values = operator.attrgetter(*run.names) if len(run.names) > 1 else (
+                lambda m, get=operator.attrgetter(run.names[0]): (get(m),))
+            self.setters = tuple(self.cls.__dict__[name].__set__ for name in run.names)
+            self.new = self.cls.__new__
 
 
 def _wrong_type(cls: type, message: Any) -> SerializationError:

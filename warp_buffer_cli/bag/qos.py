@@ -1,14 +1,15 @@
 """QoS profiles as a bag stores them (``offered_qos_profiles``) and as buffer_pubsub takes them.
 
-buffer_pubsub's publishers are reliable and volatile (rmw_zenoh's only durability they offer);
-history is keep-last ``depth`` or keep-all. ``ros2 bag play`` reads reliability and durability
-from the profiles to choose its publishers' QoS; deadline, lifespan and lease stay unset
-(0 s: the default, infinite).
+A recording stores the profiles of the topic's publishers as the graph shows them (buffer_pubsub's
+are reliable and volatile, keep-last ``depth`` or keep-all; a ROS 2 node's may differ).
+``ros2 bag play`` reads reliability and durability from the profiles to choose its publishers'
+QoS; deadline, lifespan and lease stay unset (0 s: the default, infinite).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 from rosbags.interfaces import (
     Qos,
@@ -26,13 +27,29 @@ DEFAULT_DEPTH = 10
 _UNSET = QosTime(0, 0)
 
 
-def offered_profile(history: str = KEEP_LAST, depth: int = DEFAULT_DEPTH) -> Qos:
-    """The profile a buffer_pubsub publisher with this history offers."""
+def offered_profile(history: str = KEEP_LAST, depth: int = DEFAULT_DEPTH, *,
+                    best_effort: bool = False, transient_local: bool = False) -> Qos:
+    """The profile a publisher with this history (and reliability, durability) offers."""
     return Qos(history=QosHistory.KEEP_ALL if history == KEEP_ALL else QosHistory.KEEP_LAST,
-               depth=depth, reliability=QosReliability.RELIABLE,
-               durability=QosDurability.VOLATILE, deadline=_UNSET, lifespan=_UNSET,
-               liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=_UNSET,
-               avoid_ros_namespace_conventions=False)
+               depth=depth,
+               reliability=QosReliability.BEST_EFFORT if best_effort else QosReliability.RELIABLE,
+               durability=(QosDurability.TRANSIENT_LOCAL if transient_local
+                           else QosDurability.VOLATILE),
+               deadline=_UNSET, lifespan=_UNSET, liveliness=QosLiveliness.AUTOMATIC,
+               liveliness_lease_duration=_UNSET, avoid_ros_namespace_conventions=False)
+
+
+def offered_profiles(publishers: Sequence[Any]) -> list[Qos]:
+    """The profiles of a topic's publishers as the graph shows them (``TopicEndpointInfo``, ours
+    or another ROS 2 node's), as ``ros2 bag record`` stores them; one default profile when the
+    graph shows none."""
+    from buffer_pubsub import wire
+
+    profiles = [offered_profile(p.qos_profile.history_name, p.qos_profile.depth,
+                                best_effort=p.qos_profile.reliability == wire.RELIABILITY_BEST_EFFORT,
+                                transient_local=p.qos_profile.transient_local)
+                for p in publishers]
+    return profiles or [offered_profile()]
 
 
 def publisher_history(profiles: Sequence[Qos]) -> tuple[str, int]:

@@ -27,7 +27,7 @@ from typing import Any
 from .._arguments import absolute_topic_name, number
 from .errors import BagWriteError, UnknownTopicError
 from .progress import Progress, mib
-from .qos import offered_profile
+from .qos import offered_profiles
 
 __all__ = ["DEFAULT_MAX_CACHE_BYTES", "Recorder", "TopicRecord", "add_arguments", "run"]
 
@@ -130,7 +130,8 @@ class Recorder:
             try:
                 return self._writer.add_connection(
                     topic, cls.__msgtype__, typestore=get_typestore(),
-                    offered_qos_profiles=[offered_profile()])
+                    offered_qos_profiles=offered_profiles(
+                        self.node.get_publishers_info_by_topic(topic)))
             except Exception as exc:  # rosbags' own errors: one line for the user
                 raise BagWriteError(f"cannot add {topic} to {self.path}: {exc}") from exc
 
