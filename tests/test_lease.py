@@ -172,17 +172,28 @@ def test_release_drops_the_import_s_own_token_and_views_keep_theirs():
 
 
 def test_a_hold_ends_at_once_inside_the_arena_s_critical_section():
-    """A hold collected while its arena's lock is held (a collection inside ``hold()``, or
-    another thread importing) unlocks at once: its finalizer takes no lock and defers nothing
-    (the publisher saw the block held until the next import of this process)."""
+    """A hold collected while another thread imports from its session (a collection inside an
+    import) unlocks at once: its end is one native call under the GIL that takes no lock and
+    defers nothing (the publisher saw the block held until the next import of this process)."""
     buffer = allocate_buffer(4096, "cpu")
     block = buffer.get_impl()._block
-    imported = ipc.import_buffer(ipc.export_buffer(buffer))
-    arena = imported._hold.arena
-    with arena._lock:
-        del imported
-        gc.collect()
-        assert block.try_reclaim(), "the hold's end waited for the arena's lock"
+    other = ipc.export_buffer(allocate_buffer(4096, "cpu"))
+    stop = threading.Event()
+
+    def importing() -> None:
+        while not stop.is_set():
+            ipc.import_buffer(other).release()
+
+    thread = threading.Thread(target=importing)
+    thread.start()
+    try:
+        for _ in range(50):
+            imported = ipc.import_buffer(ipc.export_buffer(buffer))
+            del imported
+            assert block.try_reclaim(), "the hold's end waited for the session"
+    finally:
+        stop.set()
+        thread.join(10)
 
 
 def test_a_write_handle_collected_while_another_thread_holds_the_lease_does_not_wait():

@@ -699,18 +699,23 @@ def test_a_peer_that_sent_part_of_a_request_delays_nobody():
 
 
 def test_a_hold_released_after_its_arena_is_collected_unlocks_nothing(monkeypatch):
-    """A collection of a cycle holding an import and its arena may finalize the arena first:
-    the hold's release must then unlock no fd number (it may be another file's by now)."""
+    """A collection of a cycle holding an import and its arena may collect the arena first: the
+    hold must then still end on the description it locked (never on a closed fd number, which
+    may be another file's by now). The hold keeps its session (its description and mapping)."""
     arena = attach.AttachedArena.local(current_arena())
     buffer, desc = _published(4096, seed=73)
-    arena.hold(desc.offset)
-    hold = attach.Hold(arena, desc.offset)
-    unlocked = []
-    monkeypatch.setattr(attach.memory, "unlock", lambda fd, offset: unlocked.append(fd))
-    arena.__del__()
-    assert arena.fd == -1
+    hold = arena.import_block(descriptor.fields_of(desc))
+    fd = arena.fd
+    del arena
+    gc.collect()
+    assert hold.live and hold.session.fd == fd
+    os.fstat(fd)  # still this process's open description of the arena
+    assert not current_arena().try_retire(desc.offset)  # the publisher's probe meets the hold
     hold.release()
-    assert unlocked == []
+    assert current_arena().try_retire(desc.offset)
+    del hold
+    with pytest.raises(OSError):  # the last reference took the description with it
+        os.fstat(fd)
     del buffer
 
 

@@ -207,6 +207,11 @@ static PyMethodDef core_methods[] = {
      "pack_into(buffer, offset, values): the same, written into a writable buffer."},
     {"unpack", (PyCFunction)(void (*)(void))core_unpack, METH_FASTCALL,
      "unpack(data, offset=0) -> tuple: the 27 field values of the descriptor at offset."},
+    {"check_names", check_names, METH_O,
+     "check_names(values): DescriptorError unless the 27 values name an export (checked "
+     "before an import attaches to the session they name)."},
+    {"sessions_after_fork", sessions_after_fork, METH_NOARGS,
+     "In a forked child: every live session's holds move onto a description of its own."},
     {"configure", lease_configure, METH_VARARGS,
      "configure(write_state, complete_write, order_after_write, write_handle_error): the "
      "Python pieces the lease calls (warp_buffer.lease)."},

@@ -92,6 +92,8 @@ PyObject *descriptor_error(const char *fmt, ...);
 int field_value(PyObject *item, int i, uint64_t *out);
 int lock_range(int fd, short kind, uint64_t offset, uint64_t length);
 PyObject *lease_configure(PyObject *module, PyObject *args);
+PyObject *check_names(PyObject *module, PyObject *values);
+PyObject *sessions_after_fork(PyObject *module, PyObject *unused);
 int lease_module_init(PyObject *module);
 
 #endif

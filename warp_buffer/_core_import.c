@@ -104,7 +104,10 @@ typedef struct {
     int owned;                 /* the mappings are ours to unmap (not our own arena's) */
     holdmap holds;
     uint64_t imports;
+    PyObject *prev, *next;     /* every live session of this process (sessions_after_fork) */
 } Session;
+
+static Session *live_sessions;  /* borrowed: a session leaves the list when it is deallocated */
 
 
 typedef struct {
@@ -163,10 +166,23 @@ static int session_init(Session *self, PyObject *args, PyObject *kwds) {
     self->data_offset = data_offset;
     self->data_bytes = data_len;
     self->owned = owned;
+    self->prev = NULL;
+    self->next = (PyObject *)live_sessions;
+    if (live_sessions != NULL)
+        live_sessions->prev = (PyObject *)self;
+    live_sessions = self;
     return 0;
 }
 
 static void session_dealloc(Session *self) {
+    if (self->head != NULL) {  /* off the list of live sessions */
+        if (self->prev != NULL)
+            ((Session *)self->prev)->next = self->next;
+        else if (live_sessions == self)
+            live_sessions = (Session *)self->next;
+        if (self->next != NULL)
+            ((Session *)self->next)->prev = self->prev;
+    }
     if (self->owned) {
         if (self->head != NULL)
             munmap(self->head, self->head_len);
@@ -244,45 +260,74 @@ static PyObject *new_hold(Session *s, uint64_t offset, uint64_t size) {
     return (PyObject *)hold;
 }
 
+/* The fields a descriptor names its export with (up to device_uuid), each checked to fit its
+ * width (the handles too), then: the version, the kind, a pid, a session and a generation, a
+ * peer slot. */
+static int check_descriptor_values(PyObject *values, uint64_t *v) {
+    PyObject *seq = PySequence_Fast(values, "descriptor values must be a sequence");
+    if (seq == NULL)
+        return -1;
+    if (PySequence_Fast_GET_SIZE(seq) != DESC_FIELDS) {
+        Py_DECREF(seq);
+        descriptor_error("a descriptor has %d fields", DESC_FIELDS);
+        return -1;
+    }
+    for (int i = 0; i < DESC_FIELDS; i++) {
+        uint64_t value;
+        if (field_value(PySequence_Fast_GET_ITEM(seq, i), i, &value) != 0) {
+            Py_DECREF(seq);
+            return -1;
+        }
+        if (i < DESC_FIELD_COUNT_USED)
+            v[i] = value;
+    }
+    Py_DECREF(seq);
+    if (v[F_VERSION] != DESC_VERSION) {
+        descriptor_error("descriptor version %llu (this reader knows %d)",
+                         (unsigned long long)v[F_VERSION], DESC_VERSION);
+        return -1;
+    }
+    if (v[F_KIND] > DESC_KIND_CUDA_VMM) {
+        descriptor_error("unknown descriptor kind %llu", (unsigned long long)v[F_KIND]);
+        return -1;
+    }
+    if (v[F_PID] == 0 || v[F_PID] >= PID_MAX || v[F_SESSION] == 0 || v[F_GENERATION] == 0) {
+        descriptor_error("descriptor names no export (pid %llu, session %#llx, generation %llu)",
+                         (unsigned long long)v[F_PID], (unsigned long long)v[F_SESSION],
+                         (unsigned long long)v[F_GENERATION]);
+        return -1;
+    }
+    if (v[F_SLOT] != ARENA_NO_PEER && v[F_SLOT] >= ARENA_MAX_PEERS) {
+        descriptor_error("peer slot %llu", (unsigned long long)v[F_SLOT]);
+        return -1;
+    }
+    return 0;
+}
+
+/* check_names(values): raise DescriptorError unless the values name an export (what an import
+ * checks before it attaches to the session they name). */
+PyObject *check_names(PyObject *module, PyObject *values) {
+    uint64_t v[DESC_FIELD_COUNT_USED];
+    if (check_descriptor_values(values, v) != 0)
+        return NULL;
+    Py_RETURN_NONE;
+}
+
 /* import_block(values) -> Hold: the import of the descriptor whose 27 field values are given
  * (warp_buffer.descriptor.FIELDS order), checked against this session: version, kind, the
  * names of the export, the peer slot, the block's place in the geometry (a CUDA block's lock
  * range: one MIN_BLOCK), its size; then held, acknowledged (also when the hold fails: the
  * descriptor was consumed), and its generation compared. */
 static PyObject *session_import_block(Session *self, PyObject *values) {
-    PyObject *seq = PySequence_Fast(values, "descriptor values must be a sequence");
-    if (seq == NULL)
-        return NULL;
-    if (PySequence_Fast_GET_SIZE(seq) != DESC_FIELDS) {
-        Py_DECREF(seq);
-        return descriptor_error("a descriptor has %d fields", DESC_FIELDS);
-    }
     uint64_t v[DESC_FIELD_COUNT_USED];
-    for (int i = 0; i < DESC_FIELD_COUNT_USED; i++) {
-        if (field_value(PySequence_Fast_GET_ITEM(seq, i), i, &v[i]) != 0) {
-            Py_DECREF(seq);
-            return NULL;
-        }
-    }
-    Py_DECREF(seq);
-    if (v[F_VERSION] != DESC_VERSION)
-        return descriptor_error("descriptor version %llu (this reader knows %d)",
-                                (unsigned long long)v[F_VERSION], DESC_VERSION);
-    if (v[F_KIND] > DESC_KIND_CUDA_VMM)
-        return descriptor_error("unknown descriptor kind %llu", (unsigned long long)v[F_KIND]);
-    if (v[F_PID] == 0 || v[F_PID] >= PID_MAX || v[F_SESSION] == 0 || v[F_GENERATION] == 0)
-        return descriptor_error("descriptor names no export (pid %llu, session %#llx, "
-                                "generation %llu)", (unsigned long long)v[F_PID],
-                                (unsigned long long)v[F_SESSION],
-                                (unsigned long long)v[F_GENERATION]);
+    if (check_descriptor_values(values, v) != 0)
+        return NULL;
     if (v[F_PID] != self->owner_pid || v[F_SESSION] != self->session)
         return descriptor_error("descriptor of session %#llx of process %llu imported through "
                                 "session %#llx of process %u", (unsigned long long)v[F_SESSION],
                                 (unsigned long long)v[F_PID], (unsigned long long)self->session,
                                 self->owner_pid);
     unsigned slot = (unsigned)v[F_SLOT];
-    if (slot != ARENA_NO_PEER && slot >= ARENA_MAX_PEERS)
-        return descriptor_error("peer slot %u", slot);
     int cuda = v[F_KIND] == DESC_KIND_CUDA_IPC || v[F_KIND] == DESC_KIND_CUDA_VMM;
     uint64_t offset = v[F_OFFSET], capacity = v[F_CAPACITY], size = v[F_SIZE];
     uint64_t block = cuda ? ARENA_MIN_BLOCK : capacity;
@@ -345,6 +390,18 @@ static PyObject *session_take_own_locks(Session *self, PyObject *unused) {
     close(self->fd);
     self->fd = fd;
     self->pid = getpid();
+    Py_RETURN_NONE;
+}
+
+/* sessions_after_fork(): in a forked child, every live session's holds move onto a description
+ * of the child's own (what warp_buffer.attach's fork hook calls). */
+PyObject *sessions_after_fork(PyObject *module, PyObject *unused) {
+    for (Session *s = live_sessions; s != NULL; s = (Session *)s->next) {
+        PyObject *r = session_take_own_locks(s, NULL);
+        if (r == NULL)
+            return NULL;
+        Py_DECREF(r);
+    }
     Py_RETURN_NONE;
 }
 

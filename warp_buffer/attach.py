@@ -3,103 +3,55 @@ and the reader holds on its blocks.
 
 :func:`attach` returns the cached :class:`AttachedArena` of a session, fetching and mapping it on
 first use (:mod:`warp_buffer.handoff`). It is kept while the process lives (imports are then a
-dict lookup plus a lock), and let go once its owner is gone and nothing here holds a block of it.
-Its mapping keeps the memory alive: frames held or queued here stay readable after the publisher
-exits or dies.
+dict lookup), and let go once its owner is gone. Its mapping keeps the memory alive: frames held
+or queued here stay readable after the publisher exits or dies.
 
-Letting a session go only drops this module's reference: the mappings and the file description
-are released when the last object using them is gone (a hold keeps its arena), so a NumPy view
-kept past ``release()`` keeps reading the bytes it was made over, never whatever a later mapping
-puts at that address, and an import racing the let-go still finds the arena mapped.
+The mappings and this process's own open file description of the arena belong to the session's
+native core (:class:`warp_buffer._core.Session`), which imports: it checks a descriptor against
+the geometry, takes the hold, acknowledges the delivery and compares the generation, in one C
+call. A hold (:class:`Hold`, an import's token, also native) keeps its session: letting a
+session go only drops this module's reference, and the mappings and the description are
+released when the last hold is gone, so a NumPy view kept past ``release()`` keeps reading the
+bytes it was made over, never whatever a later mapping puts at that address, and an import
+racing the let-go still finds the arena mapped.
 
-A hold (:class:`Hold`, an import's token) is a read lock (OFD) on one byte of the block's lock
-range (its first 4 KiB of the file: :data:`LOCK_SPAN`), taken on this process's own open file
-description of the arena; each hold of this process locks a byte of its own, so a hold ends by
-unlocking its byte, without counting the others and without a Python lock: its finalizer only
-makes that system call. The publisher's reclaim probe write-locks the whole range. The kernel
-drops the locks if the process dies.
+A hold is a read lock (OFD) on the block's lock range (its first 4 KiB of the file:
+:data:`~warp_buffer.arena.LOCK_SPAN`), taken on the session's description when this process's
+first hold of the block starts and dropped when its last ends (counted in C; a hold's end is one
+C function under the GIL: no Python lock, no finalizer). The publisher's reclaim probe
+write-locks the whole range. The kernel drops the locks if the process dies.
 """
 
 from __future__ import annotations
 
-import ctypes
-import fcntl
-import itertools
 import os
 import threading
 from typing import Any
 
-import numpy as np
-
 from . import handoff, memory
-from .arena import (
-    ACKS_OFFSET,
-    GENS_OFFSET,
-    LOCK_SPAN,
-    MAX_PEERS,
-    SLOT_STRIDE,
-    Arena,
-    Geometry,
-    alive,
-    existing_arena,
-)
-from .errors import ExportError, StaleBufferError
+from .arena import Arena, Geometry, alive, existing_arena
+from .descriptor import _core
+from .errors import ExportError
 
 __all__ = ["AttachedArena", "Hold", "attach", "attached", "attached_sessions", "forget_idle"]
 
-_SETLK, _request = memory.F_OFD_SETLK, memory.lock_request
-
-
-class _DataMapping:
-    """The data region of an attached arena, unmapped when the last array over it is gone (the
-    arena's ``data`` array holds it as its base; every view of an import derives from that)."""
-
-    __slots__ = ("__array_interface__", "_region")
-
-    def __init__(self, address: int, nbytes: int, owned: bool) -> None:
-        self.__array_interface__ = {"data": (address, True), "shape": (nbytes,),
-                                    "typestr": "|u1", "version": 3}
-        self._region = (address, nbytes) if owned else None  # None: our own arena's mapping
-
-    def __del__(self) -> None:
-        region, self._region = self._region, None
-        if region is not None:
-            try:
-                memory.unmap(*region)
-            except Exception:  # pragma: no cover - interpreter shutdown
-                pass
+#: An import's token (see the module docstring).
+Hold = _core.Hold
 
 
 class AttachedArena:
-    """A publisher session's arena as this process sees it. Its header mapping and file
-    description are released when the object is collected: holds and imports in progress keep
-    it (see the module docstring)."""
+    """A publisher session's arena as this process sees it: its geometry and its native core
+    (:attr:`core`, a :class:`warp_buffer._core.Session`, which owns the mappings and the
+    description and imports)."""
 
-    def __init__(self, owner_pid: int, session: int, geometry: Geometry, fd: int,
-                 base: int, data_base: int, owned: bool) -> None:
+    def __init__(self, owner_pid: int, session: int, geometry: Geometry, core: Any) -> None:
         self.owner_pid = owner_pid
         self.session = session
         self.geometry = geometry
-        self.fd = fd  # our own open file description: our locks (-1 once closed)
-        # A forked child shares the description, and so its locks: only this process unlocks
-        self._pid = os.getpid()
-        self.base = base
-        # ``owned``: the mappings are ours to unmap (False for our own arena, imported here)
-        self._head = (base, geometry.data_offset) if owned else None
+        self.core = core
         self.data_offset = geometry.data_offset
-        self.data_base = data_base  # where file offset data_offset is mapped here
-        self.gens = (ctypes.c_uint64 * (geometry.data_bytes // 4096)).from_address(
-            base + GENS_OFFSET)
-        self.acks = (ctypes.c_uint64 * (MAX_PEERS * SLOT_STRIDE // 8)).from_address(
-            base + ACKS_OFFSET)
-        # Views of imports are read-only slices of this array (their base): while one lives,
-        # the data stays mapped (_DataMapping).
-        self.data = np.asarray(_DataMapping(data_base, geometry.data_bytes, owned))
-        # (block offset, lock byte) of every hold alive here: a new hold takes a byte none of
-        # them has (taken under _lock; a hold's end removes its own, without a lock).
-        self._live: set[tuple[int, int]] = set()
-        self._keys = itertools.count()
-        self._lock = threading.Lock()
+        #: Imports from this session: ``import_block(values) -> Hold`` (the core's, one C call)
+        self.import_block = core.import_block
 
     @classmethod
     def fetch(cls, owner_pid: int, session: int) -> AttachedArena:
@@ -110,147 +62,52 @@ class AttachedArena:
             raise ExportError(f"cannot open the arena of process {owner_pid}: {exc}") from None
         finally:
             os.close(received)  # it shares the publisher's description (and its locks)
+        head_len, size = geometry.data_offset, geometry.file_size
         try:
-            size = geometry.file_size
             # Header, acknowledgement slots and generations writable (we acknowledge imports);
             # the data read-only: a reader can never change the publisher's bytes by mistake.
-            head = memory.map_fd(fd, geometry.data_offset)
+            head = memory.map_fd(fd, head_len)
             try:
-                    data = memory.map_fd(fd, size - geometry.data_offset, geometry.data_offset,
-                                     writable=False)
+                data = memory.map_fd(fd, size - head_len, head_len, writable=False)
             except BaseException:
-                memory.unmap(head, geometry.data_offset)
+                memory.unmap(head, head_len)
                 raise
         except OSError as exc:
             os.close(fd)
             raise ExportError(f"cannot map the arena of process {owner_pid}: {exc}") from None
-        return cls(owner_pid, session, geometry, fd, head, data, owned=True)
+        core = _core.Session(owner_pid, session, fd, head, head_len, data, size - head_len,
+                             head_len, True)
+        return cls(owner_pid, session, geometry, core)
 
     @classmethod
     def local(cls, arena: Arena) -> AttachedArena:
         """Our own session, imported in this very process: our mapping, a new description."""
         fd = memory.reopen(arena.fd)
-        return cls(arena.pid, arena.session, arena.geometry, fd, arena.base,
-                   arena.base + arena.data_offset, owned=False)
+        g = arena.geometry
+        core = _core.Session(arena.pid, arena.session, fd, arena.base, g.data_offset,
+                             arena.base + g.data_offset, g.data_bytes, g.data_offset, False)
+        return cls(arena.pid, arena.session, g, core)
+
+    @property
+    def fd(self) -> int:
+        """This process's description of the arena (its holds' locks; -1 once closed)."""
+        return self.core.fd
+
+    @property
+    def data_base(self) -> int:
+        """Where file offset :attr:`data_offset` is mapped here."""
+        return self.core.data_address
 
     def address(self, offset: int) -> int:
         """Address of file offset ``offset`` (in the data region) in this process."""
-        return self.data_base + (offset - self.data_offset)
-
-    # -- holds ------------------------------------------------------------------------------
-    def hold(self, offset: int, slot: int = -1, sequence: int = 0) -> Hold:
-        """Take a read lock on a byte of the block at ``offset`` of its own and return the hold;
-        raises :class:`StaleBufferError` while the publisher is recycling the block. With a
-        peer ``slot``, then record that this process imported delivery ``sequence`` of that peer
-        (also when the lock fails: the descriptor was consumed either way). The lock comes
-        first: once the publisher sees the acknowledgement, its write-lock probe meets it."""
-        live = self._live
-        with self._lock:
-            try:
-                key = next(self._keys) % LOCK_SPAN
-                while (offset, key) in live:  # (only when LOCK_SPAN holds of one block live here)
-                    key = next(self._keys) % LOCK_SPAN
-                try:  # (memory.try_lock, inline: once per import)
-                    fcntl.fcntl(self.fd, _SETLK, _request(fcntl.F_RDLCK, os.SEEK_SET,
-                                                          offset + key, 1, 0))
-                except OSError as exc:
-                    if exc.errno not in memory.BUSY:
-                        raise
-                    raise StaleBufferError(f"block {offset:#x} of process {self.owner_pid} "
-                                           "is being recycled") from None
-                live.add((offset, key))
-            finally:
-                if slot >= 0:
-                    index = slot * (SLOT_STRIDE // 8)
-                    if self.acks[index] < sequence:
-                        self.acks[index] = sequence
-        hold = _new_hold(Hold)  # (Hold's __init__, inline: once per import)
-        hold.arena, hold.offset, hold._key = self, offset, [key]
-        return hold
+        return self.core.data_address + (offset - self.data_offset)
 
     @property
     def held(self) -> int:
-        """Holds alive in this process."""
-        return len(self._live)
-
-    def take_own_locks(self) -> None:
-        """In a forked child: move this process's holds onto a description of its own. The
-        inherited one is shared with the parent, so each side's unlock would end the other's
-        hold (the publisher could recycle a block a view here still reads), and it would keep
-        a dead parent's locks alive for as long as the child lives. No lock is taken: another
-        thread may have held ``_lock`` at the fork (the child has a new one)."""
-        self._lock = threading.Lock()
-        inherited = self.fd
-        if inherited < 0 or self._pid == os.getpid():
-            return
-        try:
-            fd = memory.reopen(inherited)
-        except OSError:
-            return  # out of fds: the shared description stays (the parent's locks cover us)
-        for offset, key in list(self._live):
-            try:
-                memory.try_lock(fd, offset + key, exclusive=False)
-            except OSError:  # pragma: no cover - a read lock beside the parent's never conflicts
-                pass
-        self.fd, self._pid = fd, os.getpid()
-        os.close(inherited)  # the parent's locks now live on its copy alone
-
-    def __del__(self) -> None:
-        head, self._head = self._head, None
-        fd, self.fd = getattr(self, "fd", -1), -1  # first: a hold dropped later must not unlock it
-        try:
-            if head is not None:
-                memory.unmap(*head)
-            if fd >= 0:
-                os.close(fd)
-        except Exception:  # pragma: no cover - interpreter shutdown
-            pass
+        """Blocks this process holds now."""
+        return self.core.held
 
 
-class Hold:
-    """An import's token: its read lock on one byte of the block (see the module docstring).
-    It keeps its arena (its mappings and description) alive, and ends when it is collected
-    (everything made of the import is gone) or released (:meth:`release`), whichever comes
-    first."""
-
-    __slots__ = ("arena", "offset", "_key", "__weakref__")
-
-    def __init__(self, arena: AttachedArena, offset: int, key: int = 0) -> None:
-        self.arena = arena
-        self.offset = offset
-        self._key = [key]  # emptied by the one release that ends the hold (list.pop is atomic)
-
-    @property
-    def live(self) -> bool:
-        return bool(self._key)
-
-    def release(self) -> None:
-        """End the hold now (idempotent): one unlock, no Python lock (it is also the token's
-        finalizer). Not in a forked child that kept its parent's description, nor on a closed
-        one (its locks went with it; the number may be another file's now). The byte is free
-        for a new hold of this process only after the unlock. Whatever still uses the import's
-        memory then reads bytes the publisher may recycle: drop the token instead if you can."""
-        try:
-            key = self._key.pop()
-        except IndexError:
-            return
-        arena = self.arena
-        fd, offset = arena.fd, self.offset
-        try:
-            if fd >= 0 and arena._pid == os.getpid():  # (memory.unlock, inline)
-                fcntl.fcntl(fd, _SETLK, _request(fcntl.F_UNLCK, os.SEEK_SET, offset + key, 1, 0))
-        except Exception:  # pragma: no cover - interpreter shutdown: nothing left to unlock
-            pass
-        finally:
-            arena._live.discard((offset, key))
-
-    def __call__(self, ptr: int = 0, size: int = 0) -> None:
-        """As the ``deleter`` of an array over the import: it only keeps the hold alive."""
-
-    __del__ = release  # every import ends here: the token is gone
-
-
-_new_hold = object.__new__
 _sessions: dict[tuple[int, int], AttachedArena] = {}
 _sessions_lock = threading.Lock()
 #: The arena of a session attached already (None otherwise): one dict lookup per import.
@@ -297,11 +154,10 @@ def attached_sessions() -> list[AttachedArena]:
 
 def _after_fork_in_child() -> None:
     # Inherited descriptions are shared with the parent (so are their locks): the holds of
-    # views inherited here move onto descriptions of the child's own, and later imports attach
-    # afresh.
+    # views inherited here, of every session still alive (attached or let go), move onto
+    # descriptions of the child's own, and later imports attach afresh.
     global _sessions_lock
-    for arena in list(_sessions.values()):
-        arena.take_own_locks()
+    _core.sessions_after_fork()
     _sessions.clear()
     _sessions_lock = threading.Lock()
 

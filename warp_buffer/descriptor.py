@@ -113,6 +113,11 @@ def values_of(descriptor: Any) -> tuple[int, ...]:
     return values
 
 
+#: ``check_names(values)``: :class:`DescriptorError` unless a descriptor's field values name an
+#: export (version, kind, pid, session, generation, peer slot; each field's width), one C call.
+check_names = _core.check_names
+
+
 def pack(descriptor: Any) -> bytes:
     """The descriptor's CDR bytes (as at an 8-byte boundary of a CDR stream)."""
     try:

@@ -23,34 +23,32 @@ Zero payload copies between processes of one user on one host:
 
 The descriptor (:mod:`warp_buffer.descriptor`) is the record: it carries numbers only. An export
 is the lease's transition to "published to a peer" (:meth:`warp_buffer.lease.Lease.export`: the
-block's generation, and the delivery the peer owes). An import validates the descriptor against
-the session's geometry, takes its hold (a read lock on a byte of the block's lock range: the
-import's token, :class:`warp_buffer.attach.Hold`), then checks the block's generation: a recycled
-block raises :class:`StaleBufferError`, and is never delivered as an empty or wrong buffer. Every
-failure is a typed :class:`~warp_buffer.errors.ExportError`.
+block's generation, and the delivery the peer owes). An import is one call of the session's
+native core: it validates the descriptor against the session's geometry, takes its hold (a read
+lock on the block's lock range: the import's token, :class:`warp_buffer.attach.Hold`), then checks
+the block's generation: a recycled block raises :class:`StaleBufferError`, and is never delivered
+as an empty or wrong buffer. Every failure is a typed :class:`~warp_buffer.errors.ExportError`.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-import struct
 import threading
 import weakref
 from typing import Any
 
+import numpy as np
 import warp as wp
 
 from rosidl_buffer import Buffer
-from rosidl_buffer.buffer_impl import array_at
 from rosidl_buffer.endpoint import local_host_id as _real_host_id
 
-from . import arena as _arena
 from . import attach as _attach
 from . import cuda as _cuda
 from . import descriptor as _desc
 from . import handoff
-from .arena import MAX_PEERS, MIN_BLOCK, NO_PEER, PeerSlot, current_arena, existing_arena
+from .arena import NO_PEER, PeerSlot, current_arena, existing_arena
 from .buffer_impl import WarpBufferImpl, wrap_bytes
 from .lease import PUBLISHED
 from .errors import (
@@ -77,8 +75,7 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
-_PID_MAX = 1 << 22  # Linux's pid_max ceiling
-_ORDER_MASK = (1 << _arena.GENERATION_ORDER_BITS) - 1
+_frombuffer, _UINT8 = np.frombuffer, np.dtype(np.uint8)
 _server_lock = threading.Lock()
 # Local copies made once per buffer (a clone moved into a block, an import's re-export copy, a
 # CUDA buffer's staging copy): made under this lock, so two exports never make two.
@@ -290,46 +287,25 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
         raise DescriptorError(f"expected a {_desc.DESCRIPTOR_TYPE}, got "
                               f"{type(descriptor).__name__}")
     values = _desc.fields_of(descriptor)
-    try:
-        _desc.LAYOUT.pack(*values)  # what the wire can carry (a hand-made one may hold anything)
-    except struct.error as exc:
-        raise DescriptorError(f"a descriptor field the wire cannot carry: {exc}") from None
-    (version, kind, slot, owner_pid, session, offset, capacity, size, generation, sequence,
-     device_word, *handles) = values
-    if version != _desc.VERSION:
-        raise DescriptorError(f"descriptor version {version} (this reader knows {_desc.VERSION})")
-    if kind not in _desc.KINDS:
-        raise DescriptorError(f"unknown descriptor kind {kind}")
-    if not 0 < owner_pid < _PID_MAX or not 0 < session < 1 << 64 or generation <= 0:
-        raise DescriptorError(f"descriptor names no export (pid {owner_pid}, session "
-                              f"{session:#x}, generation {generation})")
-    if slot != NO_PEER and not 0 <= slot < MAX_PEERS:
-        raise DescriptorError(f"peer slot {slot}")
-    arena = _attach.attached((owner_pid, session)) or _attach.attach(owner_pid, session)
-    cuda = kind in _desc.CUDA_ZERO_COPY
-    problem = arena.geometry.check_block(offset, MIN_BLOCK if cuda else capacity)
-    if problem is not None:
-        raise ExportBoundsError(f"descriptor of process {owner_pid}: {problem}")
-    if not 0 < size <= capacity:
-        raise ExportBoundsError(f"size {size} outside 1..{capacity}")
-    hold = arena.hold(offset, -1 if slot == NO_PEER else slot, sequence)
-    try:
-        if arena.gens[(offset - arena.data_offset) // MIN_BLOCK] != generation:
-            raise StaleBufferError(f"block {offset:#x} of process {owner_pid} was recycled "
-                                   "(a later publish reuses it)")
-        if generation & _ORDER_MASK != capacity.bit_length() - 1:  # (generation_fits)
-            raise ExportBoundsError(f"descriptor of process {owner_pid}: capacity {capacity} "
-                                    f"is not that of block {offset:#x}")
-        if cuda:
-            return _import_cuda(descriptor, kind, capacity, size, device_word, handles, hold)
-        address = arena.data_base + (offset - arena.data_offset)
-        # The host view holds the token (and through it the arena's mapping): every view of
-        # the import made from it keeps the block held and mapped.
-        return WarpBufferImpl.imported(address, size, _cpu or _cpu_device(), hold, descriptor,
-                                       array_at(address, size, hold))
-    except BaseException:
-        hold.release()
-        raise
+    kind, owner_pid, session = values[1], values[3], values[4]
+    arena = _attach.attached((owner_pid, session))
+    if arena is None:
+        _desc.check_names(values)  # nothing is fetched for a descriptor that names no export
+        arena = _attach.attach(owner_pid, session)
+    # Every field checked against the session, the block held, the delivery acknowledged, the
+    # generation compared: one C call (warp_buffer._core.Session.import_block).
+    hold = arena.import_block(values)
+    if kind in _desc.CUDA_ZERO_COPY:
+        try:
+            return _import_cuda(descriptor, kind, values[6], values[7], values[10], values[11:],
+                                hold)
+        except BaseException:
+            hold.release()
+            raise
+    # The host view holds the token (and through it the session's mapping): every view of the
+    # import made from it keeps the block held and mapped.
+    return WarpBufferImpl.imported(hold.address, values[7], _cpu or _cpu_device(), hold,
+                                   descriptor, _frombuffer(hold, _UINT8))
 
 
 _cpu: Any = None
