@@ -1096,8 +1096,55 @@ static PyMemberDef lease_members[] = {
     {NULL}
 };
 
+/* The lease's lock as a context manager (``with lease._lock:``), for code that must exclude the
+ * lease's transitions (tests of what may not wait for it). */
+typedef struct {
+    PyObject_HEAD
+    Lease *lease;
+} LeaseLock;
+
+static PyTypeObject LeaseLockType;
+
+static void leaselock_dealloc(LeaseLock *self) {
+    Py_XDECREF(self->lease);
+    PyObject_Free(self);
+}
+
+static PyObject *leaselock_enter(LeaseLock *self, PyObject *unused) {
+    lease_lock(self->lease);
+    return Py_NewRef((PyObject *)self);
+}
+
+static PyObject *leaselock_exit(LeaseLock *self, PyObject *args) {
+    lease_unlock(self->lease);
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef leaselock_methods[] = {
+    {"__enter__", (PyCFunction)leaselock_enter, METH_NOARGS, "take the lease's lock"},
+    {"__exit__", (PyCFunction)leaselock_exit, METH_VARARGS, "release it"},
+    {NULL}
+};
+
+static PyTypeObject LeaseLockType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "warp_buffer._core.LeaseLock",
+    .tp_basicsize = sizeof(LeaseLock),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_dealloc = (destructor)leaselock_dealloc,
+    .tp_methods = leaselock_methods,
+};
+
+static PyObject *lease_get_lock(Lease *self, void *closure) {
+    LeaseLock *lock = PyObject_New(LeaseLock, &LeaseLockType);
+    if (lock != NULL)
+        lock->lease = (Lease *)Py_NewRef((PyObject *)self);
+    return (PyObject *)lock;
+}
+
 static PyGetSetDef lease_getset[] = {
     {"readers", (getter)lease_get_readers, NULL, "tokens alive", NULL},
+    {"_lock", (getter)lease_get_lock, NULL, "the lease's lock, as a context manager", NULL},
     {NULL}
 };
 
@@ -1188,6 +1235,8 @@ int lease_module_init(PyObject *m) {
     PyTypeObject *types[] = {&PeerSlotType, &ArenaCoreType, &ExportsType, &FenceType,
                              &LeaseType, &TokenType};
     const char *type_names[] = {"PeerSlot", "ArenaCore", "Exports", "Fence", "Lease", "Token"};
+    if (PyType_Ready(&LeaseLockType) < 0)
+        return -1;
     for (size_t i = 0; i < sizeof types / sizeof *types; i++) {
         if (PyType_Ready(types[i]) < 0
                 || PyModule_AddObjectRef(m, type_names[i], (PyObject *)types[i]) < 0)

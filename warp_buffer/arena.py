@@ -31,7 +31,6 @@ from __future__ import annotations
 import ctypes
 import dataclasses
 import fcntl
-import itertools
 import logging
 import os
 import secrets
@@ -43,6 +42,7 @@ from typing import Any
 from rosidl_buffer.buffer_impl import array_at
 
 from . import memory
+from .descriptor import _core
 from ._env import env_float
 
 __all__ = [
@@ -60,7 +60,6 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
-_SETLK, _request = memory.F_OFD_SETLK, memory.lock_request
 
 MIN_BLOCK = 4096
 #: The bytes of a block's lock range (at the block's file offset; a CUDA block's is a range of
@@ -159,21 +158,13 @@ class _Buddy:
         self._free.setdefault(capacity, set()).add(offset)
 
 
-@dataclasses.dataclass
-class PeerSlot:
-    """One peer subscription's delivery accounting in this session: the publisher numbers the
-    descriptors it sends that peer; the peer's process writes the last number it imported."""
-
-    index: int
-    epoch: int
-    pid: int
-    issued: int = 0  # the last sequence number handed out
-    # How many of the latest descriptors the peer can still import (its delivery queue, and a
-    # few in hand); older ones it can never read: they pin nothing. 0: no limit.
-    window: int = 0
-    # The numbers of the descriptors sent to it, handed out by the block's lease
-    # (warp_buffer.lease.Lease.export): ``next(numbers)`` is atomic under the GIL.
-    numbers: Any = dataclasses.field(default_factory=lambda: itertools.count(1))
+#: One peer subscription's delivery accounting in this session (native): ``index``, ``epoch``,
+#: ``pid``, ``issued`` (the last number sent) and ``window`` (how many of its latest descriptors
+#: the peer can still import: its delivery queue and a few in hand; older ones it can never read,
+#: they pin nothing; 0: no limit). The publisher numbers the descriptors it sends the peer
+#: (:meth:`warp_buffer.lease.Lease.export`); the peer's process writes the last number it
+#: imported into the slot.
+PeerSlot = _core.PeerSlot
 
 
 class Arena:
@@ -198,18 +189,13 @@ class Arena:
         self.size = size
         self.data_offset = self.geometry.data_offset
         ctypes.memmove(self.base, self.hello(), HELLO.size)
-        self.gens = (ctypes.c_uint64 * (self.geometry.data_bytes // MIN_BLOCK)).from_address(
-            self.base + GENS_OFFSET)
-        self.acks = (ctypes.c_uint64 * (MAX_PEERS * SLOT_STRIDE // 8)).from_address(
-            self.base + ACKS_OFFSET)
+        #: The per-message state (generations, peer slots, the retire probe), native.
+        self.core = _core.ArenaCore(self.base, fd, self.data_offset, self.geometry.data_bytes)
         self.host = array_at(self.base, size)
         self._lock = threading.Lock()
         self._buddy = _Buddy(self.geometry.data_bytes)
-        self._generations = itertools.count(1)
         self._slots: dict[Any, PeerSlot] = {}
         self._free_slots = list(range(MAX_PEERS - 1, -1, -1))
-        self._epochs = [0] * MAX_PEERS
-        self._slot_at: list[PeerSlot | None] = [None] * MAX_PEERS  # by slot index
         self._last_liveness = 0.0
         self.server: Any = None
         # CUDA VMM blocks by the offset of their lock range: the server hands a peer holding
@@ -240,26 +226,12 @@ class Arena:
     def new_generation(self, offset: int, capacity: int) -> int:
         """Start an export of the ``capacity``-byte block at ``offset``: a generation never used
         before, whose low bits hold log2(capacity) (see :func:`generation_fits`)."""
-        generation = next(self._generations) << GENERATION_ORDER_BITS | capacity.bit_length() - 1
-        self.gens[(offset - self.data_offset) // MIN_BLOCK] = generation  # (gen_index, inline)
-        return generation
+        return self.core.new_generation(offset, capacity)
 
     def try_retire(self, offset: int) -> bool:
         """End the export of the block at ``offset`` if no reader holds it (a write-lock probe
-        on its lock range); later imports of it then find generation 0 and fail as stale.
-        (memory.try_lock and unlock, inline: once per reuse of a block.)"""
-        fd = self.fd
-        try:
-            fcntl.fcntl(fd, _SETLK, _request(fcntl.F_WRLCK, os.SEEK_SET, offset, LOCK_SPAN, 0))
-        except OSError as exc:
-            if exc.errno in memory.BUSY:
-                return False
-            raise
-        try:
-            self.gens[(offset - self.data_offset) // MIN_BLOCK] = 0
-        finally:
-            fcntl.fcntl(fd, _SETLK, _request(fcntl.F_UNLCK, os.SEEK_SET, offset, LOCK_SPAN, 0))
-        return True
+        on its lock range); later imports of it then find generation 0 and fail as stale."""
+        return self.core.try_retire(offset)
 
     # -- peers ------------------------------------------------------------------------------
     def peer_slot(self, key: Any, pid: int, window: int = 0) -> PeerSlot | None:
@@ -275,11 +247,7 @@ class Arena:
                 if not self._free_slots:
                     return None
                 index = self._free_slots.pop()
-                self._epochs[index] += 1
-                self.acks[index * (SLOT_STRIDE // 8)] = 0
-                slot = self._slots[key] = PeerSlot(index, self._epochs[index], pid,
-                                                   window=max(0, window))
-                self._slot_at[index] = slot
+                slot = self._slots[key] = self.core.open_slot(index, pid, max(0, window))
             return slot
 
     def forget_peer(self, key: Any) -> None:
@@ -287,25 +255,8 @@ class Arena:
         with self._lock:
             slot = self._slots.pop(key, None)
             if slot is not None:
-                self._epochs[slot.index] += 1
-                self._slot_at[slot.index] = None
+                self.core.close_slot(slot.index)
                 self._free_slots.append(slot.index)
-
-    def delivered(self, pending: dict[int, int]) -> bool:
-        """Has every peer in ``pending`` (slot index -> sequence) imported its descriptor, or a
-        later one (it then dropped this one: keep-last), or gone away, or been sent more than
-        its window since (its keep-last queue overwrote it: a frozen peer pins at most that
-        many blocks; should it import this one after all, the generation check refuses it)?"""
-        acks, epochs, slots = self.acks, self._epochs, self._slot_at
-        for index, sequence in pending.items():
-            if epochs[index] != sequence >> SEQ_BITS:
-                continue  # the peer was forgotten
-            if acks[index * (SLOT_STRIDE // 8)] < sequence:
-                slot = slots[index]
-                if (slot is None or not slot.window
-                        or slot.issued - (sequence & SEQ_MASK) < slot.window):
-                    return False
-        return True
 
     def forget_dead_peers(self) -> None:
         """Forget peers whose process died (checked at most every 100 ms)."""
@@ -322,9 +273,8 @@ class Arena:
         """Pids of peers that have descriptors they did not import yet (for the exit linger)."""
         with self._lock:
             slots = list(self._slots.values())
-        acks = self.acks
-        return {s.pid for s in slots
-                if s.issued and acks[s.index * (SLOT_STRIDE // 8)] < (s.epoch << SEQ_BITS | s.issued)}
+        ack = self.core.ack
+        return {s.pid for s in slots if s.issued and ack(s.index) < (s.epoch << SEQ_BITS | s.issued)}
 
 
 def alive(pid: int) -> bool:

@@ -32,9 +32,7 @@ write through a stale view then changes what zero-copy readers see, as with any 
 
 from __future__ import annotations
 
-import ctypes
 import mmap
-import os
 from typing import Any
 
 from rosidl_buffer import Buffer
@@ -42,14 +40,17 @@ from rosidl_buffer.buffer_impl import array_at
 
 from . import memory
 from ._env import env_flag
+from .descriptor import _core
 from .buffer_impl import WarpBufferImpl, wrap_bytes
 
 __all__ = ["LoanedBufferImpl", "loan_buffer", "protection_enabled"]
 
 _PAGE = mmap.PAGESIZE
-_READ_ONLY, _WRITABLE = mmap.PROT_READ, mmap.PROT_READ | mmap.PROT_WRITE
-_libc = ctypes.CDLL(None, use_errno=True)
-_libc.mprotect.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
+#: The pages a loan protects, the lease's fence (:attr:`warp_buffer.lease.Lease.fence`), native:
+#: ``Fence(addr, nbytes, window)``, ``protect(writable=False)`` (an ``mprotect``), ``close()``
+#: (before the block goes back to the pool: writable whatever the last loan left; a window is
+#: unmapped), ``protected``.
+_Fence = _core.Fence
 
 
 def protection_enabled() -> bool:
@@ -58,33 +59,7 @@ def protection_enabled() -> bool:
     return env_flag("WARP_BUFFER_LOAN_PROTECT", True)
 
 
-class _Pages:
-    """The pages a loan protects: the lease's fence (:attr:`warp_buffer.lease.Lease.fence`).
-    Closed with the lease, before its block goes back to the pool, writable whatever the last
-    loan left: a window is unmapped (the arena's own mapping was never protected), a block
-    protected in place is made writable again."""
-
-    __slots__ = ("addr", "nbytes", "window", "protected")
-
-    def __init__(self, addr: int, nbytes: int, window: bool) -> None:
-        self.addr, self.nbytes, self.window, self.protected = addr, nbytes, window, False
-
-    def protect(self, writable: bool = False) -> None:
-        """Read-only in this process (publish ended the loan); ``writable``: writable again
-        (the next loan)."""
-        if _libc.mprotect(self.addr, self.nbytes, _WRITABLE if writable else _READ_ONLY) != 0:
-            errno = ctypes.get_errno()
-            raise OSError(errno, f"mprotect of a loaned block failed: {os.strerror(errno)}")
-        self.protected = not writable
-
-    def close(self) -> None:
-        if self.window:
-            memory.unmap(self.addr, self.nbytes)
-        elif self.protected:
-            self.protect(writable=True)
-
-
-def _protected_pages(block: Any, nbytes: int) -> _Pages | None:
+def _protected_pages(block: Any, nbytes: int) -> Any:
     """The pages of a new loaned host buffer to protect: a window onto its arena block, else
     (private memory, or no mapping left) the block's own pages; None when the block does not
     start on a page."""
@@ -93,11 +68,10 @@ def _protected_pages(block: Any, nbytes: int) -> _Pages | None:
     length = -(-nbytes // _PAGE) * _PAGE  # the pages the bytes cover, no more
     if block.shared:
         try:
-            return _Pages(memory.map_fd(block.arena.fd, length, block.offset), length,
-                          window=True)
+            return _Fence(memory.map_fd(block.arena.fd, length, block.offset), length, True)
         except OSError:  # vm.max_map_count reached: protect the arena's pages themselves
             pass
-    return _Pages(block.data_ptr, length, window=False)
+    return _Fence(block.data_ptr, length, False)
 
 
 class LoanedBufferImpl(WarpBufferImpl):
@@ -107,7 +81,7 @@ class LoanedBufferImpl(WarpBufferImpl):
     Its ``seal``, ``end_publish`` and ``reclaim`` are its lease's transitions themselves (bound
     on the instance, one call less per loan than forwarding methods)."""
 
-    _pages: _Pages | None = None  # the lease's fence (a host block, protection on)
+    _pages: Any = None  # the lease's fence (a host block, protection on)
 
     @classmethod
     def allocate(cls, nbytes: int, device: Any = None,  # type: ignore[override]
