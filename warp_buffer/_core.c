@@ -207,6 +207,13 @@ static PyMethodDef core_methods[] = {
      "pack_into(buffer, offset, values): the same, written into a writable buffer."},
     {"unpack", (PyCFunction)(void (*)(void))core_unpack, METH_FASTCALL,
      "unpack(data, offset=0) -> tuple: the 27 field values of the descriptor at offset."},
+    {"set_descriptor_type", set_descriptor_type, METH_VARARGS,
+     "set_descriptor_type(cls, fields): the message class descriptors are made of."},
+    {"make", make_descriptor_py, METH_O,
+     "make(values) -> descriptor: a descriptor message of its 27 field values (checked)."},
+    {"describe", describe, METH_VARARGS,
+     "describe(lease, peer, kind, size, owner_pid, session, device_word=0, handles=None) -> "
+     "descriptor: the lease's block exported to the peer and described, in one call."},
     {"check_names", check_names, METH_O,
      "check_names(values): DescriptorError unless the 27 values name an export (checked "
      "before an import attaches to the session they name)."},

@@ -93,6 +93,9 @@ int field_value(PyObject *item, int i, uint64_t *out);
 int lock_range(int fd, short kind, uint64_t offset, uint64_t length);
 PyObject *lease_configure(PyObject *module, PyObject *args);
 PyObject *check_names(PyObject *module, PyObject *values);
+PyObject *set_descriptor_type(PyObject *module, PyObject *args);
+PyObject *make_descriptor_py(PyObject *module, PyObject *values);
+PyObject *describe(PyObject *module, PyObject *args);
 PyObject *sessions_after_fork(PyObject *module, PyObject *unused);
 int lease_module_init(PyObject *module);
 

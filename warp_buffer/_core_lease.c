@@ -888,20 +888,22 @@ static PyObject *lease_hold(Lease *self, PyObject *unused) {
     return (PyObject *)token;
 }
 
-/* export(peer) -> (generation, slot, sequence): published to a peer (a PeerSlot; None: no
- * delivery accounting). The block now waits for that peer's delivery. */
-static PyObject *lease_export(Lease *self, PyObject *peer) {
+/* Published to a peer (a PeerSlot; None: no delivery accounting): the generation of the
+ * block's current export (a new one when it is the first since the block was free), the peer's
+ * slot and the delivery sequence the block now waits for. 0 or -1 (an error set). */
+static int lease_export_c(Lease *self, PyObject *peer, uint64_t *generation_out,
+                          uint32_t *slot_out, uint64_t *sequence_out) {
     if (peer != Py_None && !PyObject_TypeCheck(peer, &PeerSlotType)) {
         PyErr_SetString(PyExc_TypeError, "export(peer): a PeerSlot or None");
-        return NULL;
+        return -1;
     }
     if (!PyObject_TypeCheck(self->block, &ExportsType)) {
         PyErr_SetString(PyExc_TypeError, "this lease's block cannot be exported");
-        return NULL;
+        return -1;
     }
     Exports *block = (Exports *)self->block;
     lease_lock(self);
-    PyObject *result = NULL;
+    int rc = -1;
     uint64_t generation = block->generation;
     if (generation == 0) {  /* the first export since the block was free: a new generation */
         if (block->core == NULL) {
@@ -929,20 +931,175 @@ static PyObject *lease_export(Lease *self, PyObject *peer) {
         generation = block->generation = core_new_generation(block->core, block->offset,
                                                              capacity);
     }
+    *generation_out = generation;
     if (peer == Py_None) {
-        result = Py_BuildValue("(KiK)", (unsigned long long)generation, ARENA_NO_PEER, 0ULL);
+        *slot_out = ARENA_NO_PEER;
+        *sequence_out = 0;
+        rc = 0;
         goto done;
     }
     PeerSlot *slot = (PeerSlot *)peer;
-    uint64_t number = ++slot->issued;
-    uint64_t sequence = (uint64_t)slot->epoch << SEQ_BITS | number;
+    uint64_t sequence = (uint64_t)slot->epoch << SEQ_BITS | ++slot->issued;
     if (exports_note(block, slot->index, sequence) != 0)
         goto done;
-    result = Py_BuildValue("(KIK)", (unsigned long long)generation, slot->index,
-                           (unsigned long long)sequence);
+    *slot_out = slot->index;
+    *sequence_out = sequence;
+    rc = 0;
 done:
     lease_unlock(self);
-    return result;
+    return rc;
+}
+
+/* export(peer) -> (generation, slot, sequence) */
+static PyObject *lease_export(Lease *self, PyObject *peer) {
+    uint64_t generation, sequence;
+    uint32_t slot;
+    if (lease_export_c(self, peer, &generation, &slot, &sequence) != 0)
+        return NULL;
+    return Py_BuildValue("(KIK)", (unsigned long long)generation, slot,
+                         (unsigned long long)sequence);
+}
+
+/* -- descriptors --------------------------------------------------------------------------- */
+static PyTypeObject *DescriptorType;          /* the generated message class */
+static Py_ssize_t descriptor_offsets[DESC_FIELDS];  /* where each field's slot is in it */
+static PyObject *empty_tuple;
+
+/* set_descriptor_type(cls, fields): the message class descriptors are made of, whose slots are
+ * ``fields`` in warp_buffer.descriptor.FIELDS order. */
+PyObject *set_descriptor_type(PyObject *module, PyObject *args) {
+    PyObject *cls, *fields;
+    if (!PyArg_ParseTuple(args, "O!O", &PyType_Type, &cls, &fields))
+        return NULL;
+    PyObject *seq = PySequence_Fast(fields, "fields");
+    if (seq == NULL)
+        return NULL;
+    if (PySequence_Fast_GET_SIZE(seq) != DESC_FIELDS) {
+        Py_DECREF(seq);
+        return PyErr_Format(PyExc_ValueError, "a descriptor has %d fields", DESC_FIELDS);
+    }
+    Py_ssize_t offsets[DESC_FIELDS];
+    for (int i = 0; i < DESC_FIELDS; i++) {
+        PyObject *member = PyObject_GetAttr(cls, PySequence_Fast_GET_ITEM(seq, i));
+        if (member == NULL) {
+            Py_DECREF(seq);
+            return NULL;
+        }
+        int ok = Py_IS_TYPE(member, &PyMemberDescr_Type)
+                 && ((PyMemberDescrObject *)member)->d_member->type == T_OBJECT_EX;
+        if (ok)
+            offsets[i] = ((PyMemberDescrObject *)member)->d_member->offset;
+        Py_DECREF(member);
+        if (!ok) {
+            Py_DECREF(seq);
+            return PyErr_Format(PyExc_TypeError, "descriptor field %d is not a slot", i);
+        }
+    }
+    Py_DECREF(seq);
+    memcpy(descriptor_offsets, offsets, sizeof offsets);
+    Py_XSETREF(DescriptorType, (PyTypeObject *)Py_NewRef(cls));
+    if (empty_tuple == NULL && (empty_tuple = PyTuple_New(0)) == NULL)
+        return NULL;
+    Py_RETURN_NONE;
+}
+
+/* A descriptor message of the 27 values (its slots written as their setters would). */
+static PyObject *make_descriptor(const uint64_t *v) {
+    if (DescriptorType == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "no descriptor type (set_descriptor_type)");
+        return NULL;
+    }
+    PyObject *obj = DescriptorType->tp_new(DescriptorType, empty_tuple, NULL);
+    if (obj == NULL)
+        return NULL;
+    for (int i = 0; i < DESC_FIELDS; i++) {
+        PyObject *value = PyLong_FromUnsignedLongLong(v[i]);
+        if (value == NULL) {
+            Py_DECREF(obj);
+            return NULL;
+        }
+        PyObject **slot = (PyObject **)((char *)obj + descriptor_offsets[i]);
+        Py_XSETREF(*slot, value);
+    }
+    return obj;
+}
+
+/* make(values) -> descriptor: its 27 field values, as given (no check: the values come from
+ * this process's own bookkeeping or from the fixed layout; an import checks what it reads). */
+PyObject *make_descriptor_py(PyObject *module, PyObject *values) {
+    if (DescriptorType == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "no descriptor type (set_descriptor_type)");
+        return NULL;
+    }
+    PyObject *seq = PySequence_Fast(values, "descriptor values must be a sequence");
+    if (seq == NULL)
+        return NULL;
+    if (PySequence_Fast_GET_SIZE(seq) != DESC_FIELDS) {
+        Py_DECREF(seq);
+        return descriptor_error("a descriptor has %d fields", DESC_FIELDS);
+    }
+    PyObject *obj = DescriptorType->tp_new(DescriptorType, empty_tuple, NULL);
+    if (obj != NULL) {
+        for (int i = 0; i < DESC_FIELDS; i++) {
+            PyObject **slot = (PyObject **)((char *)obj + descriptor_offsets[i]);
+            Py_XSETREF(*slot, Py_NewRef(PySequence_Fast_GET_ITEM(seq, i)));
+        }
+    }
+    Py_DECREF(seq);
+    return obj;
+}
+
+/* describe(lease, peer, kind, size, owner_pid, session, device_word=0, handles=None) ->
+ * descriptor: the lease's block exported to ``peer`` (Lease.export) and described, in one call.
+ * ``handles``: the 16 CUDA handle words (None: zeros). */
+PyObject *describe(PyObject *module, PyObject *args) {
+    PyObject *lease, *peer, *handles = Py_None;
+    unsigned int kind, pid;
+    unsigned long long size, session, device_word = 0;
+    if (!PyArg_ParseTuple(args, "O!OIKIK|KO", &LeaseType, &lease, &peer, &kind, &size, &pid,
+                          &session, &device_word, &handles))
+        return NULL;
+    uint64_t v[DESC_FIELDS] = {0};
+    if (handles != Py_None) {
+        PyObject *seq = PySequence_Fast(handles, "handles must be a sequence");
+        if (seq == NULL)
+            return NULL;
+        if (PySequence_Fast_GET_SIZE(seq) != 2 * DESC_HANDLE_WORDS) {
+            Py_DECREF(seq);
+            return descriptor_error("%d handle words", 2 * DESC_HANDLE_WORDS);
+        }
+        for (int i = 0; i < 2 * DESC_HANDLE_WORDS; i++) {
+            if (field_value(PySequence_Fast_GET_ITEM(seq, i), 11 + i, &v[11 + i]) != 0) {
+                Py_DECREF(seq);
+                return NULL;
+            }
+        }
+        Py_DECREF(seq);
+    }
+    uint64_t generation, sequence;
+    uint32_t slot;
+    if (lease_export_c((Lease *)lease, peer, &generation, &slot, &sequence) != 0)
+        return NULL;
+    Exports *block = (Exports *)((Lease *)lease)->block;
+    PyObject *cap = PyObject_GetAttr((PyObject *)block, str_capacity);
+    if (cap == NULL)
+        return NULL;
+    unsigned long long capacity = PyLong_AsUnsignedLongLong(cap);
+    Py_DECREF(cap);
+    if (PyErr_Occurred())
+        return NULL;
+    v[F_VERSION] = DESC_VERSION;
+    v[F_KIND] = kind;
+    v[F_SLOT] = slot;
+    v[F_PID] = pid;
+    v[F_SESSION] = session;
+    v[F_OFFSET] = block->offset;
+    v[F_CAPACITY] = capacity;
+    v[F_SIZE] = size;
+    v[F_GENERATION] = generation;
+    v[F_SEQUENCE] = sequence;
+    v[F_DEVICE] = device_word;
+    return make_descriptor(v);
 }
 
 /* Every route of the publish sent the message: the fence goes up. */

@@ -12,9 +12,7 @@ those of the generic codec's field-by-field path.
 
 from __future__ import annotations
 
-import collections
 import hashlib
-import itertools
 import operator
 import struct
 from typing import Any
@@ -67,20 +65,17 @@ LAYOUT = struct.Struct("<BBHIQQQQQQQ" + "Q" * 2 * HANDLE_WORDS)
 NO_HANDLES = (0,) * (2 * HANDLE_WORDS)
 
 _type: Any = None
-_setters: tuple[Any, ...] = ()  # each slot's own setter, in FIELDS order
-_call = operator.call
-_repeat = itertools.repeat
-_drain = collections.deque(maxlen=0).extend  # runs an iterator at C speed, keeps nothing
 
 
 def descriptor_type() -> type:
-    """The generated descriptor class (looked up once)."""
-    global _type, _setters
+    """The generated descriptor class (looked up once, and given to the native core, which
+    makes descriptors by writing their slots)."""
+    global _type
     if _type is None:
         cls = get_message_type(DESCRIPTOR_TYPE)
         if tuple(cls.__slots__) != FIELDS:  # pragma: no cover - the .msg and this disagree
             raise DescriptorError(f"{DESCRIPTOR_TYPE} fields {cls.__slots__} != {FIELDS}")
-        _setters = tuple(cls.__dict__[name].__set__ for name in FIELDS)
+        _core.set_descriptor_type(cls, FIELDS)
         _type = cls
     return _type
 
@@ -88,12 +83,13 @@ def descriptor_type() -> type:
 def make(values: tuple[int, ...]) -> Any:
     """A descriptor from its field values, all of :data:`FIELDS` in order (no per-field
     validation: the values come from this process's own bookkeeping, or from :data:`LAYOUT`).
-    Each slot's own setter, called from C (no validating ``__setattr__``, no Python frame per
-    field): ~1.5 us for the 27 fields, on every export."""
-    cls = _type if _type is not None else descriptor_type()
-    descriptor = cls.__new__(cls)
-    _drain(map(_call, _setters, _repeat(descriptor), values))
-    return descriptor
+    One C call that writes each slot, as its setter would (no validating ``__setattr__``)."""
+    if _type is None:
+        descriptor_type()
+    return _make(values)
+
+
+_make = _core.make
 
 
 #: The field values of a descriptor, in :data:`FIELDS` order (one C call, unchecked).

@@ -76,6 +76,7 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 _frombuffer, _UINT8 = np.frombuffer, np.dtype(np.uint8)
+_describe_native = _desc._core.describe
 _server_lock = threading.Lock()
 # Local copies made once per buffer (a clone moved into a block, an import's re-export copy, a
 # CUDA buffer's staging copy): made under this lock, so two exports never make two.
@@ -252,12 +253,14 @@ def _pin(block: Any) -> None:
 
 
 def _describe(kind: int, impl: WarpBufferImpl, block: Any, peer: PeerSlot | None,
-              device_word: int = 0, handles: tuple[int, ...] = _desc.NO_HANDLES) -> Any:
-    try:
-        generation, slot, sequence = impl._lease.export(peer)  # type: ignore[union-attr]
-    except OSError as exc:
-        raise ExportUnavailableError(f"cannot export this block: {exc}") from None
+              device_word: int = 0, handles: tuple[int, ...] | None = None) -> Any:
     arena = block.arena
+    if arena is None:  # a CUDA block gets its lock range with its first export
+        try:
+            block.ensure_arena_range()
+        except OSError as exc:
+            raise ExportUnavailableError(f"cannot export this block: {exc}") from None
+        arena = block.arena
     if arena.pid != os.getpid():  # inherited at a fork: never describe or serve another's
         raise ExportUnavailableError(f"this block is in the memory of process {arena.pid}, "
                                      "which this process was forked from")
@@ -267,8 +270,15 @@ def _describe(kind: int, impl: WarpBufferImpl, block: Any, peer: PeerSlot | None
                 handoff.start_server(arena)
             except OSError as exc:
                 raise ExportUnavailableError(f"cannot serve the arena to peers: {exc}") from None
-    return _desc.make((_desc.VERSION, kind, slot, arena.pid, arena.session, block.offset,
-                       block.capacity, impl._size, generation, sequence, device_word) + handles)
+    # The lease's export to the peer (its generation, the delivery it now waits for) and the
+    # descriptor made of it: one C call.
+    if _desc._type is None:
+        _desc.descriptor_type()
+    try:
+        return _describe_native(impl._lease, peer, kind, impl._size, arena.pid, arena.session,
+                                device_word, handles)
+    except OSError as exc:
+        raise ExportUnavailableError(f"cannot export this block: {exc}") from None
 
 
 # ------------------------------------------------------------------------------------ import
