@@ -18,12 +18,13 @@ File layout (little endian)::
                               starts there (0: none); checked by an importer under its lock
     [data_offset, file_size)  the blocks
 
-Holds: a reader takes a read lock on a byte of a block's lock range, its first
-:data:`LOCK_SPAN` bytes in the file (OFD lock, :mod:`warp_buffer.memory`; each hold of a process
-its own byte, :mod:`warp_buffer.attach`); the publisher recycles a block only once its
-non-blocking write-lock probe on that range succeeds, and clears the block's generation under
-that lock, so a late import of a recycled block finds another generation and raises
-:class:`~warp_buffer.errors.StaleBufferError`.
+Holds: a reader process takes a read lock on a block's lock range, its first :data:`LOCK_SPAN`
+bytes in the file (OFD lock, by its native core while it holds the block, see
+:mod:`warp_buffer.attach`); the publisher recycles a block only once its non-blocking write-lock
+probe on that range succeeds, and clears the block's generation under that lock, so a late
+import of a recycled block finds another generation and raises
+:class:`~warp_buffer.errors.StaleBufferError`. The per-message part of the arena (generations,
+peer slots, the probe) is native: :attr:`Arena.core`, a :class:`warp_buffer._core.ArenaCore`.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ _log = logging.getLogger(__name__)
 
 MIN_BLOCK = 4096
 #: The bytes of a block's lock range (at the block's file offset; a CUDA block's is a range of
-#: its own): one per hold a reader process has on the block, so a hold ends with one unlock.
+#: its own): a reader process read-locks it while it holds the block.
 LOCK_SPAN = MIN_BLOCK
 HEADER_PAGE = 4096
 MAX_PEERS = 1024
@@ -74,23 +75,10 @@ GENS_OFFSET = ACKS_OFFSET + MAX_PEERS * SLOT_STRIDE
 SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_SEAL
 MAGIC = b"WARPARN\x02"
 VERSION = 2
-#: A generation's low bits: log2 of the capacity of the block it was exported from, so an
-#: importer can tell that a descriptor's capacity is the block's own. The generation word of a
-#: block says nothing about the bytes after its first 4 KiB, so a forged larger capacity at a
-#: suitably aligned offset would otherwise pass every check and read the next block.
-GENERATION_ORDER_BITS = 6
-
-
-def generation_fits(generation: int, capacity: int) -> bool:
-    """Was ``generation`` issued for a block of ``capacity`` bytes?"""
-    return generation & ((1 << GENERATION_ORDER_BITS) - 1) == capacity.bit_length() - 1
-
-
 #: The header page, and the hello a peer receives with the fd: magic, version, owner pid,
 #: session tag, data offset, data bytes, file size.
 HELLO = struct.Struct("<8sIIQQQQ")
 SEQ_BITS = 40  # a delivery sequence is epoch << SEQ_BITS | number
-SEQ_MASK = (1 << SEQ_BITS) - 1
 
 
 def arena_bytes() -> int:
@@ -113,9 +101,6 @@ class Geometry:
         offset = -(-(GENS_OFFSET + gens) // MIN_BLOCK) * MIN_BLOCK
         object.__setattr__(self, "data_offset", offset)
         object.__setattr__(self, "file_size", offset + self.data_bytes)
-
-    def gen_index(self, offset: int) -> int:
-        return (offset - self.data_offset) // MIN_BLOCK
 
     def check_block(self, offset: int, capacity: int) -> str | None:
         """Why ``(offset, capacity)`` cannot be a block of this arena, or None."""
@@ -225,7 +210,9 @@ class Arena:
 
     def new_generation(self, offset: int, capacity: int) -> int:
         """Start an export of the ``capacity``-byte block at ``offset``: a generation never used
-        before, whose low bits hold log2(capacity) (see :func:`generation_fits`)."""
+        before, whose low bits hold log2(capacity), so an importer can tell that a descriptor's
+        capacity is the block's own (a generation word says nothing of the bytes after a
+        block's first 4 KiB: a forged larger capacity would read the next block)."""
         return self.core.new_generation(offset, capacity)
 
     def try_retire(self, offset: int) -> bool:

@@ -62,7 +62,6 @@ FIELDS = ("version", "kind", "peer_slot", "owner_pid", "session", "offset", "cap
           *(f"event_handle_{i}" for i in range(HANDLE_WORDS)))
 #: CDR layout of the descriptor starting at an 8-byte boundary of the stream.
 LAYOUT = struct.Struct("<BBHIQQQQQQQ" + "Q" * 2 * HANDLE_WORDS)
-NO_HANDLES = (0,) * (2 * HANDLE_WORDS)
 
 _type: Any = None
 

@@ -1,5 +1,6 @@
-"""Raw memory primitives of the IPC core: libc ``mmap``/``munmap``, hole punching, and the
-open-file-description (OFD) byte-range locks that are a reader's hold on a block.
+"""Raw memory primitives of the IPC core: libc ``mmap``/``munmap``, hole punching, and the open
+file descriptions whose byte-range locks (OFD) are a reader's hold on a block (taken by the
+native core, :mod:`warp_buffer._core`).
 
 Raw libc mappings rather than :mod:`mmap`, so an address can be wrapped by Warp and NumPy and
 unmapped deterministically, with no Python buffer export pinning it.
@@ -14,13 +15,10 @@ sender's description, so an importer re-opens the arena through ``/proc/self/fd`
 from __future__ import annotations
 
 import ctypes
-import errno
-import fcntl
 import mmap
 import os
-import struct
 
-__all__ = ["map_fd", "unmap", "punch_hole", "reopen", "try_lock", "unlock", "LockBusy"]
+__all__ = ["map_fd", "unmap", "punch_hole", "reopen"]
 
 _libc = ctypes.CDLL(None, use_errno=True)
 _libc.mmap.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int, ctypes.c_int,
@@ -34,19 +32,6 @@ _MAP_FAILED = ctypes.c_void_p(-1).value
 _MAP_NORESERVE = 0x4000
 _FALLOC_FL_KEEP_SIZE = 0x01
 _FALLOC_FL_PUNCH_HOLE = 0x02
-
-# fcntl commands and struct flock (x86-64 / aarch64 layout: two shorts, two off_t, a pid_t).
-F_OFD_SETLK = getattr(fcntl, "F_OFD_SETLK", 37)
-_FLOCK = struct.Struct("hh4xqqi4x")
-#: ``lock_request(kind, whence, offset, length, 0)``: the ``struct flock`` bytes of an OFD lock
-#: request, for callers that make the one ``fcntl`` call a hold costs inline (:func:`try_lock`).
-lock_request = _FLOCK.pack
-BUSY = (errno.EAGAIN, errno.EACCES)  # what a conflicting lock fails with
-
-
-class LockBusy(Exception):
-    """A non-blocking lock request met a conflicting lock (internal: callers translate it)."""
-
 
 def map_fd(fd: int, length: int, offset: int = 0, *, writable: bool = True) -> int:
     """``mmap`` ``length`` bytes of ``fd`` at ``offset`` (page aligned), shared; returns the
@@ -76,20 +61,3 @@ def punch_hole(fd: int, offset: int, length: int) -> None:
 def reopen(fd: int) -> int:
     """A new open file description of the file behind ``fd`` (its own OFD locks)."""
     return os.open(f"/proc/self/fd/{fd}", os.O_RDWR | os.O_CLOEXEC)
-
-
-def try_lock(fd: int, offset: int, exclusive: bool, length: int = 1) -> None:
-    """Take a read (shared) or write (exclusive) lock on ``length`` bytes at ``offset`` of
-    ``fd``'s description, without waiting; raises :class:`LockBusy` when a conflicting lock is
-    held."""
-    kind = fcntl.F_WRLCK if exclusive else fcntl.F_RDLCK
-    try:
-        fcntl.fcntl(fd, F_OFD_SETLK, _FLOCK.pack(kind, os.SEEK_SET, offset, length, 0))
-    except OSError as exc:
-        if exc.errno in BUSY:
-            raise LockBusy from None
-        raise
-
-
-def unlock(fd: int, offset: int, length: int = 1) -> None:
-    fcntl.fcntl(fd, F_OFD_SETLK, _FLOCK.pack(fcntl.F_UNLCK, os.SEEK_SET, offset, length, 0))
