@@ -23,8 +23,10 @@ waker, is interleaved with the messages: what the lane alone costs in the same r
 After the timed messages, ``--frames N`` more (default 10) are sent with the Python frames they
 run counted (:class:`benchmarks.frames.FrameCounter`, ``sys.setprofile``): on the publisher from
 the loan to the end of ``publish()``, on the subscriber from the frame's arrival in the
-subscription to the usable view; the benchmark's own wrappers are not counted. The first line
-prints the medians.
+subscription to the usable view; the benchmark's own wrappers are not counted. Then
+``--syscalls N`` more (default 20 when ``strace`` is installed) with the system calls of each
+side's message thread counted (:mod:`benchmarks.native_syscalls`; the control pipe's left out).
+The first line prints the medians and the counts; the calls by name go to stderr.
 """
 
 from __future__ import annotations
@@ -41,7 +43,9 @@ from typing import Any
 TENSOR_TYPE = "tensor_msgs/msg/ExperimentalTensor"
 STAMP = struct.Struct("<qq")  # (message index, t0) in the first 16 bytes of the tensor
 BARE_BYTES = 602  # a bare frame: the size of a descriptor message, nothing imported
-BARE, FULL, COUNTED = 0, 1, 2  # COUNTED: a message whose Python frames were counted
+# COUNTED: a message whose Python frames were counted; TRACED: one whose system calls were (slow,
+# not timed); SYSCALLS: the system calls of the traced ones
+BARE, FULL, COUNTED, SYSCALLS, TRACED = 0, 1, 2, 3, 4
 # Stamps of one message, in order (publisher ones first, then the subscriber's).
 PUB_STAMPS = ("t0", "loaned", "write_in", "write_out", "published")
 SUB_STAMPS = ("entered", "deser_in", "deser_out", "callback", "viewed")
@@ -186,10 +190,10 @@ def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
             while True:
                 if ctrl.poll():
                     command = ctrl.recv()
-                    if command != "count":
+                    if command not in ("count", "uncount"):
                         break
-                    state["counting"] = True
-                    ctrl.send(("counting", 0, 0, {}))
+                    state["counting"] = command == "count"
+                    ctrl.send(("counting" if command == "count" else "uncounting", 0, 0, {}))
                 if lane:
                     node.spin_once(0.05)
                 else:
@@ -203,11 +207,14 @@ def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
 
 
 def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0,
-              spin: bool = False, frames: int = 0) -> list[tuple[int, dict[str, Any]]]:
+              spin: bool = False, frames: int = 0, syscalls: int = 0
+              ) -> list[tuple[int, dict[str, Any]]]:
     """Publish ``count`` messages one at a time; every message's stamps, by kind. ``spin``:
     wait for each message's stamps by polling (this process never sleeps, so its stages run
     warm). ``frames``: that many more messages follow with their Python frames counted (kind
-    ``COUNTED``: ``pub_frames`` and ``frames``, the subscriber's, in the record)."""
+    ``COUNTED``: ``pub_frames`` and ``frames``, the subscriber's, in the record). ``syscalls``:
+    then that many more with the system calls of both sides' message threads counted (one
+    record of kind ``SYSCALLS``: per side, calls by name, and the messages)."""
     import numpy as np
     import tensor_conversions.numpy as tc
     from rosidl_buffer.messages import get_message_type
@@ -220,6 +227,7 @@ def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0,
     port = free_tcp_port()
     domain = 100 + int(run[:4], 16) % 100
     parent, child = _pipe()
+    child_fd = child.fileno()
     process = subprocess.Popen(
         [sys.executable, "-m", "benchmarks.lane_stages", "--role", "sub", "--run", run,
          "--port", str(port), "--domain", str(domain), "--route", route,
@@ -253,12 +261,19 @@ def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0,
             prepared = tc.allocate_tensor_msg((nbytes,), np.uint8) if route == "cpu" else None
             head = tc.from_output_tensor_msg(prepared) if prepared is not None else None
             counter = FrameCounter(exclude={__file__})
-            for index in range(count + frames):
-                counting = index >= count
-                if index == count:  # the subscriber counts from now on
+            traces: list[Any] = []
+            for index in range(count + frames + syscalls):
+                counting = count <= index < count + frames
+                if index == count and frames:  # the subscriber counts from now on
                     parent.send("count")
                     if parent.recv()[0] != "counting":
                         raise RuntimeError("the subscriber did not start counting frames")
+                if index == count + frames and syscalls:
+                    if frames:
+                        parent.send("uncount")
+                        if parent.recv()[0] != "uncounting":
+                            raise RuntimeError("the subscriber did not stop counting frames")
+                    traces = _trace_both(process.pid, parent.fileno(), child_fd)
                 if counting:
                     counter.start()
                 stamps.clear()
@@ -285,8 +300,9 @@ def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0,
                 kind, got, _, theirs = parent.recv()
                 if kind != FULL or got != index:
                     raise RuntimeError(f"expected message {index}, got {kind, got}")
-                records.append((COUNTED if counting else FULL, {**mine, **theirs}))
-                if bare is not None and not counting:  # the lane alone, interleaved
+                kind = COUNTED if counting else FULL if index < count else TRACED
+                records.append((kind, {**mine, **theirs}))
+                if bare is not None and index < count:  # the lane alone, interleaved
                     now = clock()
                     STAMP.pack_into(frame, 0, index, now)
                     write(bare, frame)
@@ -294,6 +310,12 @@ def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0,
                         pass
                     _, _, sent, theirs = parent.recv()
                     records.append((BARE, {"t0": sent, **theirs}))
+            if traces:  # ours first: stopping the other's runs on this thread
+                mine_calls = traces[0].stop()
+                theirs_calls = traces[1].stop()
+                records.append((SYSCALLS, {"publisher": dict(mine_calls),
+                                           "subscriber": dict(theirs_calls),
+                                           "messages": syscalls}))
             if bare is not None:
                 bare.close()
         parent.send("stop")
@@ -304,6 +326,17 @@ def publisher(count: int, nbytes: int, route: str, busy_poll_s: float = 0.0,
             process.kill()
             process.wait()
     return records
+
+
+def _trace_both(child_pid: int, *plumbing: int) -> list[Any]:
+    """System-call traces of this process's main thread and the subscriber's (each side's
+    message thread), the control pipe's calls left out; started (attached) on return."""
+    from benchmarks.native_syscalls import SyscallTrace
+
+    traces = [SyscallTrace(os.getpid(), set(plumbing)), SyscallTrace(child_pid, set(plumbing))]
+    traces[1].start()
+    traces[0].start()  # ours last: starting the other's runs on this thread
+    return traces
 
 
 def _pipe() -> tuple[Connection, Connection]:
@@ -363,6 +396,24 @@ def frame_detail(records: list[tuple[int, dict[str, Any]]]) -> str:
     return "\n".join(lines)
 
 
+def syscall_counts(records: list[tuple[int, dict[str, Any]]]) -> tuple[str, str]:
+    """System calls per message of each side's message thread: ``publisher N, subscriber M``
+    and the same by name, or two empty strings when they were not counted."""
+    traced = [r for kind, r in records if kind == SYSCALLS]
+    if not traced:
+        return "", ""
+    record = traced[-1]
+    messages = record["messages"]
+    totals, named = [], []
+    for side in ("publisher", "subscriber"):
+        calls = record[side]
+        totals.append(f"{side} {sum(calls.values()) / messages:.1f}")
+        named.append(f"{side}: " + ", ".join(
+            f"{name} {n / messages:.1f}" for name, n in sorted(calls.items(),
+                                                                key=lambda i: -i[1])))
+    return ", ".join(totals), "; ".join(named)
+
+
 def table(rows: list[tuple[str, float, float]]) -> str:
     """The rows as a text table."""
     width = max(len(r[0]) for r in rows)
@@ -387,6 +438,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=10, metavar="N",
                         help="count the Python frames of N more messages after the timed ones "
                              "(0: none)")
+    parser.add_argument("--syscalls", type=int, default=-1, metavar="N",
+                        help="count the system calls of N more messages (strace on each side's "
+                             "message thread; default 20 when strace is installed, 0: none)")
     parser.add_argument("--frame-detail", action="store_true",
                         help="print where the counted frames go, per function (to stderr)")
     parser.add_argument("--role", choices=("pub", "sub"), default="pub")
@@ -399,9 +453,14 @@ def main(argv: list[str] | None = None) -> int:
         subscriber(args.run, args.port, args.domain, args.route, args.busy_poll,
                    Connection(args.fd))
         return 0
+    syscalls = args.syscalls
+    if syscalls < 0:
+        from benchmarks.native_syscalls import available
+
+        syscalls = 20 if available() else 0
     records = publisher(args.count, args.nbytes, args.route, args.busy_poll, args.spin,
-                        max(0, args.frames))
-    timed = [r for r in records if r[0] != COUNTED]
+                        max(0, args.frames), syscalls)
+    timed = [r for r in records if r[0] in (BARE, FULL)]
     per = 2 if args.route == "lane" else 1
     warm = timed[per * min(20, args.count // 10):]  # first imports map files, warm caches
     what = ("loaned warp tensor over the fast lane" if args.route == "lane"
@@ -410,8 +469,13 @@ def main(argv: list[str] | None = None) -> int:
     counted = "" if frames is None else (
         f"; Python frames per message: publisher {frames[0]}, subscriber {frames[1]}, "
         f"total {sum(frames)}")
+    calls, by_name = syscall_counts(records)
+    if calls:
+        counted += f"; system calls per message: {calls}"
     print(f"{what}, {args.nbytes} B, {len(warm) // per} messages (one in flight){counted}:")
     print(table(stage_figures(warm, args.route)))
+    if by_name:
+        print(f"system calls per message, by name: {by_name}", file=sys.stderr)
     if args.frame_detail:
         print(frame_detail(records), file=sys.stderr)
     return 0

@@ -32,6 +32,7 @@
 #include <structmember.h>
 
 #include <errno.h>
+#include <pthread.h>
 #include <fcntl.h>
 #include <poll.h>
 #include <stdint.h>
@@ -44,6 +45,15 @@
 #include <unistd.h>
 
 #include "_ring.h"
+
+/* ----------------------------------------------------------------------------- this process */
+/* Our pid, kept across forks by pthread_atfork: the per-message checks "is this still the
+ * process that made it?" cost no system call (glibc does not cache getpid). */
+static pid_t this_pid;
+
+static void refresh_pid(void) {
+    this_pid = getpid();
+}
 
 /* ----------------------------------------------------------------------------- errors */
 static PyObject *RingError;  /* set by the module init from buffer_pubsub.fast_lane's class */
@@ -119,7 +129,7 @@ static int writer_init(RingWriter *self, PyObject *args, PyObject *kwds) {
         close(fd);
         return -1;
     }
-    ring_header_init((ring_header *)map, depth, slot_bytes, (uint32_t)getpid());
+    ring_header_init((ring_header *)map, depth, slot_bytes, (uint32_t)this_pid);
     self->map = map;
     self->size = size;
     self->depth = depth;
@@ -129,7 +139,7 @@ static int writer_init(RingWriter *self, PyObject *args, PyObject *kwds) {
     self->tail = 0;
     self->memfd = fd;
     self->doorbell = bell;
-    self->pid = getpid();
+    self->pid = this_pid;
     return 0;
 }
 
@@ -162,7 +172,7 @@ static int writer_reader_gone(RingWriter *self, ring_header *h) {
 static void writer_release(RingWriter *self) {
     if (self->map != NULL) {
         ring_header *h = (ring_header *)self->map;
-        if (self->pid == getpid()) {
+        if (self->pid == this_pid) {
             __atomic_store_n(&h->writer_closed, 1, __ATOMIC_SEQ_CST);
             if (self->doorbell >= 0) {  /* wake the reader: it drains and lets the ring go */
                 uint64_t one = 1;
@@ -199,7 +209,7 @@ static PyObject *writer_close(RingWriter *self, PyObject *unused) {
 static PyObject *writer_write(RingWriter *self, PyObject *const *args, Py_ssize_t nargs) {
     if (self->map == NULL)
         return ring_error("the lane ring is closed");
-    if (self->pid != getpid())
+    if (self->pid != this_pid)
         return ring_error("the lane ring belongs to process %d (this is a fork of it)",
                           (int)self->pid);
     ring_header *h = (ring_header *)self->map;
@@ -422,13 +432,13 @@ static int reader_init(RingReader *self, PyObject *args, PyObject *kwds) {
     self->doorbell = dup_bell;
     self->writer_pid = ((ring_header *)map)->writer_pid;
     self->keep = keep == 0 || keep > depth ? depth : keep;
-    self->pid = getpid();
+    self->pid = this_pid;
     return 0;
 }
 
 static void reader_dealloc(RingReader *self) {
     if (self->map != NULL) {
-        if (!self->closed && self->pid == getpid())
+        if (!self->closed && self->pid == this_pid)
             __atomic_store_n(&((ring_header *)self->map)->reader_closed, 1, __ATOMIC_SEQ_CST);
         munmap(self->map, self->size);
         self->map = NULL;
@@ -504,7 +514,7 @@ static PyObject *reader_take(RingReader *self, PyObject *unused) {
 
 static PyObject *reader_close(RingReader *self, PyObject *unused) {
     /* The mapping and the doorbell stay until the object is gone (a waker may hold it). */
-    if (!self->closed && self->map != NULL && self->pid == getpid())
+    if (!self->closed && self->map != NULL && self->pid == this_pid)
         __atomic_store_n(&((ring_header *)self->map)->reader_closed, 1, __ATOMIC_SEQ_CST);
     self->closed = 1;
     Py_RETURN_NONE;
@@ -1002,6 +1012,11 @@ static struct PyModuleDef ring_module = {
 };
 
 PyMODINIT_FUNC PyInit__ring(void) {
+    refresh_pid();
+    if (pthread_atfork(NULL, NULL, refresh_pid) != 0) {
+        PyErr_SetString(PyExc_RuntimeError, "pthread_atfork failed");
+        return NULL;
+    }
     if (PyType_Ready(&RingWriterType) < 0 || PyType_Ready(&RingReaderType) < 0
             || PyType_Ready(&WakerType) < 0)
         return NULL;

@@ -20,6 +20,7 @@
 #include <structmember.h>
 
 #include <errno.h>
+#include <pthread.h>
 #include <fcntl.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -28,6 +29,17 @@
 #include <unistd.h>
 
 #include "_core.h"
+
+pid_t this_pid;
+
+static void refresh_pid(void) {
+    this_pid = getpid();
+}
+
+/* pid() -> int: this process's pid, kept across forks without a system call per call. */
+static PyObject *core_pid(PyObject *module, PyObject *unused) {
+    return PyLong_FromLong((long)this_pid);
+}
 
 /* warp_buffer.errors classes, set at import (set_error_classes) */
 PyObject *DescriptorError, *ExportBoundsError, *StaleBufferError, *ExportError;
@@ -201,6 +213,8 @@ static PyObject *set_error_classes(PyObject *module, PyObject *args) {
 }
 
 static PyMethodDef core_methods[] = {
+    {"pid", core_pid, METH_NOARGS,
+     "pid() -> int: this process's pid (kept across forks, no system call)."},
     {"pack", (PyCFunction)core_pack, METH_O,
      "pack(values) -> bytes: a descriptor's 27 field values as its 192 bytes (each checked)."},
     {"pack_into", (PyCFunction)(void (*)(void))core_pack_into, METH_FASTCALL,
@@ -234,6 +248,11 @@ static struct PyModuleDef core_module = {
 };
 
 PyMODINIT_FUNC PyInit__core(void) {
+    refresh_pid();
+    if (pthread_atfork(NULL, NULL, refresh_pid) != 0) {
+        PyErr_SetString(PyExc_RuntimeError, "pthread_atfork failed");
+        return NULL;
+    }
     if (PyType_Ready(&SessionType) < 0 || PyType_Ready(&HoldType) < 0)
         return NULL;
     PyObject *m = PyModule_Create(&core_module);

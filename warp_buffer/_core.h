@@ -80,6 +80,7 @@ enum { F_VERSION, F_KIND, F_SLOT, F_PID, F_SESSION, F_OFFSET, F_CAPACITY, F_SIZE
 
 /* ----------------------------------------------------------------------------- shared */
 #include <Python.h>
+#include <sys/types.h>
 
 #define DESC_FIELD_COUNT_USED 11  /* the import reads the fields up to device_uuid */
 
@@ -92,6 +93,8 @@ PyObject *descriptor_error(const char *fmt, ...);
 int field_value(PyObject *item, int i, uint64_t *out);
 int lock_range(int fd, short kind, uint64_t offset, uint64_t length);
 PyObject *lease_configure(PyObject *module, PyObject *args);
+/* This process's pid, kept across forks (pthread_atfork): no system call per check. */
+extern pid_t this_pid;
 PyObject *check_names(PyObject *module, PyObject *values);
 PyObject *set_descriptor_type(PyObject *module, PyObject *args);
 PyObject *make_descriptor_py(PyObject *module, PyObject *values);

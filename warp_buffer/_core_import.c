@@ -159,7 +159,7 @@ static int session_init(Session *self, PyObject *args, PyObject *kwds) {
     self->owner_pid = owner_pid;
     self->session = session;
     self->fd = fd;
-    self->pid = getpid();
+    self->pid = this_pid;
     self->head = (unsigned char *)(uintptr_t)head;
     self->head_len = (size_t)head_len;
     self->data = (unsigned char *)(uintptr_t)data;
@@ -240,7 +240,7 @@ static void session_drop(Session *s, uint64_t offset) {
         hm_remove(&s->holds, offset);
         /* Not in a forked child that kept its parent's description (the lock is the parent's
          * too), nor on a closed one. */
-        if (s->fd >= 0 && s->pid == getpid())
+        if (s->fd >= 0 && s->pid == this_pid)
             lock_range(s->fd, F_UNLCK, offset, ARENA_LOCK_SPAN);
     }
 }
@@ -377,7 +377,7 @@ static PyObject *session_import_block(Session *self, PyObject *values) {
 /* In a forked child: move this process's holds onto a description of its own (the inherited
  * one is shared with the parent, whose unlocks would end ours and ours its). */
 static PyObject *session_take_own_locks(Session *self, PyObject *unused) {
-    if (self->fd < 0 || self->pid == getpid())
+    if (self->fd < 0 || self->pid == this_pid)
         Py_RETURN_NONE;
     char path[64];
     snprintf(path, sizeof path, "/proc/self/fd/%d", self->fd);
@@ -389,7 +389,7 @@ static PyObject *session_take_own_locks(Session *self, PyObject *unused) {
             lock_range(fd, F_RDLCK, self->holds.keys[i], ARENA_LOCK_SPAN);
     close(self->fd);
     self->fd = fd;
-    self->pid = getpid();
+    self->pid = this_pid;
     Py_RETURN_NONE;
 }
 

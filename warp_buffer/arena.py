@@ -283,17 +283,17 @@ def current_arena() -> Arena:
     """This process's arena, created on first use."""
     global _arena
     arena = _arena
-    if arena is not None and arena.pid == os.getpid():
+    if arena is not None and arena.pid == _core.pid():
         return arena
     with _arena_lock:
-        if _arena is None or _arena.pid != os.getpid():
+        if _arena is None or _arena.pid != _core.pid():
             _arena = Arena()
         return _arena
 
 
 def existing_arena() -> Arena | None:
     arena = _arena
-    return arena if arena is not None and arena.pid == os.getpid() else None
+    return arena if arena is not None and arena.pid == _core.pid() else None
 
 
 def _after_fork_in_child() -> None:

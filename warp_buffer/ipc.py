@@ -77,6 +77,8 @@ __all__ = [
 _log = logging.getLogger(__name__)
 _frombuffer, _UINT8 = np.frombuffer, np.dtype(np.uint8)
 _describe_native = _desc._core.describe
+#: This process's pid without a system call (the core keeps it across forks)
+_this_pid = _desc._core.pid
 _server_lock = threading.Lock()
 # Local copies made once per buffer (a clone moved into a block, an import's re-export copy, a
 # CUDA buffer's staging copy): made under this lock, so two exports never make two.
@@ -143,7 +145,7 @@ def export_buffer(buffer: Buffer | WarpBufferImpl, kind: int | None = None, *,
     lease = getattr(impl, "_lease", None)
     block = None if lease is None else lease.block
     if lease is None or block is not None and block.arena is not None \
-            and block.arena.pid != os.getpid():
+            and block.arena.pid != _this_pid():
         impl = _local_copy(_impl_of(impl))  # an import, or memory inherited at a fork
     else:
         if lease.state != PUBLISHED or lease.writer is not None:
@@ -261,7 +263,7 @@ def _describe(kind: int, impl: WarpBufferImpl, block: Any, peer: PeerSlot | None
         except OSError as exc:
             raise ExportUnavailableError(f"cannot export this block: {exc}") from None
         arena = block.arena
-    if arena.pid != os.getpid():  # inherited at a fork: never describe or serve another's
+    if arena.pid != _this_pid():  # inherited at a fork: never describe or serve another's
         raise ExportUnavailableError(f"this block is in the memory of process {arena.pid}, "
                                      "which this process was forked from")
     if arena.server is None:
