@@ -1,6 +1,6 @@
 """The same-host descriptor hand-off, by mechanism, side by side in one run (issue 26, decision 3).
 
-``python -m benchmarks.native_lane [--count N] [--rounds R] [--bytes B]``: one sending process
+``python -m benchmarks.native_lane [--count N] [--rounds R]``: one sending process
 (this one) and one receiving child; one 602-byte frame in flight (a descriptor message), its
 send time stamped in its first 8 bytes; latency = the receiver's clock when its Python code holds
 the frame minus the stamp. The mechanisms take turns in every round (``R`` rounds of ``N``
@@ -10,7 +10,7 @@ frames each), so the machine's drifting load falls on all of them alike:
   the receiver blocked in ``Waker.wait`` (GIL released in ``ppoll``);
 - ``ring_busy``: the same, the waker spinning (``busy_poll_s``) before it blocks;
 - ``lane``: ``buffer_pubsub.fast_lane`` as the transport uses it (``LaneWriter`` /
-  ``LaneWaker``), whatever it is built on;
+  ``LaneWaker``, the ring with its Python layer);
 - ``iceoryx2_listener``: iceoryx2 publish-subscribe carrying the frame, woken by an iceoryx2
   event (``Listener.timed_wait``);
 - ``iceoryx2_busy``: the same, the receiver busy-polling ``receive()``;
@@ -239,6 +239,20 @@ class Sender:
             os.close(fd)
 
 
+def _remove_iceoryx2_files(run: str) -> None:
+    """What iceoryx2 left of this run (a child that died leaves its node's files): its prefix
+    names this run alone."""
+    prefix = f"iox2nl_{run[:12]}_"
+    for root in ("/dev/shm", "/tmp/iceoryx2"):
+        for path, _dirs, files in os.walk(root):
+            for name in files:
+                if name.startswith(prefix):
+                    try:
+                        os.unlink(os.path.join(path, name))
+                    except OSError:
+                        pass
+
+
 def _percentile(values: list[float], q: float) -> float:
     ordered = sorted(values)
     return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
@@ -281,6 +295,7 @@ def measure(count: int, rounds: int, mechanisms: tuple[str, ...] = MECHANISMS) -
             proc.kill()
             proc.wait()
         sender.close()
+        _remove_iceoryx2_files(run)
     out: dict[str, Any] = {}
     for mechanism in mechanisms:
         values = [v / 1000 for v in result["latencies"][mechanism]]

@@ -167,6 +167,18 @@ def test_hostile_descriptors_are_typed_errors_that_hold_nothing(fields, error, w
 @given(st.tuples(*(st.integers(0, (1 << (8 * w)) - 1) for w in WIDTHS[:11])),
        st.integers(0, (1 << 64) - 1))
 def test_random_descriptors_and_generations_never_crash_the_import(fields, generation) -> None:
+    _random_import(fields, generation)
+
+
+@pytest.mark.slow
+@settings(max_examples=20_000, deadline=None)
+@given(st.tuples(*(st.integers(0, (1 << (8 * w)) - 1) for w in WIDTHS[:11])),
+       st.integers(0, (1 << 64) - 1))
+def test_random_descriptors_and_generations_long(fields, generation) -> None:
+    _random_import(fields, generation)
+
+
+def _random_import(fields: tuple[int, ...], generation: int) -> None:
     """Any field values against any generation word: a typed error or a hold inside the block."""
     from warp_buffer.errors import WarpBufferError
 
