@@ -107,7 +107,7 @@ def measure(count: int, pause_us: float, domain_id: int) -> dict[str, Any]:
     results: dict[str, Any] = {}
     try:
         with buffer_pubsub.Node(name, domain_id=domain_id) as node:
-            executor = node._executor
+            executor = node.scheduler
             executor.waker = _StampedWaker(executor.waker, stamps)
             executor.waker.notify()  # the executor thread's current wait returns on the old one
             node.create_subscription(msg_type, f"/{name}", on_message, depth=16,

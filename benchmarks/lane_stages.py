@@ -180,11 +180,11 @@ def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
                                  depth=16, acceptable_buffer_backends="warp" if lane else "cpu")
         bare = None
         if lane:
-            if node._lane is None:
+            if node.lane is None:
                 ctrl.send(("unavailable", fast_lane.status().reason))
                 return
             bare = fast_lane.LaneReader(_bare_route(run), depth=16)
-            node._lane.attach(bare, on_bare)  # the same waker as the subscription's lane
+            node.lane.attach(bare, on_bare)  # the same waker as the subscription's lane
         ctrl.send(("ready", os.getpid()))
         try:
             while True:
@@ -200,7 +200,7 @@ def subscriber(run: str, port: int, domain: int, route: str, busy_poll_s: float,
                     time.sleep(0.05)
         finally:
             if bare is not None:
-                node._lane.detach(bare, close=True)
+                node.lane.detach(bare, close=True)
                 node.spin_once(0.0)  # the waker applies the detach (and closes the reader)
     if busy_poll_s > 0:
         waker.close()  # a waker given to the node stays ours to close

@@ -42,7 +42,7 @@ class Runnable(Protocol):
     node: Node
     callback_group: CallbackGroup
 
-    def _run_one(self) -> bool:
+    def run_one(self) -> bool:
         """Deliver the next waiting message (re-schedules itself while more wait); whether a
         callback ran."""
 
@@ -149,7 +149,7 @@ class NodeExecutor:
         self.in_flight = InFlight()
         # Held while a callback runs, when callbacks may also run on arrival threads (see
         # Subscription._enqueue): one callback of the node at a time.
-        self._gate = gate
+        self.gate = gate
         self._ready: collections.deque[Runnable] = collections.deque()
         self._housekeeping = housekeeping
         self._next_housekeeping = time.monotonic() + self.TICK_S
@@ -193,7 +193,7 @@ class NodeExecutor:
         once no callback of the node runs on the node's thread or an arrival thread (the gate),
         so the user's executor alone decides what runs together from here."""
         self._target = target
-        gate = self._gate
+        gate = self.gate
         if gate is not None and not self.in_flight.here():  # (not a callback adding its node)
             with gate:  # a callback that started before the hand-over ends first
                 pass
@@ -249,7 +249,7 @@ class NodeExecutor:
                 item = ready.popleft()
             except IndexError:
                 break
-            gate = self._gate
+            gate = self.gate
             if gate is not None and not gate.acquire(blocking=False):
                 while not gate.acquire(timeout=self.GATE_POLL_S):  # a callback runs elsewhere
                     if self._stopped:
@@ -260,7 +260,7 @@ class NodeExecutor:
                 if target is not None:  # handed over while this item was taken
                     target._schedule(item)
                     continue
-                ran += bool(item._run_one())  # a message that failed to decode ran nothing
+                ran += bool(item.run_one())  # a message that failed to decode ran nothing
             except Exception:
                 _log.exception("executor task failed")
             finally:

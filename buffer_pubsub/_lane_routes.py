@@ -33,8 +33,8 @@ def serves(local: wire.Locality, peer: wire.EndpointToken, *, individual: bool, 
     Only subscriptions of ours with a channel of their own (``individual``: they accept a
     backend besides CPU) that a backend agreed to serve (``served``), on this host, as this
     user, in another process (same-process subscriptions are served in-process), keep-last
-    (``keep_all`` peers stay on Zenoh, whose BLOCK congestion control bounds a stall; iceoryx2's
-    retry would block ``publish()`` without bound).
+    (``keep_all`` peers stay on Zenoh, whose BLOCK congestion control bounds a stall; the
+    lane's ring overwrites the oldest frame instead).
     """
     theirs = peer.locality  # None: not one of ours, so it has no lane
     return (individual and served and not keep_all and theirs is not None

@@ -20,8 +20,7 @@ import keyword
 from collections.abc import Callable
 from typing import Any
 
-from rosidl_buffer.messages import Message, get_schema
-from rosidl_buffer.messages._schema import FieldKind
+from rosidl_buffer.messages import FieldKind, Message, get_schema
 
 __all__ = ["snapshot"]
 

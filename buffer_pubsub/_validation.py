@@ -20,9 +20,14 @@ import numpy as np
 
 from rosidl_buffer.buffer_impl import exact_array
 from rosidl_buffer.errors import SerializationError
-from rosidl_buffer.messages import FieldSpec, Message, get_message_type, get_schema
-from rosidl_buffer.messages._classes import numpy_dtype
-from rosidl_buffer.messages._schema import FieldKind
+from rosidl_buffer.messages import (
+    FieldKind,
+    FieldSpec,
+    Message,
+    get_message_type,
+    get_schema,
+    numpy_dtype,
+)
 
 __all__ = ["validate_message"]
 

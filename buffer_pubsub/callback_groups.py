@@ -30,12 +30,12 @@ __all__ = ["CallbackGroup", "MutuallyExclusiveCallbackGroup", "ReentrantCallback
 class CallbackGroup:
     """Base class: decides whether a ready subscription may start its callback now."""
 
-    def _enter(self, item: Runnable) -> bool:
+    def enter(self, item: Runnable) -> bool:
         """Whether ``item`` may run now; if not, the group keeps it and hands it back from
         :meth:`_leave` once it may."""
         raise NotImplementedError
 
-    def _leave(self) -> Runnable | None:
+    def leave(self) -> Runnable | None:
         """A callback of the group ended; a kept item that may run now, if any."""
         raise NotImplementedError
 
@@ -50,7 +50,7 @@ class MutuallyExclusiveCallbackGroup(CallbackGroup):
         # here at most once (a subscription is in one ready set at a time).
         self._waiting: collections.deque[Runnable] = collections.deque()
 
-    def _enter(self, item: Runnable) -> bool:
+    def enter(self, item: Runnable) -> bool:
         with self._lock:
             if self._running:
                 self._waiting.append(item)
@@ -58,7 +58,7 @@ class MutuallyExclusiveCallbackGroup(CallbackGroup):
             self._running = True
             return True
 
-    def _leave(self) -> Runnable | None:
+    def leave(self) -> Runnable | None:
         with self._lock:
             self._running = False
             return self._waiting.popleft() if self._waiting else None
@@ -71,10 +71,10 @@ class ReentrantCallbackGroup(CallbackGroup):
     """The group's callbacks may all run at once, including one subscription's on several
     messages: its callbacks must be thread-safe."""
 
-    def _enter(self, item: Runnable) -> bool:
+    def enter(self, item: Runnable) -> bool:
         return True
 
-    def _leave(self) -> Runnable | None:
+    def leave(self) -> Runnable | None:
         return None
 
     def __repr__(self) -> str:

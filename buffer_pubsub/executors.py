@@ -88,7 +88,7 @@ class Executor:
             if node in self._nodes:
                 return False
         node._join_executor(self)  # raises where the node cannot be added
-        node_executor: NodeExecutor = node._executor
+        node_executor: NodeExecutor = node.scheduler
         with self._lock:
             self._nodes.append(node)
         node_executor.delegate(self)
@@ -113,7 +113,7 @@ class Executor:
             if node not in self._nodes:
                 return
             self._nodes.remove(node)  # from here, _execute sets its items aside
-        node_executor: NodeExecutor = node._executor
+        node_executor: NodeExecutor = node.scheduler
         receiver = self._receivers.pop(id(node), None)
         if receiver is not None:  # first: the waker has one waiting thread at a time
             thread, until = receiver
@@ -142,11 +142,11 @@ class Executor:
     def _schedule(self, item: Runnable) -> None:
         """Called by a node's executor (any thread): ``item`` is ready."""
         with self._lock:
-            if item.node._executor.target is self:
+            if item.node.scheduler.target is self:
                 self._ready.append(item)
                 self._work.notify()
                 return
-        item.node._executor.schedule(item)  # its node left meanwhile: back to the node
+        item.node.scheduler.schedule(item)  # its node left meanwhile: back to the node
 
     def _take(self, timeout: float | None, stop: threading.Event | None = None
               ) -> Runnable | None:
@@ -168,23 +168,23 @@ class Executor:
         and hands it back when it may run); whether a callback ran."""
         if item.node not in self._nodes:  # being removed: remove_node hands it back
             with self._lock:
-                if item.node._executor.target is self:
+                if item.node.scheduler.target is self:
                     self._set_aside.append(item)
                     return False
-            item.node._executor.schedule(item)
+            item.node.scheduler.schedule(item)
             return False
         group = item.callback_group
-        if not group._enter(item):
+        if not group.enter(item):
             return False
         try:
-            return bool(item._run_one())
+            return bool(item.run_one())
         except Exception:
             _log.exception("executor task failed")  # callbacks' own errors are counted there
             return False
         finally:
-            released = group._leave()
+            released = group.leave()
             if released is not None:
-                released.node._executor.schedule(released)
+                released.node.scheduler.schedule(released)
 
     def spin_once(self, timeout_sec: float | None = None) -> None:
         """Run one ready callback on this thread, waiting up to ``timeout_sec`` seconds for one
@@ -244,10 +244,10 @@ class _SpinGuard:
     """One thread spins an executor at a time; a shut-down executor does not spin."""
 
     def __init__(self, executor: Executor) -> None:
-        self._executor = executor
+        self.scheduler = executor
 
     def __enter__(self) -> None:
-        executor = self._executor
+        executor = self.scheduler
         if executor._shutdown:
             raise ExecutorModeError("this executor was shut down; create another")
         if not executor._spin_lock.acquire(blocking=False):
@@ -257,7 +257,7 @@ class _SpinGuard:
         executor._spin_done.clear()
 
     def __exit__(self, *exc: Any) -> None:
-        executor = self._executor
+        executor = self.scheduler
         executor._spinner = None
         executor._spin_done.set()
         executor._spin_lock.release()

@@ -52,8 +52,7 @@ from collections.abc import Callable, Hashable
 from typing import TYPE_CHECKING, Any
 
 from rosidl_buffer import Buffer, BufferImplBase
-from rosidl_buffer.messages import Message
-from rosidl_buffer.messages._schema import FieldKind
+from rosidl_buffer.messages import FieldKind, Message, buffer_fields, fields_of
 
 from .errors import LoanError
 
@@ -72,9 +71,9 @@ _ref = weakref.ref
 def flat_buffer_fields(msg_type: type[Message]) -> tuple[str, ...] | None:
     """The buffer fields of a message type without nested messages (the common case: one
     getattr each), or None when nested messages need the full walk."""
-    if any(spec.kind is FieldKind.MESSAGE for spec in msg_type._schema.fields):
+    if any(spec.kind is FieldKind.MESSAGE for spec in fields_of(msg_type)):
         return None
-    return tuple(sorted(msg_type._buffer_fields))
+    return tuple(sorted(buffer_fields(msg_type)))
 
 
 # ------------------------------------------------------------------------------ pool keys
@@ -131,9 +130,9 @@ def _places(msg: Message) -> list[tuple[Message, str]] | None:
     when a buffer sits in a sequence of messages (not pooled)."""
     places = []
     cls = type(msg)
-    for name in sorted(cls._buffer_fields):
+    for name in sorted(buffer_fields(cls)):
         places.append((msg, name))
-    for spec in cls._schema.fields:
+    for spec in fields_of(cls):
         if spec.kind is FieldKind.MESSAGE:
             value = getattr(msg, spec.name)
             if isinstance(value, list):

@@ -24,14 +24,13 @@ import math
 import os
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import zenoh
 
 from rosidl_buffer import BufferBackend, RosidlBufferError, local_host_id
-from rosidl_buffer.messages import Message, get_message_type, get_type_hash
+from rosidl_buffer.messages import Message, buffer_fields, get_message_type, get_type_hash
 
 from . import _process, fast_lane as _fast_lane, wire
 from ._executor import NodeExecutor, user_spin, wait_seconds
@@ -41,7 +40,7 @@ from ._zenoh import run_bounded, typed_zenoh_errors, undeclare_quietly
 from .callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
 from .config import make_config, resolve_domain_id
 from .connectivity import open_session
-from .graph import NodeInfo, TopicEndpointInfo, node_info
+from .graph import Graph, NodeInfo, TopicEndpointInfo, node_info
 from .errors import (
     ExecutorModeError,
     InvalidEndpointError,
@@ -60,8 +59,6 @@ _log = logging.getLogger(__name__)
 
 #: Budget of :meth:`Node.close` on a frozen or vanished peer (all blocking steps together).
 CLOSE_TIMEOUT_S = 3.0
-#: Tokens of publishers that left, kept so their last samples still find their info.
-RECENTLY_GONE = 256
 EXECUTOR_MODES = ("thread", "manual")
 
 
@@ -117,25 +114,19 @@ class Node:
         self.executor_mode = executor
         self._closed = False
         self._lock = threading.RLock()
-        self._graph_cond = threading.Condition(self._lock)
-        self._graph: dict[bytes, wire.EndpointToken] = {}  # gid -> endpoint
-        self._gone: OrderedDict[bytes, wire.EndpointToken] = OrderedDict()  # recently left
-        # liveliness key -> its endpoint; a gid claimed by several keys (a forged twin, a
-        # foreign implementation) is the first key's while it lives, then the next one's
-        self._keys: dict[str, wire.EndpointToken] = {}
-        self._gid_keys: dict[bytes, list[str]] = {}
-        self._nodes: dict[str, wire.NodeToken] = {}  # liveliness key -> node
+        #: The graph of the domain as this node sees it (it shares the node's lock).
+        self.graph = Graph(self._lock)
         self._publishers: list[Publisher] = []
         self._subscriptions: list[Subscription] = []
         self._own_lane = waker is None  # a LaneWaker the user gave stays the user's to close
-        waker, self._lane = _lane_waker(waker, fast_lane)
+        waker, self.lane = _lane_waker(waker, fast_lane)
         # executor="thread": a Zenoh sample may run its callback on its arrival thread (see
         # buffer_pubsub._inline); the gate keeps one callback of the node at a time.
         self._gate = threading.Lock() if executor == "thread" else None
         self._spin_lock = threading.Lock()  # executor="manual": the one thread that spins
-        self._inline_callbacks = executor == "thread" and bool(inline_callbacks)
-        self._executor = NodeExecutor(waker, _nothing_periodic, self._gate)
-        self._in_flight = self._executor.in_flight  # the threads running our callbacks now
+        #: Zenoh arrivals may run short callbacks on their own thread (see the class doc).
+        self.inline_callbacks = executor == "thread" and bool(inline_callbacks)
+        self.scheduler = NodeExecutor(waker, _nothing_periodic, self._gate)
         self._owner: Executor | None = None  # the user's executor the node was added to
         #: The group of subscriptions created without ``callback_group`` (as rclpy's).
         self.default_callback_group: CallbackGroup = MutuallyExclusiveCallbackGroup()
@@ -153,7 +144,7 @@ class Node:
             self.node_id = _process.next_id()
             if executor == "thread":
                 self._thread = threading.Thread(
-                    target=self._executor.run, name=f"buffer_pubsub:{name}", daemon=True)
+                    target=self.scheduler.run, name=f"buffer_pubsub:{name}", daemon=True)
                 self._thread.start()
             with typed_zenoh_errors("cannot declare the node's liveliness"):
                 self._node_token = self.session.liveliness().declare_token(wire.NodeToken(
@@ -164,7 +155,7 @@ class Node:
                 self._routes_queryable = self.session.declare_queryable(
                     wire.routes_key(self.domain_id, self.zid), self._on_routes_query)
         except BaseException:
-            self._executor.stop()
+            self.scheduler.stop()
             run_bounded(self.session.close, CLOSE_TIMEOUT_S, "closing the Zenoh session")
             self._close_lane()
             raise
@@ -203,8 +194,8 @@ class Node:
             endpoints: list[Publisher | Subscription] = [*self._publishers, *self._subscriptions]
             self._publishers.clear()
             self._subscriptions.clear()
-            self._graph_cond.notify_all()
-        self._executor.stop()
+        self.graph.close()
+        self.scheduler.stop()
         deadline = time.monotonic() + CLOSE_TIMEOUT_S
 
         def left() -> float:  # every step shares one budget; the last still gets a moment
@@ -218,7 +209,7 @@ class Node:
         def undeclare() -> None:
             for endpoint in endpoints:
                 try:  # one endpoint's failure must not leave the others declared
-                    endpoint._undeclare()
+                    endpoint.destroy()
                 except Exception:
                     _log.exception("undeclaring %r of node %s failed", endpoint, self.name)
             undeclare_quietly(self._routes_queryable, self._graph_subscriber, self._node_token)
@@ -229,7 +220,7 @@ class Node:
         # before the endpoints are undeclared, so its publishes still go out.
         interrupted: KeyboardInterrupt | None = None
         for step in (leave_executor,
-                     lambda: self._in_flight.wait_idle(left()),
+                     lambda: self.scheduler.in_flight.wait_idle(left()),
                      lambda: run_bounded(undeclare, left(), f"undeclaring node {self.name}"),
                      lambda: self._join_executor_thread(left()),
                      self._close_lane,
@@ -248,8 +239,8 @@ class Node:
 
     def _close_lane(self) -> None:
         # After the executor stopped: the waker closes the readers detached from it.
-        if self._lane is not None and self._own_lane:
-            self._lane.close()
+        if self.lane is not None and self._own_lane:
+            self.lane.close()
 
     def _check_open(self) -> None:
         if self._closed:
@@ -262,7 +253,7 @@ class Node:
         Only for ``Node(executor="manual")``, one spinning thread at a time."""
         wait = wait_seconds(timeout)
         with self._spinning(), user_spin():
-            return self._executor.spin_once(wait)
+            return self.scheduler.spin_once(wait)
 
     def spin(self, timeout: float | None = None) -> None:
         """Run callbacks on this thread until the node is closed (or ``timeout`` seconds pass;
@@ -275,7 +266,7 @@ class Node:
                 left = None if deadline is None else deadline - time.monotonic()
                 if left is not None and left <= 0:
                     return
-                self._executor.spin_once(
+                self.scheduler.spin_once(
                     NodeExecutor.TICK_S if left is None else min(left, NodeExecutor.TICK_S))
 
     @contextlib.contextmanager
@@ -375,21 +366,21 @@ class Node:
         # As rmw_zenoh's buffer-aware publishers: cpu plus every installed backend's metadata
         # (a type without a top-level uint8[] advertises nothing).
         advertised = ({"cpu": "", **self._installed_metadata(list(self.backends))}
-                      if cls._buffer_fields else None)
+                      if buffer_fields(cls) else None)
         token = self._endpoint_token(wire.PUBLISHER_KIND, fq_topic, cls.__msgtype__, depth,
                                      history, advertised)
         with typed_zenoh_errors(f"cannot declare a publisher on {fq_topic}"):
-            publisher = Publisher(self, cls, token, depth, history)
+            publisher = Publisher(self, cls, token, depth, history, on_destroy=self._forget)
         with self._lock:
             closed = self._closed  # close() ran meanwhile: it did not see this one
             if not closed:
                 self._publishers.append(publisher)
-                peers = [t for t in self._graph.values() if publisher._matches(t)]
+                peers = [t for t in self.graph.endpoints() if publisher.matches(t)]
         if closed:
-            publisher._undeclare()
+            publisher.destroy()
             self._check_open()
         for peer in peers:
-            publisher._on_peer(peer, True)
+            publisher.on_subscription(peer, True)
         return publisher
 
     def create_subscription(
@@ -448,19 +439,20 @@ class Node:
                 "raw=True takes CPU bytes only: a backend's descriptor means nothing serialized "
                 f"(acceptable_buffer_backends={acceptable_buffer_backends!r})")
         advertised = (_subscription_advertisement(acceptable_buffer_backends, accepted, self)
-                      if cls._buffer_fields else None)
+                      if buffer_fields(cls) else None)
         token = dataclasses.replace(self._endpoint_token(
             wire.SUBSCRIPTION_KIND, fq_topic, cls.__msgtype__, depth, history, advertised),
             max_rate_hz=rate)
         with typed_zenoh_errors(f"cannot declare a subscription on {fq_topic}"):
             subscription = Subscription(self, cls, token, callback, depth, accepted, with_info,
-                                        history, callback_group, raw=raw)
+                                        history, callback_group, raw=raw,
+                                        on_destroy=self._forget)
         with self._lock:
             closed = self._closed  # close() ran meanwhile: it did not see this one
             if not closed:
                 self._subscriptions.append(subscription)
         if closed:
-            subscription._undeclare()
+            subscription.destroy()
             self._check_open()
         return subscription
 
@@ -499,118 +491,41 @@ class Node:
         except RosidlBufferError as exc:  # PubSubError, or a type name no message can have
             _log.debug("ignoring liveliness token %s: %s", key, exc)
             return
-        if isinstance(token, wire.NodeToken):
-            with self._lock:
-                if sample.kind == zenoh.SampleKind.PUT:
-                    self._nodes[key] = token
-                else:
-                    self._nodes.pop(key, None)
+        if token is None:
             return
-        if not isinstance(token, wire.EndpointToken):
-            return
+        graph = self.graph
         with self._lock:
             if self._closed:
                 return
-            if sample.kind == zenoh.SampleKind.PUT:
-                events = self._endpoint_put(key, token)
-            else:
-                events = self._endpoint_deleted(key)
-            hooks = [(token, appeared, [p for p in self._publishers if p._matches(token)],
-                      [s for s in self._subscriptions if s._matches(token)])
+            events = (graph.put(key, token) if sample.kind == zenoh.SampleKind.PUT
+                      else graph.delete(key))
+            hooks = [(token, appeared, [p for p in self._publishers if p.matches(token)],
+                      [s for s in self._subscriptions if s.matches(token)])
                      for token, appeared in events]
-            self._graph_cond.notify_all()
-        # Hooks run outside the lock (a backend may be slow); Publisher._on_peer re-checks the
-        # graph under the lock before it keeps a peer, so a DELETE racing past its PUT leaves
-        # no ghost behind.
+            graph.changed.notify_all()
+        # Hooks run outside the lock (a backend may be slow); Publisher.on_subscription
+        # re-checks the graph under the lock before it keeps a peer, so a DELETE racing past
+        # its PUT leaves no ghost behind.
         for token, appeared, publishers, subscriptions in hooks:
             for publisher in publishers:
                 try:
-                    publisher._on_peer(token, appeared)
+                    publisher.on_subscription(token, appeared)
                 except Exception:  # a failing backend hook must not break discovery
                     _log.exception("negotiation with %s failed", token.key())
             for subscription in subscriptions:
-                subscription._on_publisher(token, appeared)
+                subscription.on_publisher(token, appeared)
             if not appeared and not token.is_publisher:
                 # Only its departure ends what backends keep for a subscription (blocks owed
                 # to it): not the end of one of our publishers, whose frames it may still
                 # import. Reported whether or not a publisher of ours still matches it.
                 endpoint_gone(self.backends.values(), endpoint_info(token))
 
-    def _endpoint_put(self, key: str, token: wire.EndpointToken
-                      ) -> list[tuple[wire.EndpointToken, bool]]:
-        """Record ``key``'s endpoint; what appeared (call with the lock held). A gid another
-        live key already claims keeps that endpoint: a twin never replaces it."""
-        gid = token.gid
-        if key in self._keys:
-            return []  # a repeated PUT
-        self._keys[key] = token
-        keys = self._gid_keys.setdefault(gid, [])
-        keys.append(key)
-        if len(keys) > 1:
-            _log.debug("liveliness key %s repeats the gid of %s: kept aside", key, keys[0])
-            return []
-        self._graph[gid] = token
-        self._gone.pop(gid, None)
-        return [(token, True)]
-
-    def _endpoint_deleted(self, key: str) -> list[tuple[wire.EndpointToken, bool]]:
-        """Forget ``key``'s endpoint; what vanished and what took its gid over (lock held)."""
-        token = self._keys.pop(key, None)
-        if token is None:
-            return []
-        gid = token.gid
-        keys = self._gid_keys.get(gid, [])
-        if key in keys:
-            keys.remove(key)
-        if self._graph.get(gid) is not token:
-            return []  # a twin kept aside went away
-        if keys:  # another live key claims the gid: its endpoint is the one now
-            successor = self._graph[gid] = self._keys[keys[0]]
-            return [(token, False), (successor, True)]
-        del self._graph[gid]
-        self._gid_keys.pop(gid, None)
-        if token.is_publisher:
-            self._gone[gid] = token
-            while len(self._gone) > RECENTLY_GONE:
-                self._gone.popitem(last=False)
-        return [(token, False)]
-
-    def _still_in_graph(self, token: wire.EndpointToken) -> bool:
-        """Is ``token`` (still) a discovered endpoint? Call with ``self._lock`` held."""
-        return self._graph.get(token.gid) is token and not self._closed
-
-    def _count_matching(self, kind: str, topic: str, type_name: str, type_hash: str) -> int:
-        with self._lock:
-            return sum(1 for t in self._graph.values()
-                       if t.kind == kind and t.topic == topic and t.type_name == type_name
-                       and t.type_hash == type_hash)
-
-    def _wait_matching(self, kind: str, topic: str, type_name: str, type_hash: str,
-                       count: int, timeout: float | None) -> bool:
-        deadline = None if timeout is None else time.monotonic() + timeout
-        with self._graph_cond:
-            while True:
-                if self._count_matching(kind, topic, type_name, type_hash) >= count:
-                    return True
-                if self._closed:
-                    return False
-                left = None if deadline is None else deadline - time.monotonic()
-                if left is not None and left <= 0:
-                    return False
-                self._graph_cond.wait(left)
-
-    def _publisher_token(self, gid: bytes) -> wire.EndpointToken | None:
-        """The publisher ``gid`` if discovered (or gone a moment ago); never waits."""
-        token = self._graph.get(gid)  # a dict read is atomic; no lock on the hot path
-        return token if token is not None else self._gone.get(gid)
-
     # -- the graph (rclpy's names) -------------------------------------------------------------
     def get_topic_names_and_types(self) -> list[tuple[str, list[str]]]:
         """Topics seen in the graph (this domain) with their type names, like rclpy."""
         topics: dict[str, set[str]] = {}
-        with self._lock:
-            for token in self._graph.values():
-                topics.setdefault(token.topic, set()).add(token.type_name)
+        for token in self.graph.endpoints():
+            topics.setdefault(token.topic, set()).add(token.type_name)
         return sorted((topic, sorted(types)) for topic, types in topics.items())
 
     def get_node_names_and_namespaces(self) -> list[tuple[str, str]]:
@@ -620,14 +535,11 @@ class Node:
     def get_nodes(self) -> list[NodeInfo]:
         """Every node of the domain (name, namespace, enclave, Zenoh session), this one
         included."""
-        with self._lock:
-            tokens = list(self._nodes.values())
-        return sorted({node_info(t) for t in tokens}, key=lambda n: (n.namespace, n.name, n.zid))
+        return sorted({node_info(t) for t in self.graph.nodes()},
+                      key=lambda n: (n.namespace, n.name, n.zid))
 
     def _endpoints(self, kind: str, topic: str | None) -> list[TopicEndpointInfo]:
-        with self._lock:
-            tokens = [t for t in self._graph.values()
-                      if t.kind == kind and (topic is None or t.topic == topic)]
+        tokens = self.graph.endpoints(kind, topic)
         return [TopicEndpointInfo.from_token(t) for t in sorted(
             tokens, key=lambda t: (t.topic, t.namespace, t.node_name, t.gid))]
 

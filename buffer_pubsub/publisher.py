@@ -206,8 +206,10 @@ class Publisher:
     """Created by :meth:`Node.create_publisher`; publishes ``msg_type`` messages on a topic."""
 
     def __init__(self, node: Node, msg_type: type[Message], token: wire.EndpointToken,
-                 depth: int, history: str = wire.KEEP_LAST) -> None:
+                 depth: int, history: str = wire.KEEP_LAST, *,
+                 on_destroy: Callable[[Publisher], None] = lambda publisher: None) -> None:
         self.node = node
+        self._on_destroy = on_destroy  # the node forgets it
         self.msg_type = msg_type
         self.topic_name = token.topic
         self.depth = depth
@@ -256,12 +258,14 @@ class Publisher:
         return f"Publisher({self.msg_type.__msgtype__}, {self.topic_name!r})"
 
     # -- matching ------------------------------------------------------------------------------
-    def _matches(self, token: wire.EndpointToken) -> bool:
+    def matches(self, token: wire.EndpointToken) -> bool:
+        """Is ``token`` a subscription of this topic, type and hash? (The node's discovery
+        asks.)"""
         return (not token.is_publisher and token.topic == self._token.topic
                 and token.type_name == self._token.type_name
                 and token.type_hash == self._token.type_hash)
 
-    def _on_peer(self, token: wire.EndpointToken, appeared: bool) -> None:
+    def on_subscription(self, token: wire.EndpointToken, appeared: bool) -> None:
         """A matching subscription appeared or vanished (called by the node's discovery)."""
         gid = token.gid
         if not appeared:
@@ -294,9 +298,10 @@ class Publisher:
         # Negotiation ran unlocked; keep the peer only if it is still in the graph (checked
         # under the node's lock, which its DELETE takes before calling us), else a DELETE that
         # overtook us would leave a ghost peer pinning a block per publish.
-        with self.node._lock:
-            keep = self.node._still_in_graph(token)
-            present = self.node._graph.get(gid) is token  # (whether or not our node closed)
+        graph = self.node.graph
+        with graph.lock:
+            keep = graph.holds(token)
+            present = graph.current(gid) is token  # (whether or not our node closed)
             if keep:
                 with self._lock:
                     keep = not self._closed and gid not in self._peers
@@ -319,7 +324,7 @@ class Publisher:
         after the peer is kept, so publish() reaches it over Zenoh meanwhile."""
         node = self.node
         token = peer.token
-        if node._lane is None or not _lane_routes.serves(
+        if node.lane is None or not _lane_routes.serves(
                 node.locality, token, individual=peer.individual, served=bool(peer.served),
                 keep_all=self.history == wire.KEEP_ALL or token.qos.keep_all):
             return
@@ -411,7 +416,7 @@ class Publisher:
 
     def get_subscription_count(self) -> int:
         """Matched subscriptions (local and remote) currently known through discovery."""
-        return self.node._count_matching(
+        return self.node.graph.count(
             wire.SUBSCRIPTION_KIND, self._token.topic, self._token.type_name,
             self._token.type_hash)
 
@@ -420,7 +425,7 @@ class Publisher:
         settled the route to each (negotiated, same-host lane opened where one serves), so the
         next publish() takes the route it keeps; False on timeout."""
         deadline = None if timeout is None else time.monotonic() + timeout
-        if not self.node._wait_matching(
+        if not self.node.graph.wait(
                 wire.SUBSCRIPTION_KIND, self._token.topic, self._token.type_name,
                 self._token.type_hash, count, timeout):
             return False
@@ -551,11 +556,11 @@ class Publisher:
                 continue
             if not backends or backends.issubset(subscription.accepted):
                 # the values as published, in an object of its own (see _snapshot)
-                subscription._deliver_intra(snapshot(msg), attachment)
+                subscription.deliver_intra(snapshot(msg), attachment)
             else:
                 if copy is None:
                     copy = cpu_copy(msg)
-                subscription._deliver_intra(snapshot(copy), attachment)
+                subscription.deliver_intra(snapshot(copy), attachment)
 
     def _serialize_for(self, peer: _Peer, msg: Message) -> bytearray:
         backends = self.node.backends
@@ -602,7 +607,7 @@ class Publisher:
     # -- teardown ------------------------------------------------------------------------------
     def destroy(self) -> None:
         """Undeclare this publisher (also done by :meth:`Node.close`)."""
-        self.node._forget(self)
+        self._on_destroy(self)
         self._undeclare()
 
     def _undeclare(self) -> None:

@@ -40,6 +40,7 @@ import zenoh
 from rosidl_buffer import RosidlBufferError
 from rosidl_buffer.messages import (
     Message,
+    buffer_fields,
     deserialize_message,
     release_buffers,
     serialize_message,
@@ -130,8 +131,10 @@ class Subscription:
     def __init__(self, node: Node, msg_type: type[Message], token: wire.EndpointToken,
                  callback: Callable[..., Any], depth: int, accepted: list[str],
                  with_info: bool, history: str = wire.KEEP_LAST,
-                 callback_group: CallbackGroup | None = None, *, raw: bool = False) -> None:
+                 callback_group: CallbackGroup | None = None, *, raw: bool = False,
+                 on_destroy: Callable[[Subscription], None] = lambda subscription: None) -> None:
         self.node = node
+        self._on_destroy = on_destroy  # the node forgets it
         #: Which callbacks may run beside this one on a multi-threaded executor.
         self.callback_group = (node.default_callback_group if callback_group is None
                                else callback_group)
@@ -162,8 +165,8 @@ class Subscription:
         self._closed = False
         # Zenoh arrivals may run their callback on Zenoh's thread (see _inline) only when the
         # node runs its own executor thread: with executor="manual" callbacks run in spin().
-        self._gate = node._gate
-        self._inline_arrivals = node._inline_callbacks
+        self._gate = node.scheduler.gate
+        self._inline_arrivals = node.inline_callbacks
         self._policy = InlinePolicy()
         self.base_key = wire.data_key(node.domain_id, token.topic, msg_type.__msgtype__)
         self._backends = tuple(node.backends.values())
@@ -178,7 +181,7 @@ class Subscription:
         # A rate-limited CPU-only one listens on its own stream too: our publishers serve it
         # there, at its rate (see max_rate below).
         own_stream = False
-        if msg_type._buffer_fields:
+        if buffer_fields(msg_type):
             cpu_only = wire.subscription_channel(token) == wire.SubscriptionChannel.CPU
             if cpu_only:
                 self._subscribers.append(session.declare_subscriber(
@@ -193,9 +196,9 @@ class Subscription:
         # service, so its writer decides the route at once. The Zenoh channel stays for
         # publishers that cannot open the lane (other host or user, lane off, older peers).
         self._lane_reader = None
-        lane = node._lane
-        # (Keep-all stays on Zenoh: iceoryx2's keep-last queue would drop; so do queues
-        # deeper than the lane preallocates, see fast_lane.MAX_DEPTH.)
+        lane = node.lane
+        # (Keep-all stays on Zenoh: the lane's keep-last ring would drop; so do queues
+        # deeper than the lane's deepest ring, see fast_lane.MAX_DEPTH.)
         if (lane is not None and history == wire.KEEP_LAST and depth <= fast_lane.MAX_DEPTH
                 and own_stream):
             self._lane_reader = _lane_routes.open_reader(self.base_key, self.gid, depth)
@@ -224,16 +227,17 @@ class Subscription:
 
     def get_publisher_count(self) -> int:
         """Matched publishers (local and remote) currently known through discovery."""
-        return self.node._count_matching(
+        return self.node.graph.count(
             wire.PUBLISHER_KIND, self._token.topic, self._token.type_name, self._token.type_hash)
 
     def wait_for_publishers(self, count: int = 1, timeout: float | None = 10.0) -> bool:
         """Block until at least ``count`` publishers are matched; False on timeout."""
-        return self.node._wait_matching(
+        return self.node.graph.wait(
             wire.PUBLISHER_KIND, self._token.topic, self._token.type_name,
             self._token.type_hash, count, timeout)
 
-    def _matches(self, token: wire.EndpointToken) -> bool:
+    def matches(self, token: wire.EndpointToken) -> bool:
+        """Is ``token`` a publisher of this topic and type? (The node's discovery asks.)"""
         return (token.is_publisher and token.topic == self._token.topic
                 and token.type_name == self._token.type_name)
 
@@ -295,7 +299,7 @@ class Subscription:
             if rate.admit(now):
                 return True
             self._judge(attachment, route, _numbered_per_stream(
-                route, self.node._publisher_token(gid)))
+                route, self.node.graph.publisher(gid)))
             self.counters.decimated += 1
             return False
 
@@ -305,7 +309,7 @@ class Subscription:
         taken: released if it is dropped before delivery), with its publisher's info, or with
         the gid alone when its token has not arrived (rmw_zenoh does not wait either)."""
         payload, attachment, route, received_ns, _ = item
-        publisher = self.node._publisher_token(attachment.publisher_gid)  # once per message
+        publisher = self.node.graph.publisher(attachment.publisher_gid)  # once per message
         if route in _DESCRIPTOR_ROUTES:
             try:
                 msg = self._deserialize(payload, attachment, route, publisher)
@@ -329,7 +333,9 @@ class Subscription:
                      attachment.publisher_gid.hex(), exc,
                      exc_info=not isinstance(exc, RosidlBufferError))
 
-    def _deliver_intra(self, msg: Message, attachment: wire.Attachment) -> None:
+    def deliver_intra(self, msg: Message, attachment: wire.Attachment) -> None:
+        """A message from a publisher of this process (its snapshot), on the publisher's
+        thread."""
         if self.max_rate_hz and not self._due(attachment, ROUTE_INTRA):
             return
         self._enqueue((msg, attachment, ROUTE_INTRA, time.time_ns(), False))
@@ -353,7 +359,7 @@ class Subscription:
         """Is ``gid`` one of our publishers in another process? (See :meth:`_enqueue`.)"""
         if route == ROUTE_INTRA:
             return False
-        token = self.node._publisher_token(gid)
+        token = self.node.graph.publisher(gid)
         return token is not None and token.locality is not None
 
     def _enqueue(self, item: tuple[Any, ...], inline: bool = False,
@@ -374,7 +380,7 @@ class Subscription:
         if route == ROUTE_INTRA:
             publisher = None
         elif publisher is _UNRESOLVED:
-            publisher = self.node._publisher_token(attachment.publisher_gid)
+            publisher = self.node.graph.publisher(attachment.publisher_gid)
         # Only our publishers in other processes may send a message twice (see _sequence), and
         # only their stamps are known to be unique: another implementation may stamp alike.
         ours = publisher is not None and publisher.locality is not None
@@ -398,7 +404,7 @@ class Subscription:
                 closed = False
                 queue = self._queue
                 lane = route == ROUTE_LANE
-                if (inline and not queue and not self.node._executor.has_ready()
+                if (inline and not queue and not self.node.scheduler.has_ready()
                         and (lane or self._policy.trusted)
                         and (gate is None or gate.acquire(blocking=False))):
                     run_now = lane or self._policy.arrived_inline()
@@ -418,19 +424,19 @@ class Subscription:
                 if gate is not None:
                     gate.release()
             if lane and ran:
-                self.node._executor.ran_inline()
+                self.node.scheduler.ran_inline()
             return
         if closed:
             evicted = item
         elif schedule:
-            self.node._executor.schedule(self)
+            self.node.scheduler.schedule(self)
         # Only an owned message holds anything: serialized bytes hold nothing, an intra-process
         # message shares the publisher's buffers (not ours to release).
         if evicted is not None and evicted[4]:
             release_buffers(evicted[0])
 
     # -- discovery --------------------------------------------------------------------------
-    def _on_publisher(self, token: wire.EndpointToken, appeared: bool) -> None:
+    def on_publisher(self, token: wire.EndpointToken, appeared: bool) -> None:
         """A matching publisher appeared or left (what is known of its streams is dropped)."""
         if not appeared:
             with self._lock:
@@ -439,7 +445,7 @@ class Subscription:
                 self._rates.pop(token.gid, None)
 
     # -- executor ------------------------------------------------------------------------------
-    def _run_one(self) -> bool:
+    def run_one(self) -> bool:
         """Deliver the next queued message; whether its callback ran."""
         with self._lock:
             if self._closed or not self._queue:
@@ -449,7 +455,7 @@ class Subscription:
             again = bool(self._queue)
             self._scheduled = again
         if again:  # others wait: take turns with the node's other subscriptions
-            self.node._executor.schedule(self)
+            self.node.scheduler.schedule(self)
         return self._run_item(item)
 
     def _run_item(self, item: tuple[Any, ...], inline: bool = False) -> bool:
@@ -467,13 +473,13 @@ class Subscription:
                 self._count_error(exc, attachment)
                 return False
         node = self.node
-        if self._closed or node._closed:  # a closing node starts no callback
+        if self._closed or node.closed:  # a closing node starts no callback
             if owned:
                 release_buffers(msg)  # imported for us alone, and nobody will read it
             return False
         with self._lock:
             self.counters.received += 1
-        in_flight = node._in_flight  # what close() waits for
+        in_flight = node.scheduler.in_flight  # what close() waits for
         thread = in_flight.enter()
         start = time.perf_counter()
         try:
@@ -500,7 +506,7 @@ class Subscription:
         with self._lock:
             self.counters.callback_errors += 1
         self.last_error = exc
-        if isinstance(exc, NodeClosedError) and self.node._closed:
+        if isinstance(exc, NodeClosedError) and self.node.closed:
             # A callback that outlived close()'s wait published on its closed node: the end of
             # the program (Ctrl-C), not an error to show.
             _log.debug("%r: callback ran past its node's close: %s", self, exc)
@@ -516,7 +522,7 @@ class Subscription:
         if route in _DESCRIPTOR_ROUTES:
             gid = attachment.publisher_gid
             if publisher is _UNRESOLVED:
-                publisher = self.node._publisher_token(gid)
+                publisher = self.node.graph.publisher(gid)
             info = (endpoint_info(publisher) if publisher is not None else
                     unknown_publisher_info(gid, self.topic_name, self.msg_type.__msgtype__))
         return deserialize_message(payload, self.msg_type, backends=self.node.backends,
@@ -525,7 +531,7 @@ class Subscription:
     # -- teardown ------------------------------------------------------------------------------
     def destroy(self) -> None:
         """Undeclare this subscription (also done by :meth:`Node.close`)."""
-        self.node._forget(self)
+        self._on_destroy(self)
         self._undeclare()
 
     def _undeclare(self) -> None:
@@ -540,6 +546,6 @@ class Subscription:
         _process.remove_subscription(self.base_key, self)
         undeclare_quietly(self._liveliness, *self._subscribers)
         if self._lane_reader is not None:  # the waker closes it once detached
-            self.node._lane.detach(self._lane_reader, close=True)
+            self.node.lane.detach(self._lane_reader, close=True)
         endpoint_gone(self._backends, self.info)
 

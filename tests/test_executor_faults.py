@@ -187,10 +187,10 @@ def test_a_sample_of_an_undiscovered_publisher_is_not_overtaken_by_a_later_one(d
                     ROUTE_BUFFER, time.time_ns(), False)
 
         sub._arrived(sample(1))  # the publisher is not discovered yet
-        with node._lock:
-            node._graph[token.gid] = token  # discovery records it (under the node's lock) ...
+        with node.graph.lock:
+            node.graph.put(token.key(), token)  # discovery records it (under the lock) ...
         sub._arrived(sample(2))  # ... a Zenoh thread delivers the next sample ...
-        sub._on_publisher(token, True)  # ... then the discovery hook runs
+        sub.on_publisher(token, True)  # ... then the discovery hook runs
         while node.spin_once(0.2):
             pass
         assert got == ["m1", "m2"] and sub.counters.refused == {}

@@ -147,7 +147,7 @@ def test_lane_callbacks_run_inside_the_wait_and_spin_once_counts_them(domain, to
     seen: list[tuple[str, int]] = []
     backend = pick_backend()
     with Node("lane_spinner", domain_id=domain, executor="manual") as node:
-        if node._lane is None:
+        if node.lane is None:
             pytest.skip(f"the lane does not run here: {fast_lane.status().reason}")
         node.create_subscription(TENSOR, topic, lambda m, info: seen.append(
             (info.route, threading.get_ident())), depth=count, with_info=True,
@@ -169,7 +169,7 @@ def test_lane_callbacks_run_inside_the_wait_and_spin_once_counts_them(domain, to
 
 def test_manual_executor_never_runs_callbacks_on_arrival_threads(domain, topic):
     with Node("manual_sub", domain_id=domain, executor="manual") as node:
-        assert node._gate is None and not node._inline_callbacks
+        assert node.scheduler.gate is None and not node.inline_callbacks
 
 
 pytestmark = pytest.mark.multiprocess

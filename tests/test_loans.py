@@ -329,13 +329,13 @@ def test_publish_ends_the_write_before_the_sends_and_fences_after_them(domain, t
     with Node("loan_order", domain_id=domain, backends=backends, executor="manual") as node:
         sub = node.create_subscription(TENSOR, topic, lambda m: None)
         pub = node.create_publisher(TENSOR, topic)
-        deliver = sub._deliver_intra
+        deliver = sub.deliver_intra
 
         def recorded(*args):
             events.append("send")
             deliver(*args)
 
-        sub._deliver_intra = recorded
+        sub.deliver_intra = recorded
         pub.publish(msg)
         assert events == ["seal", "send", "end_publish"]
         events.clear()

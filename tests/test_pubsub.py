@@ -454,7 +454,7 @@ def test_a_twin_token_with_the_same_gid_never_replaces_or_removes_the_endpoint(
         assert wait_until(lambda: real.gid in pub._peers)
         twin_token = raw.liveliness().declare_token(twin_key)
         time.sleep(0.5)
-        assert node._graph[real.gid].locality is None  # still the real one
+        assert node.graph.current(real.gid).locality is None  # still the real one
         twin_token.undeclare()
         time.sleep(0.5)
         assert real.gid in pub._peers and pub.get_subscription_count() == 1
@@ -478,7 +478,7 @@ def test_tokens_with_impossible_type_names_are_ignored(domain, topic, backends, 
         for token in tokens:
             token.undeclare()
     assert "callback error" not in caplog.text
-    assert not [t for t in node._graph.values() if t.node_name == "odd"]
+    assert not [t for t in node.graph.endpoints() if t.node_name == "odd"]
     assert not any("/msg/X" == n or n.startswith("a/b") for types in names.values()
                    for n in types)
 
@@ -518,8 +518,8 @@ def test_our_subscription_without_backends_does_not_move_everyone_to_the_base_ke
                 type_name=TENSOR, type_hash=pub._token.type_hash, qos=wire.QoSProfile.of(10),
                 locality=wire.Locality("elsewhere", 1, 0) if ours else None)
             with node._lock:
-                node._graph[token.gid] = token
-            pub._on_peer(token, True)
+                node.graph.put(token.key(), token)
+            pub.on_subscription(token, True)
             return token
 
         ours = remote_subscription(1, ours=True)

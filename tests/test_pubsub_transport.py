@@ -224,7 +224,7 @@ def test_slow_subscriber_holds_one_pending_task_at_most(domain, topic, backends)
 
         def watch() -> None:
             while not stop.is_set():
-                peak[0] = max(peak[0], len(node._executor._ready))
+                peak[0] = max(peak[0], len(node.scheduler._ready))
                 time.sleep(0.0005)
 
         watcher = threading.Thread(target=watch)
@@ -492,7 +492,7 @@ def _negotiate(pub, token: wire.EndpointToken, fake, meanwhile) -> set[bytes]:
     type(fake).on_discovering_endpoint = negotiating
     gone = len(fake.gone)
     try:
-        pub._on_peer(token, True)
+        pub.on_subscription(token, True)
     finally:
         type(fake).on_discovering_endpoint = original
     return {e.gid for e in fake.gone[gone:]}
@@ -503,13 +503,13 @@ def test_peer_that_vanishes_during_negotiation_leaves_no_ghost(domain, topic, ba
     with Node("ghost", domain_id=domain, backends=backends) as node:
         pub = node.create_publisher(TENSOR, topic)
         token = _remote_subscription(pub, domain, entity_id=7, node_name="ghost_sub")
-        with node._lock:
-            node._graph[token.gid] = token
+        with node.graph.lock:
+            node.graph.put(token.key(), token)
         def delete_overtakes() -> None:
             # The DELETE overtakes the PUT's negotiation, as the discovery thread would do it.
-            with node._lock:
-                node._graph.pop(token.gid, None)
-            pub._on_peer(token, False)
+            with node.graph.lock:
+                node.graph.delete(token.key())
+            pub.on_subscription(token, False)
 
         gone = _negotiate(pub, token, fake, delete_overtakes)
         assert token.gid not in pub._peers
@@ -526,16 +526,16 @@ def test_a_node_closing_during_negotiation_does_not_report_a_live_peer_gone(doma
     try:
         pub = node.create_publisher(TENSOR, topic)
         token = _remote_subscription(pub, domain, entity_id=9, node_name="live_sub")
-        with node._lock:
-            node._graph[token.gid] = token
+        with node.graph.lock:
+            node.graph.put(token.key(), token)
         def close_begins() -> None:  # the peer stays in the graph
-            node._closed = True
+            node.graph.closed = True
 
         gone = _negotiate(pub, token, fake, close_begins)
         assert token.gid not in pub._peers
         assert token.gid not in gone
     finally:
-        node._closed = False
+        node.graph.closed = False
         node.close()
 
 
@@ -576,7 +576,7 @@ def test_depth_is_bounded_and_deep_subscriptions_stay_off_the_lane(domain, topic
                                         acceptable_buffer_backends="warp")
         assert deep._lane_reader is None  # iceoryx2 would preallocate ~8 KiB a slot
         assert deep._queue.maxlen == fast_lane.MAX_DEPTH + 1
-        if node._lane is not None:
+        if node.lane is not None:
             assert shallow._lane_reader is not None
 
 
@@ -635,7 +635,7 @@ def test_a_frozen_warp_subscriber_on_the_lane_pins_a_bounded_number_of_blocks(
     frozen = Child("sub", domain=domain, topic=topic, accept="warp", depth=depth)
     try:
         with Node("pin_pub", domain_id=domain, backends=backends) as node:
-            if node._lane is None:
+            if node.lane is None:
                 pytest.skip("no fast lane here: Zenoh carries it, whose buffers bound nothing")
             pub = node.create_publisher(TENSOR, topic)
             frozen.wait_ready()

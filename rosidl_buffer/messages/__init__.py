@@ -13,9 +13,17 @@ from ._cdr import (
     serialize_message,
     serialized_size,
 )
-from ._classes import Message, get_message_type, iter_buffers, release_buffers, seal_buffers
+from ._classes import (
+    Message,
+    get_message_type,
+    iter_buffers,
+    numpy_dtype,
+    release_buffers,
+    seal_buffers,
+)
 from ._schema import (
     INTERFACES_ENTRY_POINT_GROUP,
+    FieldKind,
     FieldSpec,
     get_schema,
     get_typestore,
@@ -28,15 +36,19 @@ __all__ = [
     "CDR_HEADER",
     "INTERFACES_ENTRY_POINT_GROUP",
     "BufferRoute",
+    "FieldKind",
     "FieldSpec",
     "Message",
+    "buffer_fields",
     "deserialize_message",
+    "fields_of",
     "get_message_type",
     "get_schema",
     "get_type_hash",
     "get_typestore",
     "iter_buffers",
     "normalize_type_name",
+    "numpy_dtype",
     "register_message_definitions",
     "release_buffers",
     "seal_buffers",
@@ -48,3 +60,15 @@ __all__ = [
 def get_type_hash(name: str) -> str:
     """The type's REP 2016 hash, ``RIHS01_<64 hex>``, as rmw_zenoh puts in its keys."""
     return get_typestore().hash_rihs01(normalize_type_name(name))
+
+
+def fields_of(msg_type: type[Message]) -> tuple[FieldSpec, ...]:
+    """The fields of a generated message class, in order."""
+    return msg_type._schema.fields
+
+
+def buffer_fields(msg_type: type[Message]) -> frozenset[str]:
+    """The names of ``msg_type``'s top-level unbounded ``uint8[]`` fields: held in a
+    :class:`~rosidl_buffer.Buffer`, the ones that travel in backend form. A type with any is
+    buffer-aware in rmw_zenoh's routing."""
+    return msg_type._buffer_fields

@@ -29,6 +29,7 @@ _NUMPY_DTYPES = {
 
 
 def numpy_dtype(primitive: str) -> np.dtype:
+    """The NumPy dtype of a primitive field type (``"uint8"``, ``"float32"``, ...)."""
     return np.dtype(_NUMPY_DTYPES[primitive])
 
 

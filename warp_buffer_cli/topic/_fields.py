@@ -20,11 +20,11 @@ def to_plain(value: Any, truncate: int) -> Any:
     """Messages become dicts (field order kept), buffers a summary, arrays lists (at most
     ``truncate`` items, then ``'...'``; 0: no limit)."""
     from rosidl_buffer import Buffer
-    from rosidl_buffer.messages import Message
+    from rosidl_buffer.messages import Message, fields_of
 
     if isinstance(value, Message):
         return {spec.name: to_plain(getattr(value, spec.name), truncate)
-                for spec in type(value)._schema.fields}
+                for spec in fields_of(type(value))}
     if isinstance(value, Buffer):
         head = value.to_numpy()[:BUFFER_PREVIEW] if len(value) else np.zeros(0, np.uint8)
         return {"backend": value.get_backend_type(), "size": len(value),
