@@ -17,6 +17,7 @@ import uuid
 import pytest
 
 from buffer_pubsub import fast_lane
+from tests._reliability_helpers import wait_until
 from tests.conftest import lane_files
 
 CHILD = pathlib.Path(__file__).with_name("_lane_child.py")
@@ -128,15 +129,6 @@ def test_idle_reader_sleeps_and_wakes_by_event() -> None:
         assert writer.finish() == 0 and reader.finish() == 0
 
 
-def _settles(predicate, timeout: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
-
-
 def _bound(name: str) -> bool:
     """Is the abstract socket of lane ``name``'s reader bound (by any process)?"""
     wanted = "@" + fast_lane.address(name)[1:].decode()
@@ -160,7 +152,7 @@ def test_sigkilled_writer_is_cleaned_and_reader_goes_on() -> None:
         assert len(lane_files(reader.process.pid)) == 1  # the writer's ring
         assert not _maps_files(reader.process.pid) and not _maps_files(writer.process.pid)
         writer.kill()  # SIGKILL: the kernel closes its end, the reader drops the ring
-        assert _settles(lambda: not lane_files(reader.process.pid))
+        assert wait_until(lambda: not lane_files(reader.process.pid))
         second = start("writer", name, "1", "0")  # the reader serves a new writer
         assert reader.line() == "msg m0"
         assert len(lane_files(reader.process.pid)) == 1

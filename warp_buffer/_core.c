@@ -46,23 +46,26 @@ PyObject *DescriptorError, *ExportBoundsError, *StaleBufferError, *ExportError;
 
 /* Raise cls (fallback until it is set) with a message formatted by C's printf (numbers only:
  * "%#llx" and friends, which PyUnicode_FromFormat lacks). */
-PyObject *raise_as(PyObject *cls, PyObject *fallback, const char *fmt, ...) {
+static PyObject *vraise(PyObject *cls, PyObject *fallback, const char *fmt, va_list args) {
     char text[512];
-    va_list args;
-    va_start(args, fmt);
     vsnprintf(text, sizeof text, fmt, args);
-    va_end(args);
     PyErr_SetString(cls ? cls : fallback, text);
     return NULL;
 }
 
-PyObject *descriptor_error(const char *fmt, ...) {
-    char text[512];
+PyObject *raise_as(PyObject *cls, PyObject *fallback, const char *fmt, ...) {
     va_list args;
     va_start(args, fmt);
-    vsnprintf(text, sizeof text, fmt, args);
+    vraise(cls, fallback, fmt, args);
     va_end(args);
-    PyErr_SetString(DescriptorError ? DescriptorError : PyExc_ValueError, text);
+    return NULL;
+}
+
+PyObject *descriptor_error(const char *fmt, ...) {
+    va_list args;
+    va_start(args, fmt);
+    vraise(DescriptorError, PyExc_ValueError, fmt, args);
+    va_end(args);
     return NULL;
 }
 
