@@ -475,9 +475,10 @@ static PyObject *reader_take_one(RingReader *self) {
         uint64_t stamp = __atomic_load_n(&slot->stamp, __ATOMIC_ACQUIRE);
         uint64_t expected = 2 * n + 2;
         if (stamp != expected) {
-            if (stamp == expected - 1)
-                return NULL;  /* being written: the tail ran ahead of it (never, but wait) */
-            self->next = n + 1;  /* overwritten since, or garbage: skip it */
+            /* Overwritten since, or garbage: skip it. (A frame still being written behind a
+             * tail that passed it is garbage too: a writer publishes the tail after the stamp,
+             * so only a broken one shows it, and waiting for it would spin the waker.) */
+            self->next = n + 1;
             self->lost++;
             continue;
         }

@@ -191,3 +191,26 @@ def test_malformed_hand_overs_are_refused_and_an_honest_writer_is_served() -> No
             honest.close()
     finally:
         reader.close()
+
+
+def test_a_frame_stuck_half_written_behind_the_tail_does_not_spin_the_waker() -> None:
+    """A broken writer that published its tail past a frame whose stamp still says "being
+    written" must not keep the ring pending (the waker would never sleep): the frame is
+    skipped as garbage and the next wait sleeps."""
+    import time
+
+    writer, reader, pen = _pair()
+    waker = _ring.Waker(None)
+    try:
+        waker.watch([(reader, lambda frame: None, "stuck")], [])
+        struct.pack_into("<Q", pen, 4096, 1)  # frame 0: stamp 2*0+1, "being written"
+        struct.pack_into("<Q", pen, TAIL, 1)  # ... and the tail past it
+        waker.wait(0)
+        assert not reader.pending and reader.lost == 1
+        started = time.monotonic()
+        waker.wait(0.2)  # nothing pending: it sleeps its timeout
+        assert time.monotonic() - started >= 0.15
+    finally:
+        waker.close()
+        pen.close()
+        writer.close()
