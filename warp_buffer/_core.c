@@ -13,6 +13,11 @@
  *   read-only through the buffer protocol and DLPack (the capsule's deleter drops its reference),
  *   and ends when it is released or collected, whichever comes first: its deallocation is one C
  *   function under the GIL (no Python lock, no finalizer that can run inside a critical section).
+ * - The lease (_core_lease.c): the publisher's side.
+ *
+ * What has no lock of its own (a session's hold counts, a lease's token count, an arena's peer
+ * slots) is changed only under the GIL, by C code that calls no Python meanwhile: the core is for
+ * CPython builds with a GIL.
  */
 #define PY_SSIZE_T_CLEAN
 #define _GNU_SOURCE
