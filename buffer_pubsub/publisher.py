@@ -131,6 +131,8 @@ class _Peer:
     # A subscription of ours that asked for at most max_rate_hz messages a second: served on
     # its own stream at that rate (None: every message). Used by the publishing thread alone.
     rate: RateLimit | None = field(init=False)
+    # It advertises only CPU and is on its own stream for its rate alone (see _update_remote).
+    cpu_only: bool = False
 
     def __post_init__(self) -> None:
         self.route_info = self.info
@@ -285,6 +287,8 @@ class Publisher:
             # none installed) always, a CPU-only one that asked for a rate to get it there.
             stream = wire.SubscriptionChannel.OWN
         peer = _Peer(token, info, stream)
+        peer.cpu_only = (stream == wire.SubscriptionChannel.OWN and self._aware
+                         and wire.subscription_channel(token) == wire.SubscriptionChannel.CPU)
         with self._lock:
             if self._closed or gid in self._peers:
                 return
@@ -356,7 +360,13 @@ class Publisher:
                                           and peer.token.is_ours and peer.served), False, True)
         else:
             own = tuple(peer for peer in peers if peer.individual)
-            self._remote = _Routing(own, len(own) < len(peers), False)
+            cpu = len(own) < len(peers)
+            if cpu:
+                # A rate-limited CPU-only subscription of ours also listens on _buf_cpu, which
+                # carries every message while another CPU-only one is matched: it takes (and
+                # thins) that stream, and its own is not written as well (twice its rate).
+                own = tuple(peer for peer in own if not peer.cpu_only)
+            self._remote = _Routing(own, cpu, False)
 
     def routes(self) -> list[RouteInfo]:
         """How each matched subscription is served now, with the reason (what ``warp-buffer
@@ -398,7 +408,9 @@ class Publisher:
                                         "takes the base key"))
             else:
                 routes.append(RouteInfo(gid, ROUTE_CPU, "shared CPU stream (_buf_cpu)",
-                                        "it accepts only CPU"))
+                                        "it accepts only CPU" + (
+                                            rate + ", thinning this stream itself" if rate
+                                            else "")))
         return routes
 
     def _why(self, peer: _Peer, served: bool) -> str:
