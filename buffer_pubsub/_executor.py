@@ -26,6 +26,29 @@ from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Protocol
 
 from ._waker import ThreadWaker, Waker
+
+#: Wake-ups that scheduling on this thread asked for while a publish is under way (see
+#: defer_wakeups): given when it ends, so the woken executor does not wait for the GIL that the
+#: rest of the publish holds.
+_deferred = threading.local()
+
+
+def defer_wakeups() -> bool:
+    """From now on this thread's :meth:`NodeExecutor.schedule` records the wake-ups it owes
+    instead of giving them; True when this call started the deferral (it must then call
+    :func:`give_wakeups`), False inside one already running (a publish from a callback's
+    publish)."""
+    if getattr(_deferred, "wakers", None) is not None:
+        return False
+    _deferred.wakers = []
+    return True
+
+
+def give_wakeups() -> None:
+    """End the deferral: wake every executor scheduled meanwhile, once each."""
+    pending, _deferred.wakers = _deferred.wakers, None
+    for waker in pending:
+        waker.notify()
 from .errors import InvalidTimeoutError
 
 if TYPE_CHECKING:
@@ -169,7 +192,11 @@ class NodeExecutor:
             target._schedule(item)
             return
         self._ready.append(item)
-        self.waker.notify()
+        pending = getattr(_deferred, "wakers", None)
+        if pending is None:
+            self.waker.notify()
+        elif self.waker not in pending:
+            pending.append(self.waker)
 
     def has_ready(self) -> bool:
         """Whether anything waits to run. A message that arrives on the waiting thread (a lane

@@ -47,6 +47,7 @@ from rosidl_buffer import Buffer, BufferImplBase, EndpointInfo
 from rosidl_buffer.messages import Message, deserialize_message, iter_buffers, serialize_message
 
 from . import _lane_routes, _process, fast_lane, wire
+from ._executor import defer_wakeups, give_wakeups
 from ._info import endpoint_gone, endpoint_info
 from ._rate import RateLimit
 from ._snapshot import snapshot
@@ -482,6 +483,7 @@ class Publisher:
                 f"publisher of {self.msg_type.__msgtype__} got {type(msg).__name__}")
         validate_message(msg)
         backends, nbytes, impls = seal_and_list_backends(msg, self._flat_buffers)  # write ends
+        deferring = defer_wakeups()  # in-process subscriptions are woken when publish() ends
         try:
             # perf: the flag and the peer tuple are read without the publisher's lock (each read
             # is atomic, and a destroy() racing this publish is no different from one that comes
@@ -506,6 +508,8 @@ class Publisher:
         finally:
             for impl in impls:  # after the sends: readers are on their way meanwhile
                 impl.end_publish()
+            if deferring:
+                give_wakeups()
 
     def _publish_remote(self, msg: Message, backends: frozenset[str], nbytes: int, stamp: int,
                         routing: _Routing) -> None:

@@ -99,7 +99,7 @@ def test_info_prints_only_its_report() -> None:
     lines = done.stdout.splitlines()
     assert lines[0] == "Buffer backends:" and "Warp devices:" in lines
     assert all(line == "Buffer backends:" or line == "Warp devices:" or line.startswith("  ")
-               or line.startswith("Same-host fast lane (iceoryx2): ")
+               or line.startswith("Same-host fast lane: ")
                for line in lines), done.stdout
     _no_warp_noise(done.stdout + done.stderr)
 

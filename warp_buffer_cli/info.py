@@ -27,7 +27,7 @@ def collect() -> dict[str, Any]:
 
 
 def _fast_lane() -> dict[str, Any]:
-    """Whether the same-host iceoryx2 lane runs here, and why not."""
+    """Whether the same-host lane (a ring per route, native) runs here, and why not."""
     from buffer_pubsub import fast_lane
 
     state = fast_lane.status()
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(f"  {device['name']:<8} IPC: {device['ipc']}")
     lane = report["fast_lane"]
-    print("Same-host fast lane (iceoryx2): " + (
-        f"available (files {lane['resource_prefix']}*)" if lane["available"]
+    print("Same-host fast lane: " + (
+        f"available (abstract sockets {lane['resource_prefix']}*)" if lane["available"]
         else f"off: {lane['reason']}"))
     return 0
