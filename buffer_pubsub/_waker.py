@@ -1,9 +1,9 @@
-"""The one object a node's executor waits on (contract with the iceoryx2 fast lane).
+"""The one object a node's executor waits on (the fast lane's ``LaneWaker`` is one).
 
 A waker has ``wait(timeout) -> None`` (return when notified or after ``timeout`` seconds, None =
 no limit) and ``notify() -> None`` (wake the waiter; callable from any thread, cheap when nobody
 waits). A notification given while nobody waits is kept until the next ``wait``. Another wake
-source (an iceoryx2 WaitSet, say) can stand in for :class:`ThreadWaker` so its events run on the
+source (the lane's ``LaneWaker``, say) can stand in for :class:`ThreadWaker` so its events run on the
 same executor thread, or in the user's own ``spin()``, without an extra thread hop.
 """
 

@@ -44,7 +44,7 @@ def resources() -> dict[str, int]:
     """This process's open fds, shared mappings (arenas, /dev/shm), /dev/shm files named for
     this process, and RSS in KiB."""
     with open("/proc/self/maps") as maps:
-        # (iceoryx2's lane segments are fixed per process, not per message: not counted)
+        # (the lane's rings are per route, not per message: not counted)
         mappings = sum(1 for line in maps if (f" {SHM_DIR}/" in line and "/warp_lane_" not in line)
                        or "/memfd:warp_buffer" in line)
     with open("/proc/self/status") as status:
@@ -94,7 +94,7 @@ def run_outrun(args: argparse.Namespace) -> int:
         pub = node.create_publisher(TENSOR, args.topic, depth=args.depth)
         _emit("READY")
         pub.wait_for_subscriptions(1, timeout=30)
-        # The first message sets the route up (the lane's iceoryx2 ports connect, or Zenoh's
+        # The first message sets the route up (the lane's ring connects, or Zenoh's
         # channel is declared): fds are counted from there, against the messages in flight.
         pub.publish(pubsub.make_frame(0, 0, 2048, "warp"))
         before = resources()

@@ -37,7 +37,7 @@ def test_frames_a_blocked_depth_1_subscriber_evicts_are_released_at_once(monkeyp
     """The subscriber's callback blocks on frame 0 while 40 more arrive: each arrival imports
     its frame and releases the one it evicts, so the publisher reuses a handful of blocks
     instead of pinning one per frame until the callback returns. (The Zenoh route: lane
-    frames wait in iceoryx2 until the executor thread is free, see the README.)"""
+    frames wait in the ring until the executor thread is free, see the README.)"""
     monkeypatch.setenv(fast_lane.ENV_SWITCH, "0")
     domain, topic = next(_domains), f"/holds/t_{uuid.uuid4().hex[:10]}"
     slow = Child("slow", module="tests._slow_child", domain=domain, topic=topic, depth=1)

@@ -141,7 +141,7 @@ def test_endpoints_created_while_the_node_closes_are_not_left_registered(domain,
 
 
 def test_a_node_whose_session_cannot_open_leaks_no_descriptor(tmp_path):
-    """The fast lane's waker (an eventfd and an iceoryx2 WaitSet) was made before the session
+    """The fast lane's waker (an eventfd) was made before the session
     and left open when it failed: a retry loop ran out of fds."""
     missing = str(tmp_path / "no-such-config.json5")
 

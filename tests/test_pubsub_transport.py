@@ -574,7 +574,7 @@ def test_depth_is_bounded_and_deep_subscriptions_stay_off_the_lane(domain, topic
         deep = node.create_subscription(TENSOR, topic, lambda m: None,
                                         depth=fast_lane.MAX_DEPTH + 1,
                                         acceptable_buffer_backends="warp")
-        assert deep._lane_reader is None  # iceoryx2 would preallocate ~8 KiB a slot
+        assert deep._lane_reader is None  # a ring preallocates every slot
         assert deep._queue.maxlen == fast_lane.MAX_DEPTH + 1
         if node.lane is not None:
             assert shallow._lane_reader is not None
@@ -623,7 +623,7 @@ def test_acceptable_backends_take_a_list_and_refuse_other_types(domain, topic, b
 def test_a_frozen_warp_subscriber_on_the_lane_pins_a_bounded_number_of_blocks(
         domain, topic, backends):
     """A SIGSTOPped keep-last subscriber on the lane can only ever import the frames its
-    iceoryx2 queue still holds (and a few in hand): the publisher's pool holds about that many
+    ring still holds (and a few in hand): the publisher's pool holds about that many
     blocks for it, not one per publish (1.5 GB after 1,500 MiB frames before)."""
     from tests._pubsub_helpers import warp_available
     from warp_buffer import pool_stats
