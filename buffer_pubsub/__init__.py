@@ -48,7 +48,8 @@ from .errors import (
     TransportError,
     WireFormatError,
 )
-from ._waker import ThreadWaker, Waker
+from ._waker import Waker
+from .fast_lane import LaneWaker as ThreadWaker  # every executor's waker (there is one kind)
 from .graph import EndpointKind, NodeInfo, TopicEndpointInfo
 from .loan import Loan
 from .node import Node

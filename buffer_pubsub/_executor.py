@@ -25,7 +25,7 @@ import time
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Protocol
 
-from ._waker import ThreadWaker, Waker
+from ._waker import Waker
 
 #: Wake-ups that scheduling on this thread asked for while a publish is under way (see
 #: defer_wakeups): given when it ends, so the woken executor does not wait for the GIL that the
@@ -73,7 +73,7 @@ class Runnable(Protocol):
 class Target(Protocol):
     """A user's executor as a node sees it (:class:`buffer_pubsub.executors.Executor`)."""
 
-    def _schedule(self, item: Runnable) -> None:
+    def schedule(self, item: Runnable) -> None:
         """Queue ``item``, ready to run on the executor's threads."""
 
 
@@ -166,9 +166,9 @@ class NodeExecutor:
     #: How often a wait for the callback gate checks whether the executor was stopped.
     GATE_POLL_S = 0.05
 
-    def __init__(self, waker: Waker | None, housekeeping: Callable[[], None],
+    def __init__(self, waker: Waker, housekeeping: Callable[[], None],
                  gate: threading.Lock | None = None) -> None:
-        self.waker: Waker = waker if waker is not None else ThreadWaker()
+        self.waker = waker
         self.in_flight = InFlight()
         # Held while a callback runs, when callbacks may also run on arrival threads (see
         # Subscription._enqueue): one callback of the node at a time.
@@ -189,7 +189,7 @@ class NodeExecutor:
         """Make ``item`` ready (the caller guarantees it is not ready already)."""
         target = self._target
         if target is not None:
-            target._schedule(item)
+            target.schedule(item)
             return
         self._ready.append(item)
         pending = getattr(_deferred, "wakers", None)
@@ -239,7 +239,7 @@ class NodeExecutor:
                 item = ready.popleft()
             except IndexError:
                 break
-            target._schedule(item)
+            target.schedule(item)
 
     def receive(self, until: threading.Event) -> None:
         """The loop of a delegating node that has no thread of its own (``executor="manual"``):
@@ -285,7 +285,7 @@ class NodeExecutor:
             try:
                 target = self._target
                 if target is not None:  # handed over while this item was taken
-                    target._schedule(item)
+                    target.schedule(item)
                     continue
                 ran += bool(item.run_one())  # a message that failed to decode ran nothing
             except Exception:

@@ -616,7 +616,7 @@ static int waker_init(Waker *self, PyObject *args, PyObject *kwds) {
     }
     self->efd = eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK);
     if (self->efd < 0) {
-        ring_oserror("no eventfd for the lane's waker");
+        ring_oserror("eventfd");
         return -1;
     }
     self->pfds = PyMem_Calloc(1, sizeof(struct pollfd));

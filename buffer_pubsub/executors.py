@@ -87,7 +87,7 @@ class Executor:
                 raise ExecutorModeError("this executor was shut down; create another")
             if node in self._nodes:
                 return False
-        node._join_executor(self)  # raises where the node cannot be added
+        node.enter_executor(self)  # raises where the node cannot be added
         node_executor: NodeExecutor = node.scheduler
         with self._lock:
             self._nodes.append(node)
@@ -103,10 +103,12 @@ class Executor:
             raise NodeClosedError(f"node {node.name!r} is closed")
         return True
 
-    def remove_node(self, node: Node) -> None:
+    def remove_node(self, node: Node, timeout_sec: float | None = None) -> None:
         """Hand ``node``'s callbacks back to the node (its own thread, or ``node.spin()``),
-        once the callbacks of it that run here ended (at most :data:`STOP_BUDGET_S`)."""
-        self._remove(node, time.monotonic() + STOP_BUDGET_S)
+        once the callbacks of it that run here ended (waiting up to ``timeout_sec`` seconds for
+        them; None: :data:`STOP_BUDGET_S`)."""
+        budget = STOP_BUDGET_S if timeout_sec is None else max(0.0, float(timeout_sec))
+        self._remove(node, time.monotonic() + budget)
 
     def _remove(self, node: Node, deadline: float) -> None:
         with self._lock:
@@ -131,7 +133,7 @@ class Executor:
             self._set_aside = [item for item in self._set_aside if item.node is not node]
         for item in mine:
             node_executor.schedule(item)
-        node._leave_executor(self)
+        node.leave_executor(self)
 
     def get_nodes(self) -> list[Node]:
         """The nodes whose callbacks this executor runs."""
@@ -139,7 +141,7 @@ class Executor:
             return list(self._nodes)
 
     # -- running callbacks ------------------------------------------------------------------------
-    def _schedule(self, item: Runnable) -> None:
+    def schedule(self, item: Runnable) -> None:
         """Called by a node's executor (any thread): ``item`` is ready."""
         with self._lock:
             if item.node.scheduler.target is self:

@@ -49,15 +49,12 @@ import threading
 import types
 import weakref
 from collections.abc import Callable, Hashable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from rosidl_buffer import Buffer, BufferImplBase
 from rosidl_buffer.messages import FieldKind, Message, buffer_fields, fields_of
 
 from .errors import LoanError
-
-if TYPE_CHECKING:
-    from .publisher import Publisher
 
 __all__ = ["DEFAULT_MAX_LOANS", "MAX_POOLS", "Loan", "LoanPool", "flat_buffer_fields",
            "loan_key"]
@@ -315,11 +312,13 @@ class Loan:
     reused while any subscriber still holds it (its snapshot holds the loan's ``Buffer``).
     """
 
-    __slots__ = ("_publisher", "_factory", "_max_loans", "_msg", "_slot")
+    __slots__ = ("_pool", "_publish", "_factory", "_max_loans", "_msg", "_slot")
 
-    def __init__(self, publisher: Publisher, factory: Callable[[], Message],
-                 max_loans: int | None = None) -> None:
-        self._publisher = publisher
+    def __init__(self, pool: LoanPool, publish: Callable[[Message], None],
+                 factory: Callable[[], Message], max_loans: int | None = None) -> None:
+        """Made by :meth:`Publisher.loan`: its pool, and its ``publish``."""
+        self._pool = pool
+        self._publish = publish
         self._factory = factory
         self._max_loans = max_loans
         self._msg: Message | None = None
@@ -328,7 +327,7 @@ class Loan:
     def __enter__(self) -> Message:
         if self._msg is not None:
             raise LoanError("a Loan is entered once; call publisher.loan(...) for the next one")
-        self._msg, self._slot = self._publisher._loans.take(self._factory, self._max_loans)
+        self._msg, self._slot = self._pool.take(self._factory, self._max_loans)
         return self._msg
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
@@ -336,7 +335,7 @@ class Loan:
         self._msg = self._slot = None
         try:
             if exc_type is None and msg is not None:
-                self._publisher.publish(msg)
+                self._publish(msg)
         finally:
             if slot is not None:
                 slot.loaned = False  # the loan ended (published or abandoned)

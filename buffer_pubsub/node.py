@@ -76,8 +76,9 @@ class Node:
     ``waker`` replaces the executor's wake-up source (see :mod:`buffer_pubsub._waker`).
     ``fast_lane``: carry descriptors to same-host subscriptions of other processes over the lane
     (:mod:`buffer_pubsub.fast_lane`); None follows env ``WARP_BUFFER_FAST_LANE`` (on by
-    default). The lane's waker is then the executor's (lane callbacks run on the executor
-    thread or in :meth:`spin`); a custom ``waker`` that is not a ``LaneWaker`` turns it off.
+    default). The executor's waker (a ``LaneWaker`` unless ``waker`` says otherwise) carries
+    the lane: its callbacks run on the executor thread or in :meth:`spin`; a custom ``waker``
+    that is not a ``LaneWaker`` turns the lane off.
     ``inline_callbacks`` (``executor="thread"`` only): a subscription whose callbacks proved
     short runs them on the thread its Zenoh sample arrived on when nothing waits before it,
     skipping the hand-off to the node's thread (:mod:`buffer_pubsub._inline`); False always
@@ -118,8 +119,8 @@ class Node:
         self.graph = Graph(self._lock)
         self._publishers: list[Publisher] = []
         self._subscriptions: list[Subscription] = []
-        self._own_lane = waker is None  # a LaneWaker the user gave stays the user's to close
-        waker, self.lane = _lane_waker(waker, fast_lane)
+        self._own_waker = waker is None  # a waker the user gave stays the user's to close
+        waker, self.lane = _executor_waker(waker, fast_lane)
         # executor="thread": a Zenoh sample may run its callback on its arrival thread (see
         # buffer_pubsub._inline); the gate keeps one callback of the node at a time.
         self._gate = threading.Lock() if executor == "thread" else None
@@ -136,7 +137,7 @@ class Node:
             config_obj = make_config(config, router)
             self.session = open_session(config_obj)  # typed errors, unreachable-router warnings
         except BaseException:
-            self._close_lane()  # its eventfd and WaitSet: a retry loop would run out of fds
+            self._close_waker()  # its eventfd: a retry loop would run out of fds
             raise
         self.max_message_size = _max_message_size(config_obj)
         try:
@@ -157,7 +158,7 @@ class Node:
         except BaseException:
             self.scheduler.stop()
             run_bounded(self.session.close, CLOSE_TIMEOUT_S, "closing the Zenoh session")
-            self._close_lane()
+            self._close_waker()
             raise
 
     # -- context manager -----------------------------------------------------------------------
@@ -201,10 +202,10 @@ class Node:
         def left() -> float:  # every step shares one budget; the last still gets a moment
             return max(0.2, deadline - time.monotonic())
 
-        def leave_executor() -> None:  # the user's executor runs no more of our callbacks
+        def hand_back() -> None:  # the user's executor runs no more of our callbacks
             owner = self._owner
             if owner is not None:
-                owner._remove(self, deadline)
+                owner.remove_node(self, timeout_sec=max(0.0, deadline - time.monotonic()))
 
         def undeclare() -> None:
             for endpoint in endpoints:
@@ -219,11 +220,11 @@ class Node:
         # A callback running now (on any thread: Ctrl-C closes the node while one runs) ends
         # before the endpoints are undeclared, so its publishes still go out.
         interrupted: KeyboardInterrupt | None = None
-        for step in (leave_executor,
+        for step in (hand_back,
                      lambda: self.scheduler.in_flight.wait_idle(left()),
                      lambda: run_bounded(undeclare, left(), f"undeclaring node {self.name}"),
                      lambda: self._join_executor_thread(left()),
-                     self._close_lane,
+                     self._close_waker,
                      lambda: run_bounded(self.session.close, left(),
                                          f"closing node {self.name}'s session")):
             try:
@@ -237,10 +238,10 @@ class Node:
         if self._thread is not None and threading.current_thread() is not self._thread:
             self._thread.join(timeout=timeout)
 
-    def _close_lane(self) -> None:
-        # After the executor stopped: the waker closes the readers detached from it.
-        if self.lane is not None and self._own_lane:
-            self.lane.close()
+    def _close_waker(self) -> None:
+        # After the executor stopped: a lane waker closes the readers detached from it.
+        if self._own_waker:
+            self.scheduler.waker.close()  # type: ignore[attr-defined]  # ours: a LaneWaker
 
     def _check_open(self) -> None:
         if self._closed:
@@ -297,8 +298,8 @@ class Node:
         """The executor this node was added to (None: the node runs its own callbacks)."""
         return self._owner
 
-    def _join_executor(self, executor: Executor) -> None:
-        """``executor`` takes this node (called by ``add_node``); refused while the node is
+    def enter_executor(self, executor: Executor) -> None:
+        """``executor`` takes this node (called by its ``add_node``, not by users); refused while the node is
         closed, in another executor, or spun by another thread (executor="manual")."""
         with self._lock:
             self._check_open()
@@ -310,8 +311,8 @@ class Node:
                                         "thread): stop that spin before adding it to an executor")
             self._owner = executor
 
-    def _leave_executor(self, executor: Executor) -> None:
-        """``executor`` gave the node's callbacks back (called by ``remove_node``)."""
+    def leave_executor(self, executor: Executor) -> None:
+        """``executor`` gave the node's callbacks back (called by its ``remove_node``)."""
         with self._lock:
             if self._owner is not executor:
                 return
@@ -600,19 +601,19 @@ def _subscription_advertisement(option: str | Sequence[str], accepted: list[str]
     return node._installed_metadata(backends) or None
 
 
-def _lane_waker(waker: Waker | None, option: bool | None
-                ) -> tuple[Waker | None, _fast_lane.LaneWaker | None]:
-    """The executor's waker and the lane waker it is (None: the lane is off for this node)."""
-    if isinstance(waker, _fast_lane.LaneWaker):
-        return waker, waker if _fast_lane.status(option).available else None
-    if waker is not None or not _fast_lane.status(option).available:
-        return waker, None
-    try:
-        lane = _fast_lane.LaneWaker()
-    except _fast_lane.LaneError as error:
-        _log.info("fast lane off for this node: %s", error)
-        return None, None
-    return lane, lane
+def _executor_waker(waker: Waker | None, option: bool | None
+                    ) -> tuple[Waker, _fast_lane.LaneWaker | None]:
+    """The executor's waker (the user's, or a new :class:`~.fast_lane.LaneWaker`: one kind of
+    waker whether the lane runs or not) and the lane it carries (None: the lane is off for this
+    node, or the user's waker is not a lane waker).
+
+    Raises:
+        LaneUnavailableError: no eventfd could be made (out of file descriptors)."""
+    if waker is None:
+        waker = _fast_lane.LaneWaker()
+    if isinstance(waker, _fast_lane.LaneWaker) and _fast_lane.status(option).available:
+        return waker, waker
+    return waker, None
 
 
 #: The deepest queue a publisher or subscription may ask for (rmw's depth is a size_t; a keep-last

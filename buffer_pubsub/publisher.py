@@ -466,7 +466,8 @@ class Publisher:
             raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
         if not callable(factory):
             raise LoanError(f"a loan needs a factory that makes a message, got {factory!r}")
-        return Loan(self, factory, None if max_loans is None else max(1, int(max_loans)))
+        return Loan(self._loans, self.publish, factory,
+                    None if max_loans is None else max(1, int(max_loans)))
 
     def loan_stats(self) -> dict[str, int]:
         """Pooled messages ``created``, loans ``reused``, ``unpooled`` loans, ``pooled`` now."""
