@@ -111,14 +111,16 @@ def test_default_message_of_every_type_is_byte_identical(type_name):
 
 
 @pytest.mark.parametrize("type_name", SAMPLED_TYPES)
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@settings(max_examples=60, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(data=st.data())
 def test_generated_messages_are_byte_identical(type_name, data):
     assert_identical_to_rosbags(data.draw(message_strategy(type_name)))
 
 
 @pytest.mark.parametrize("type_name", ALL_TYPES)
-@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@settings(max_examples=4, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(data=st.data())
 def test_generated_messages_of_every_type_are_byte_identical(type_name, data):
     assert_identical_to_rosbags(data.draw(message_strategy(type_name)))
