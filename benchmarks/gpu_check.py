@@ -611,7 +611,7 @@ def check_capabilities(ctx: Context) -> dict[str, Any]:
 
     from warp_buffer import pool
 
-    block = WarpBufferImpl.allocate(4096, ctx.device)._block
+    block = WarpBufferImpl.allocate(4096, ctx.device).block
     if caps.vmm and caps.ipc:  # VMM blocks where the device exports POSIX fds
         need(isinstance(block, pool.VmmBlock), f"VMM is supported but the pool made a "
              f"{type(block).__name__} ({pool._vmm_refused.get(ctx.device)})")

@@ -290,7 +290,7 @@ def copies(sizes: Sequence[int], quick: bool) -> list[dict[str, Any]]:
         with from_output_buffer(buffer) as out:
             to_buffer(np.arange(nbytes, dtype=np.uint64).astype(np.uint8), out)
         impl = buffer.get_impl()
-        src = impl._host
+        src = impl.host
 
         def numpy_copy() -> None:
             np.copyto(np.empty(nbytes, np.uint8), src)

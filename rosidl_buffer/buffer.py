@@ -8,6 +8,7 @@ the only way to hold another backend. Operations that need host memory raise
 
 from __future__ import annotations
 
+import operator
 import sys
 from collections.abc import Iterable, Iterator
 from typing import Any, Generic, TypeVar
@@ -18,7 +19,7 @@ import numpy.typing as npt
 from .buffer_impl import CPU_BACKEND, BufferImplBase, CpuBufferImpl, exact_array
 from .errors import CpuBackendRequiredError, InvalidBufferDataError
 
-__all__ = ["Buffer"]
+__all__ = ["Buffer", "impl_of", "set_impl"]
 
 T = TypeVar("T", bound=np.generic)
 _new_buffer = object.__new__
@@ -129,10 +130,12 @@ class Buffer(Generic[T]):
         return Buffer(self._impl.to_cpu())
 
     def tobytes(self) -> bytes:
-        return self._host_view().tobytes()
+        return self.host_view().tobytes()
 
-    def _host_view(self) -> np.ndarray:
-        """Contents in host memory: a view for CPU storage, a ``to_cpu`` copy otherwise."""
+    def host_view(self) -> np.ndarray:
+        """Contents in host memory, to read: a view for CPU storage (no copy), a ``to_cpu``
+        copy otherwise (any backend). What the CDR codec writes for a buffer sent as CPU bytes,
+        and what comparisons read."""
         if isinstance(self._impl, CpuBufferImpl):
             return self._impl.view()
         return self._impl.to_cpu().view()
@@ -143,11 +146,11 @@ class Buffer(Generic[T]):
                 return True
             if self.size() != other.size():
                 return False
-            return bool(np.array_equal(self._host_view(), other._host_view()))
+            return bool(np.array_equal(self.host_view(), other.host_view()))
         if isinstance(other, (list, tuple, np.ndarray, bytes, bytearray, memoryview)):
             theirs = np.frombuffer(other, np.uint8) if isinstance(
                 other, (bytes, bytearray, memoryview)) else np.asarray(other)
-            return theirs.ndim == 1 and bool(np.array_equal(self._host_view(), theirs))
+            return theirs.ndim == 1 and bool(np.array_equal(self.host_view(), theirs))
         return NotImplemented
 
     __hash__ = None  # type: ignore[assignment]  # mutable, like list
@@ -274,7 +277,7 @@ class Buffer(Generic[T]):
         if isinstance(values, (bytes, bytearray, memoryview)):
             values = np.frombuffer(values, dtype=np.uint8)
         elif isinstance(values, Buffer):
-            values = values._host_view()
+            values = values.host_view()
         elif not hasattr(values, "__len__"):
             values = list(values)
         array = _values(values, impl.dtype, 1)  # checked before the buffer grows
@@ -328,3 +331,13 @@ class Buffer(Generic[T]):
         # Pickling sends CPU bytes; a backend buffer is not picklable by reference.
         return (Buffer, (self.to_numpy(),))
 
+
+# The storage slot of a Buffer, as C-level callables (no Python frame, unlike get_impl(), which is
+# a method): for the message codec (rosidl_buffer.messages), which reads a buffer's impl once per
+# buffer field of every message it serializes and sets one per field it deserializes.
+#: ``impl_of(buffer)``: what ``buffer.get_impl()`` returns.
+impl_of = operator.attrgetter("_impl")
+#: ``set_impl(buffer, impl)``: the storage of ``buffer`` becomes ``impl``, unchecked (``impl``
+#: must be a BufferImplBase): for a Buffer made with ``Buffer.__new__(Buffer)``, without the
+#: checks of ``__init__``.
+set_impl = Buffer._impl.__set__  # type: ignore[attr-defined]

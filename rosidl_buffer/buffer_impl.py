@@ -29,7 +29,9 @@ def array_at(address: int, nbytes: int, owner: Any = None) -> np.ndarray:
     if nbytes <= 0 or not address:
         return np.zeros(0, dtype=np.uint8)
     raw = (_BYTES * nbytes).from_address(address)
-    raw._owner = owner  # type: ignore[attr-defined]
+    # This module's own attribute on the ctypes array it just made (never read: it only keeps
+    # ``owner`` alive), named for the package like warp_buffer's on objects it does not own.
+    raw._rosidl_buffer_owner = owner  # type: ignore[attr-defined]
     return np.frombuffer(raw, dtype=np.uint8)
 
 

@@ -284,7 +284,7 @@ def _cmd_holdall(argument: dict[str, Any]) -> None:
             for i in range(0, len(raw), size)]
 
     def intact() -> int:
-        return sum(frame_ok(impl._host, i) for i, impl in enumerate(held))
+        return sum(frame_ok(impl.host, i) for i, impl in enumerate(held))
 
     maps = sum(1 for line in open("/proc/self/maps") if "memfd:warp_buffer" in line)
     _report({"held": len(held), "intact": intact(), "fds_before": fds_before, "fds": fd_count(),

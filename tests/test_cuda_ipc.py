@@ -520,7 +520,7 @@ def test_vmm_block_published_and_imported_by_a_child_read_only() -> None:
 
     device = wp.get_device(DEVICE)
     buffer = warp_buffer.allocate_buffer(NBYTES, DEVICE)
-    assert buffer.get_impl()._block.cuda_kind == descriptor.KIND_CUDA_VMM
+    assert buffer.get_impl().block.cuda_kind == descriptor.KIND_CUDA_VMM
     with warp_buffer.from_output_buffer(buffer) as out:
         wp.copy(out.array, wp.array(pattern(), dtype=wp.uint8, device=DEVICE))
     exported = ipc.export_buffer(buffer, peer_device_uuids={device.uuid})

@@ -118,7 +118,7 @@ def _events(monkeypatch: pytest.MonkeyPatch, device: Any) -> tuple[FakeStream, c
 
 def _exported_impl(block: pool.CudaBlock, device: Any, size: int) -> WarpBufferImpl:
     impl = WarpBufferImpl(None, device, block=block, ptr=block.data_ptr, size=size)
-    impl._event = FakeEvent(device)  # the write was recorded
+    impl.write_event = FakeEvent(device)  # the write was recorded
     return impl
 
 

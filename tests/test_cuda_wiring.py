@@ -107,7 +107,7 @@ def test_an_imported_cuda_hold_drops_only_after_its_release_event(monkeypatch) -
 
 def _cuda_like_impl(block: Any, device: FakeDevice) -> WarpBufferImpl:
     impl = WarpBufferImpl(None, device, block=block, ptr=1, size=100)
-    impl._event = FakeEvent(device)  # the write was recorded
+    impl.write_event = FakeEvent(device)  # the write was recorded
     return impl
 
 
@@ -132,7 +132,7 @@ def test_export_falls_back_to_staging_when_cuda_ipc_cannot_export(monkeypatch) -
     described = ipc._export_local(impl, None, frozenset({device.uuid}), None)
     assert described.kind == desc.KIND_CUDA_STAGING
     assert described.device_uuid == desc.uuid_word(device.uuid)
-    assert len(staged) == 1 and impl._staging is staged[0]
+    assert len(staged) == 1 and impl.staging is staged[0]
     # Asked for CUDA IPC explicitly, the refusal is the caller's to see.
     with pytest.raises(ExportUnavailableError):
         ipc._export_local(_cuda_like_impl(block, device), desc.KIND_CUDA_IPC, frozenset(), None)
@@ -183,11 +183,11 @@ def _written(nbytes: int) -> Any:
 def test_a_cpu_clone_takes_no_pool_block_and_moves_into_the_arena_on_export() -> None:
     source = _written(10_000)
     clone = source.get_impl().clone()
-    assert clone._block is None and clone.is_exportable  # private memory, exportable
+    assert clone.block is None and clone.is_exportable  # private memory, exportable
     view = clone.array  # an array made before the move keeps reading the same bytes
     descriptor = ipc.export_buffer(clone)
-    assert descriptor.kind == desc.KIND_HOST and clone._block is not None
-    assert clone._block.shared and clone.array.ptr == clone._block.data_ptr
+    assert descriptor.kind == desc.KIND_HOST and clone.block is not None
+    assert clone.block.shared and clone.array.ptr == clone.block.data_ptr
     expected = (np.arange(10_000) % 251).astype(np.uint8)
     np.testing.assert_array_equal(view.numpy(), expected)
     imported = ipc.import_buffer(descriptor)

@@ -34,7 +34,7 @@ LIBRARY = ("rosidl_buffer", "warp_buffer", "warp_buffer_backend", "tensor_conver
 def _published_loan(nbytes: int = 4096):
     buffer = loan_buffer(nbytes, "cpu")
     impl = buffer.get_impl()
-    impl._host[:] = 7
+    impl.host[:] = 7
     buffer.seal()
     impl.end_publish()
     return buffer, impl
@@ -82,7 +82,7 @@ def test_an_export_is_the_published_lease_s_transition_and_seals_a_buffer_nobody
     state = buffer.get_impl().lease
     descriptor = ipc.export_buffer(buffer)
     assert state.state == lease.PUBLISHED
-    assert descriptor.generation == buffer.get_impl()._block.generation != 0
+    assert descriptor.generation == buffer.get_impl().block.generation != 0
     again = ipc.export_buffer(buffer)  # the same export: the same generation
     assert again.generation == descriptor.generation
 
@@ -119,22 +119,22 @@ def test_a_loan_s_own_cached_view_is_not_a_reader():
     owner = impl.owner_view()  # what a loan's cached writable views are built over
     assert impl.reclaim()  # the owner's view keeps the block leased, not its contents
     owner[:4] = 9  # re-armed: writable through it again
-    assert int(impl._host[0]) == 9
+    assert int(impl.host[0]) == 9
     del owner
 
 
 def test_a_token_keeps_the_block_from_the_pool_after_its_owner_is_gone():
     buffer, impl = _published_loan()
-    block = impl._block
+    block = impl.block
     view = impl.reader_host()
     del buffer, impl
     gc.collect()
     other = loan_buffer(4096, "cpu")
-    assert other.get_impl()._block is not block  # the reader still reads it
+    assert other.get_impl().block is not block  # the reader still reads it
     np.testing.assert_array_equal(view, np.full(4096, 7, np.uint8))
     del view, other
     gc.collect()
-    assert loan_buffer(4096, "cpu").get_impl()._block is block  # the token gone: back
+    assert loan_buffer(4096, "cpu").get_impl().block is block  # the token gone: back
 
 
 def test_cpu_storage_tracks_its_views_by_tokens_from_its_first_reclaim():
@@ -156,7 +156,7 @@ def test_release_drops_the_import_s_own_token_and_views_keep_theirs():
     buffer = allocate_buffer(4096, "cpu")
     with from_output_buffer(buffer) as out:
         out.host_array()[:] = 4
-    block = buffer.get_impl()._block
+    block = buffer.get_impl().block
     imported = ipc.import_buffer(ipc.export_buffer(buffer))
     handle = from_input_buffer(Buffer(imported))
     view = handle.host_array()
@@ -176,7 +176,7 @@ def test_a_hold_ends_at_once_inside_the_arena_s_critical_section():
     import) unlocks at once: its end is one native call under the GIL that takes no lock and
     defers nothing (the publisher saw the block held until the next import of this process)."""
     buffer = allocate_buffer(4096, "cpu")
-    block = buffer.get_impl()._block
+    block = buffer.get_impl().block
     other = ipc.export_buffer(allocate_buffer(4096, "cpu"))
     stop = threading.Event()
 

@@ -86,25 +86,25 @@ def test_warp_reclaim_rearms_a_published_buffer_and_unprotects_it():
     buffer = loan_buffer(5000, "cpu")
     impl = buffer.get_impl()
     assert isinstance(impl, LoanedBufferImpl)
-    impl._host[:] = 7
+    impl.host[:] = 7
     buffer.seal()
     assert impl.is_published and not impl.is_protected  # until every route has sent it
     impl.end_publish()
     assert impl.is_protected
-    assert int(impl._host[0]) == 7  # still readable
+    assert int(impl.host[0]) == 7  # still readable
     assert impl.reclaim()
     assert not impl.is_published and not impl.is_protected
-    impl._host[:] = 9  # writable again (a fault would kill the test process)
-    assert int(impl._host[-1]) == 9
+    impl.host[:] = 9  # writable again (a fault would kill the test process)
+    assert int(impl.host[-1]) == 9
 
 
 def test_a_loan_protects_its_own_window_onto_the_pages_it_uses():
     buffer = loan_buffer(9000, "cpu")  # a 16 KiB block whose bytes cover 3 pages
     impl = buffer.get_impl()
-    block = impl._block
-    assert block.shared and impl._ptr != block.data_ptr  # a mapping of its own
+    block = impl.block
+    assert block.shared and impl.data_ptr != block.data_ptr  # a mapping of its own
     assert impl._pages.nbytes == 3 * mmap.PAGESIZE < block.capacity
-    impl._host[:] = 4
+    impl.host[:] = 4
     buffer.seal()
     impl.end_publish()
     assert impl.is_protected
@@ -122,8 +122,8 @@ def test_without_a_window_the_block_is_protected_in_place(monkeypatch):
     monkeypatch.setattr(warp_loan.memory, "map_fd", no_mapping)
     buffer = loan_buffer(5000, "cpu")
     impl = buffer.get_impl()
-    block = impl._block
-    assert impl._ptr == block.data_ptr and impl._pages.nbytes == 2 * mmap.PAGESIZE
+    block = impl.block
+    assert impl.data_ptr == block.data_ptr and impl._pages.nbytes == 2 * mmap.PAGESIZE
     buffer.seal()
     impl.end_publish()
     assert impl.is_protected
@@ -139,7 +139,7 @@ def test_no_window_and_no_protection_when_turned_off(monkeypatch):
     monkeypatch.setenv("WARP_BUFFER_LOAN_PROTECT", "0")
     buffer = loan_buffer(5000, "cpu")
     impl = buffer.get_impl()
-    assert impl._ptr == impl._block.data_ptr and impl._pages is None
+    assert impl.data_ptr == impl.block.data_ptr and impl._pages is None
     buffer.seal()
     impl.end_publish()
     assert impl.is_published and not impl.is_protected

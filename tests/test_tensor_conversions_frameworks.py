@@ -222,7 +222,7 @@ for dtype, need in ((torch.complex128, 16), (torch.complex64, 8)):
         value = torch.arange(n, dtype=torch.float64).to(dtype) * (1 + 2j)
         raw = bytes(serialize_message(tt.to_tensor_msg(value)))
         received = deserialize_message(raw, "tensor_msgs/msg/ExperimentalTensor")
-        address = np.frombuffer(received.data._host_view(), np.uint8).ctypes.data
+        address = np.frombuffer(received.data.host_view(), np.uint8).ctypes.data
         misaligned += address % need != 0
         for clone in (True, False):
             out = tt.from_input_tensor_msg(received, clone=clone)
@@ -270,7 +270,7 @@ def test_torch_tensors_of_more_than_four_dimensions_round_trip(backend, dtype):
     alias = tt.from_input_tensor_msg(msg, clone=False)
     assert torch.equal(alias, value) and alias.shape == value.shape
     if backend == "cpu":  # zero-copy: the alias is the message's own bytes
-        assert alias.const_data_ptr() == msg.data._host_view().ctypes.data
+        assert alias.const_data_ptr() == msg.data.host_view().ctypes.data
     out = tt.allocate_tensor_msg(value.shape, dtype, backend=backend, device=device)
     view = tt.from_output_tensor_msg(out)
     view.copy_(value.permute(0, 1, 2, 3, 4))

@@ -275,12 +275,12 @@ def test_recycled_export_raises_stale(backend):
     publisher = _info(EndpointType.PUBLISHER)
     buffer = _written(3000)
     descriptor = backend.create_descriptor_with_endpoint(buffer.get_impl(), sub)
-    block = buffer.get_impl()._block
+    block = buffer.get_impl().block
     backend.from_descriptor_with_endpoint(descriptor, publisher)  # imported (acknowledged), dropped
     del buffer
     gc.collect()
     recycled = allocate_buffer(3000, "cpu")
-    assert recycled.get_impl()._block is block
+    assert recycled.get_impl().block is block
     with pytest.raises(StaleBufferError):
         backend.from_descriptor_with_endpoint(descriptor, publisher)
 
@@ -292,7 +292,7 @@ def test_an_imported_buffer_is_republished_from_a_local_copy(backend):
     imported = backend.from_descriptor_with_endpoint(
         backend.create_descriptor_with_endpoint(buffer.get_impl(), sub), publisher)
     again = backend.create_descriptor_with_endpoint(imported, sub)
-    assert again is not None and again.offset != buffer.get_impl()._block.offset
+    assert again is not None and again.offset != buffer.get_impl().block.offset
     relayed = backend.from_descriptor_with_endpoint(again, publisher)
     np.testing.assert_array_equal(relayed.to_cpu().view(), expected_pattern(2048, 4))
 

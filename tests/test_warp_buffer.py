@@ -292,7 +292,7 @@ def test_idle_memory_goes_back_without_an_explicit_trim(monkeypatch):
     buffer = allocate_buffer(1 << 20, "cpu")
     with from_output_buffer(buffer) as out:
         out.array.fill_(1)  # touch every page
-    block = buffer.get_impl()._block
+    block = buffer.get_impl().block
     touched = _arena_pages()
     del buffer, out
     gc.collect()
@@ -306,7 +306,7 @@ def test_idle_memory_goes_back_without_an_explicit_trim(monkeypatch):
 def test_idle_bytes_beyond_the_cap_are_freed_at_once(monkeypatch):
     monkeypatch.setenv("WARP_BUFFER_POOL_MAX_IDLE_BYTES", str(8192))
     buffers = [allocate_buffer(8192, "cpu") for _ in range(4)]
-    blocks = [b.get_impl()._block for b in buffers]
+    blocks = [b.get_impl().block for b in buffers]
     del buffers
     gc.collect()
     allocate_buffer(10, "cpu")  # any pool operation enforces the cap
@@ -316,7 +316,7 @@ def test_idle_bytes_beyond_the_cap_are_freed_at_once(monkeypatch):
 def test_disabled_ipc_uses_private_memory(monkeypatch):
     monkeypatch.setenv("WARP_BUFFER_DISABLE_IPC", "1")
     buffer = allocate_buffer(5000, "cpu")
-    assert not buffer.get_impl().is_exportable and not buffer.get_impl()._block.shared
+    assert not buffer.get_impl().is_exportable and not buffer.get_impl().block.shared
     with pytest.raises(warp_buffer.ExportUnavailableError):
         ipc.export_buffer(buffer)
     with from_output_buffer(allocate_buffer(8, "cpu")) as out:

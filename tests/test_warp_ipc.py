@@ -105,18 +105,18 @@ def test_import_in_process_reads_the_same_bytes_read_only_and_release_ends_acces
 
 def test_a_held_block_is_never_recycled_and_is_reused_once_released():
     buffer, desc = _published(5000)
-    block = buffer.get_impl()._block
+    block = buffer.get_impl().block
     imported = ipc.import_buffer(desc)  # a read lock on the block
     del buffer
     gc.collect()
     other = allocate_buffer(5000, "cpu")
-    assert other.get_impl()._block is not block
+    assert other.get_impl().block is not block
     np.testing.assert_array_equal(imported.to_cpu().view(), expected_pattern(5000, 7))
     imported.release()  # the hold goes now, not at garbage collection
     del other
     gc.collect()
     again = allocate_buffer(5000, "cpu")
-    assert again.get_impl()._block is block
+    assert again.get_impl().block is block
     with pytest.raises(StaleBufferError):  # the old descriptor names a recycled block
         ipc.import_buffer(desc)
 
@@ -125,18 +125,18 @@ def test_a_descriptor_on_its_way_pins_its_block_until_that_peer_imports_it_or_a_
     peer = ipc.peer_slot(b"peer-in-flight", os.getpid())
     try:
         first, d1 = _published(3000, peer=peer)
-        block = first.get_impl()._block
+        block = first.get_impl().block
         del first
         gc.collect()
         second = allocate_buffer(3000, "cpu")  # d1 not imported yet: its block is not reused
-        assert second.get_impl()._block is not block
+        assert second.get_impl().block is not block
         d2 = ipc.export_buffer(second)  # not for that peer: no accounting
         d3 = ipc.export_buffer(allocate_buffer(3000, "cpu"), peer=peer)
         ipc.import_buffer(d3).release()  # a later delivery imported: d1 was dropped (keep-last)
         del second, d2
         gc.collect()
         third = allocate_buffer(3000, "cpu")
-        assert third.get_impl()._block is block
+        assert third.get_impl().block is block
         with pytest.raises(StaleBufferError):
             ipc.import_buffer(d1)
     finally:
@@ -146,13 +146,13 @@ def test_a_descriptor_on_its_way_pins_its_block_until_that_peer_imports_it_or_a_
 def test_a_forgotten_peer_pins_nothing():
     peer = ipc.peer_slot(b"peer-gone", os.getpid())
     buffer, _desc = _published(3000, peer=peer)
-    block = buffer.get_impl()._block
+    block = buffer.get_impl().block
     del buffer
     gc.collect()
-    assert allocate_buffer(3000, "cpu").get_impl()._block is not block
+    assert allocate_buffer(3000, "cpu").get_impl().block is not block
     ipc.forget_peer(b"peer-gone")  # the transport reports the subscription's departure
     gc.collect()
-    assert allocate_buffer(3000, "cpu").get_impl()._block is block
+    assert allocate_buffer(3000, "cpu").get_impl().block is block
 
 
 def test_a_peer_whose_process_died_pins_nothing():
@@ -162,13 +162,13 @@ def test_a_peer_whose_process_died_pins_nothing():
     peer = ipc.peer_slot(b"peer-dead", dead)
     try:
         buffer, _desc = _published(3000, peer=peer)
-        block = buffer.get_impl()._block
+        block = buffer.get_impl().block
         del buffer
         gc.collect()
         time.sleep(0.15)  # liveness is checked at most every 100 ms
         first = allocate_buffer(3000, "cpu")  # finds the block pinned, forgets the dead peer
-        again = first if first.get_impl()._block is block else allocate_buffer(3000, "cpu")
-        assert again.get_impl()._block is block
+        again = first if first.get_impl().block is block else allocate_buffer(3000, "cpu")
+        assert again.get_impl().block is block
     finally:
         ipc.forget_peer(b"peer-dead")
 
@@ -205,7 +205,7 @@ def test_an_unknown_or_dead_session_is_stale():
 def test_second_process_reads_in_place_holds_the_block_and_is_sigkilled_without_leaking():
     nbytes = 1 << 20
     buffer, desc = _published(nbytes, seed=42)
-    block = buffer.get_impl()._block
+    block = buffer.get_impl().block
     arena = current_arena()
     with Child("import", {"descriptors": [descriptor.pack(desc).hex()]}) as child:
         result = child.result()
@@ -216,7 +216,7 @@ def test_second_process_reads_in_place_holds_the_block_and_is_sigkilled_without_
         gc.collect()
         for _ in range(3):  # the publisher tries to recycle: the held block is refused
             other = allocate_buffer(nbytes, "cpu")
-            assert other.get_impl()._block is not block
+            assert other.get_impl().block is not block
             with from_output_buffer(other) as out:
                 out.array.zero_()
         assert not block.try_reclaim()
@@ -231,7 +231,7 @@ def test_second_process_reads_in_place_holds_the_block_and_is_sigkilled_without_
 
 def test_sigterm_of_a_holding_subscriber_frees_its_holds():
     buffer, desc = _published(4096, seed=5)
-    block = buffer.get_impl()._block
+    block = buffer.get_impl().block
     with Child("import", {"descriptors": [descriptor.pack(desc).hex()]}) as child:
         assert child.result()["crc"] == checksum(expected_pattern(4096, 5))
         assert not block.try_reclaim()
@@ -355,7 +355,7 @@ def test_cuda_ipc_and_staging_exports_reach_another_process():  # pragma: no cov
     expected = checksum(expected_pattern(1 << 16, 8))
     kinds = [descriptor.KIND_CUDA_STAGING]
     if device.is_ipc_supported:
-        kinds.append(buffer.get_impl()._block.cuda_kind)  # VMM where supported, else legacy IPC
+        kinds.append(buffer.get_impl().block.cuda_kind)  # VMM where supported, else legacy IPC
     for kind in kinds:
         desc = ipc.export_buffer(buffer, kind)
         assert desc.kind == kind
@@ -515,7 +515,7 @@ def test_a_peer_that_never_imports_pins_at_most_its_window():
     or two in hand): older ones pin no block, and a late import of one is refused as stale."""
     slot = ipc.peer_slot(os.urandom(16), os.getpid(), window=3)
     published = [_published(4096, seed=50 + i, peer=slot) for i in range(8)]
-    reclaimable = [buffer.get_impl()._block.try_reclaim() for buffer, _ in published]
+    reclaimable = [buffer.get_impl().block.try_reclaim() for buffer, _ in published]
     assert reclaimable == [True] * 5 + [False] * 3  # the last 3 may still be imported
     with pytest.raises(StaleBufferError):
         ipc.import_buffer(published[0][1])  # its block was retired: never read as a new frame
@@ -527,10 +527,10 @@ def test_a_peer_that_never_imports_pins_at_most_its_window():
 def test_without_a_window_a_peer_pins_until_it_imports():
     slot = ipc.peer_slot(os.urandom(16), os.getpid())
     published = [_published(4096, seed=60 + i, peer=slot) for i in range(4)]
-    assert not any(buffer.get_impl()._block.try_reclaim() for buffer, _ in published)
+    assert not any(buffer.get_impl().block.try_reclaim() for buffer, _ in published)
     impl = ipc.import_buffer(published[-1][1])  # a later one imported: the earlier are dropped
     impl.release()
-    assert all(buffer.get_impl()._block.try_reclaim() for buffer, _ in published)
+    assert all(buffer.get_impl().block.try_reclaim() for buffer, _ in published)
 
 
 def _reap(pid: int, timeout: float = 10.0) -> int | None:
@@ -551,7 +551,7 @@ def test_a_forked_child_releasing_an_inherited_import_keeps_the_parents_hold():
     unlock it, or the publisher recycles a block the parent still reads."""
     buffer, desc = _published(4096, seed=70)
     impl = ipc.import_buffer(desc)
-    block = buffer.get_impl()._block
+    block = buffer.get_impl().block
     assert not block.try_reclaim()
     pid = os.fork()
     if pid == 0:  # pragma: no cover - the child
@@ -572,7 +572,7 @@ def test_a_forked_child_keeps_its_own_hold_on_an_inherited_import():
     buffer, desc = _published(4096, seed=74)
     impl = ipc.import_buffer(desc)
     view = impl.array.numpy()
-    block = buffer.get_impl()._block
+    block = buffer.get_impl().block
     parent_done, child_done = os.pipe(), os.pipe()
     pid = os.fork()
     if pid == 0:  # pragma: no cover - the child

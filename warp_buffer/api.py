@@ -150,7 +150,7 @@ class _Handle:
     @property
     def array(self) -> wp.array:
         """The buffer's bytes: a 1-D ``wp.array`` of uint8 on :attr:`device` (no copy)."""
-        return self._usable()._array
+        return self._usable().wp_array
 
     def view(self, dtype: Any, shape: int | Sequence[int] | None = None) -> wp.array:
         """The bytes reinterpreted as a ``wp.array`` of ``dtype`` and ``shape`` (no copy).
@@ -195,10 +195,10 @@ class _Handle:
         as such.
         """
         impl = self._usable()
-        host = impl._host
+        host = impl.host
         if host is None:
             return None
-        return array_at(impl._ptr or host.ctypes.data, host.size, self)
+        return array_at(impl.data_ptr or host.ctypes.data, host.size, self)
 
     @property
     def ptr(self) -> int:
@@ -266,7 +266,7 @@ class WriteHandle(_Handle):
         self._released = True  # a refused handle has nothing to release
         # The write's completion is recorded on the stream the user named, else on the current
         # streams when it ends (Warp's joined with torch's: cuda.write_stream).
-        self._state = impl._open_writer(explicit)
+        self._state = impl.open_writer(explicit)
         super().__init__(buffer, impl, stream, promoted)
 
     def _usable(self) -> WarpBufferImpl:
@@ -279,10 +279,10 @@ class WriteHandle(_Handle):
         return impl
 
     def _on_release(self) -> None:
-        self._impl._close_writer(self._state)
+        self._impl.close_writer(self._state)
 
     def _on_collect(self) -> None:
-        self._impl._lease.end_write_quietly(self._state)  # type: ignore[union-attr]
+        self._impl.lease.end_write_quietly(self._state)  # type: ignore[union-attr]
 
 
 class ReadHandle(_Handle):
@@ -307,25 +307,25 @@ class ReadHandle(_Handle):
         """The buffer's bytes: a 1-D ``wp.array`` of uint8 on :attr:`device` (no copy), which
         holds this handle's token."""
         impl = self._usable()
-        lease = impl._lease
+        lease = impl.lease
         if lease is None or not lease.rearmable:
-            return impl._array  # the import's own array holds its token; a plain buffer's,
+            return impl.wp_array  # the import's own array holds its token; a plain buffer's,
         array = self._arr  # its lease
         if array is None:
-            array = self._arr = wrap_bytes(impl._array.ptr, impl.size(), impl._device,
+            array = self._arr = wrap_bytes(impl.wp_array.ptr, impl.size(), impl.wp_device,
                                            self._token)
         return array
 
     def _on_release(self) -> None:
         impl = self._impl
-        if not impl._device.is_cpu:
-            impl._record_use(cuda.write_stream(impl._device, self._explicit))
+        if not impl.wp_device.is_cpu:
+            impl.record_use(cuda.write_stream(impl.wp_device, self._explicit))
 
     def _on_collect(self) -> None:
         impl = self._impl
-        if not impl._device.is_cpu:  # recorded without a lock (cuda.note_use)
-            cuda.note_use(impl._block if impl._block is not None else impl,
-                          cuda.write_stream(impl._device, self._explicit))
+        if not impl.wp_device.is_cpu:  # recorded without a lock (cuda.note_use)
+            cuda.note_use(impl.block if impl.block is not None else impl,
+                          cuda.write_stream(impl.wp_device, self._explicit))
 
 
 def _require_buffer(buffer: Any) -> Buffer:
@@ -354,7 +354,7 @@ def from_output_buffer(buffer: Buffer, stream: Any = None) -> WriteHandle:
         promoted = allocate_buffer(buffer.nbytes, device)
         buffer, impl = promoted, promoted.get_impl()
     explicit = stream
-    stream = _check_stream(impl._device, stream)
+    stream = _check_stream(impl.wp_device, stream)
     return WriteHandle(buffer, impl, stream, promoted, explicit)
 
 
@@ -376,12 +376,12 @@ def from_input_buffer(buffer: Buffer, stream: Any = None) -> ReadHandle:
         device = stream.device if stream is not None else None
         promoted = allocate_buffer(buffer.nbytes, device)
         new_impl = promoted.get_impl()
-        _copy_into(new_impl, _as_bytes(host), _check_stream(new_impl._device, stream))
+        _copy_into(new_impl, _as_bytes(host), _check_stream(new_impl.wp_device, stream))
         buffer, impl = promoted, new_impl
     explicit = stream
-    stream = _check_stream(impl._device, stream)
-    impl._mark_read()
-    impl._wait_for_writer(stream)
+    stream = _check_stream(impl.wp_device, stream)
+    impl.mark_read()
+    impl.wait_for_writer(stream)
     return ReadHandle(buffer, impl, stream, promoted, explicit)
 
 
@@ -391,7 +391,7 @@ def _as_bytes(src: Any) -> np.ndarray | wp.array:
     if isinstance(src, Buffer):
         impl = src.get_impl()
         if isinstance(impl, WarpBufferImpl):
-            return impl._array
+            return impl.wp_array
         return np.ascontiguousarray(impl.view() if isinstance(impl, CpuBufferImpl)
                                     else src.to_numpy()).view(np.uint8).reshape(-1)
     if isinstance(src, _Handle):
@@ -447,13 +447,13 @@ def _order_after_source(src: Any, stream: Any) -> None:
 
 def _copy_into(impl: WarpBufferImpl, src: np.ndarray | wp.array, stream: Any) -> Any:
     """Copy ``src`` into ``impl``; returns the CUDA stream the copy ran on (None: it is done)."""
-    dst = impl._array
+    dst = impl.wp_array
     nbytes = src.shape[0] if isinstance(src, np.ndarray) else src.shape[0]
     if nbytes != dst.shape[0]:
         raise SizeMismatchError(
             f"source has {nbytes} bytes, the destination buffer {dst.shape[0]}"
         )
-    if impl._host is not None:  # cpu: a plain host copy runs at memory speed
+    if impl.host is not None:  # cpu: a plain host copy runs at memory speed
         if isinstance(src, wp.array):
             if src.device.is_cpu:
                 src = src.numpy()
@@ -462,9 +462,9 @@ def _copy_into(impl: WarpBufferImpl, src: np.ndarray | wp.array, stream: Any) ->
                 wp.copy(dst, src, stream=copy_stream)
                 wp.synchronize_event(copy_stream.record_event())
                 return None
-        np.copyto(impl._host, src)
+        np.copyto(impl.host, src)
         return None
-    stream = cuda.write_stream(impl._device, stream)  # the stream the copy (the write) runs on
+    stream = cuda.write_stream(impl.wp_device, stream)  # the stream the copy (the write) runs on
     if isinstance(src, np.ndarray):
         src = wp.array(ptr=src.ctypes.data, dtype=wp.uint8, shape=(nbytes,), device="cpu",
                        deleter=_KeepAlive(src))  # type: ignore[arg-type]
@@ -474,7 +474,7 @@ def _copy_into(impl: WarpBufferImpl, src: np.ndarray | wp.array, stream: Any) ->
         kernels.copy_bytes(dst, src, stream)
     else:
         wp.copy(dst, src, stream=stream)
-    impl._complete_write(stream)
+    impl.complete_write(stream)
     return stream
 
 
@@ -492,11 +492,11 @@ def to_buffer(src: Any, write_handle: WriteHandle, stream: Any = None) -> None:
     impl = write_handle._usable()
     state = write_handle._state
     if stream is not None:
-        _check_stream(impl._device, stream)
+        _check_stream(impl.wp_device, stream)
     copied_on = _copy_into(impl, _as_bytes(src), stream if stream is not None else state.stream)
     if copied_on is not None:
         # The write ends with an event on the handle's stream: order it after this copy when
         # the copy ran elsewhere (an explicit stream), device-side.
-        writes = cuda.write_stream(impl._device, state.stream)
+        writes = cuda.write_stream(impl.wp_device, state.stream)
         if writes.cuda_stream != copied_on.cuda_stream:
             writes.wait_stream(copied_on)

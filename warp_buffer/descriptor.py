@@ -22,6 +22,9 @@ from rosidl_buffer.native import load_extension
 
 from .errors import DescriptorError, ExportBoundsError, ExportError, StaleBufferError
 
+#: The package's native core (the private extension module ``warp_buffer._core``), loaded here
+#: once with its error classes set: the package's modules (arena, attach, ipc, lease, loan)
+#: import it from here (``from .descriptor import _core``), never load it themselves.
 _core = load_extension("warp_buffer._core")
 _core.set_error_classes(DescriptorError, ExportBoundsError, StaleBufferError, ExportError)
 
@@ -63,27 +66,30 @@ FIELDS = ("version", "kind", "peer_slot", "owner_pid", "session", "offset", "cap
 #: CDR layout of the descriptor starting at an 8-byte boundary of the stream.
 LAYOUT = struct.Struct("<BBHIQQQQQQQ" + "Q" * 2 * HANDLE_WORDS)
 
-_type: Any = None
+#: The generated descriptor class once :func:`descriptor_type` looked it up, None before: the
+#: per-message paths of :mod:`warp_buffer.ipc` compare against it (and call
+#: :func:`descriptor_type` only while it is None) without a function call per message.
+loaded_type: Any = None
 
 
 def descriptor_type() -> type:
     """The generated descriptor class (looked up once, and given to the native core, which
     makes descriptors by writing their slots)."""
-    global _type
-    if _type is None:
+    global loaded_type
+    if loaded_type is None:
         cls = get_message_type(DESCRIPTOR_TYPE)
         if tuple(cls.__slots__) != FIELDS:  # pragma: no cover - the .msg and this disagree
             raise DescriptorError(f"{DESCRIPTOR_TYPE} fields {cls.__slots__} != {FIELDS}")
         _core.set_descriptor_type(cls, FIELDS)
-        _type = cls
-    return _type
+        loaded_type = cls
+    return loaded_type
 
 
 def make(values: tuple[int, ...]) -> Any:
     """A descriptor from its field values, all of :data:`FIELDS` in order (no per-field
     validation: the values come from this process's own bookkeeping, or from :data:`LAYOUT`).
     One C call that writes each slot, as its setter would (no validating ``__setattr__``)."""
-    if _type is None:
+    if loaded_type is None:
         descriptor_type()
     return _make(values)
 

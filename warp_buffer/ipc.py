@@ -50,6 +50,7 @@ from . import descriptor as _desc
 from . import handoff
 from .arena import NO_PEER, PeerSlot, current_arena, existing_arena
 from .buffer_impl import WarpBufferImpl, wrap_bytes
+from .descriptor import _core
 from .lease import PUBLISHED
 from .errors import (
     DescriptorError,
@@ -76,9 +77,9 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 _frombuffer, _UINT8 = np.frombuffer, np.dtype(np.uint8)
-_describe_native = _desc._core.describe
+_describe_native = _core.describe
 #: This process's pid without a system call (the core keeps it across forks)
-_this_pid = _desc._core.pid
+_this_pid = _core.pid
 _server_lock = threading.Lock()
 # Local copies made once per buffer (a clone moved into a block, an import's re-export copy, a
 # CUDA buffer's staging copy): made under this lock, so two exports never make two.
@@ -142,7 +143,7 @@ def export_buffer(buffer: Buffer | WarpBufferImpl, kind: int | None = None, *,
     exported.
     """
     impl = buffer.get_impl() if type(buffer) is Buffer else buffer
-    lease = getattr(impl, "_lease", None)
+    lease = getattr(impl, "lease", None)
     block = None if lease is None else lease.block
     if lease is None or block is not None and block.arena is not None \
             and block.arena.pid != _this_pid():
@@ -150,42 +151,42 @@ def export_buffer(buffer: Buffer | WarpBufferImpl, kind: int | None = None, *,
     else:
         if lease.state != PUBLISHED or lease.writer is not None:
             lease.seal()
-        if kind is None and block is not None and block.shared and impl._host is not None:
+        if kind is None and block is not None and block.shared and impl.host is not None:
             return _describe(_desc.KIND_HOST, impl, block, peer)  # (the common case, inline)
     return _export_local(impl, kind, peer_device_uuids, peer)
 
 
 def _local_copy(impl: WarpBufferImpl) -> WarpBufferImpl:
     """The local copy ``impl`` is re-exported from (made once, published)."""
-    impl._mark_published()
+    impl.mark_published()
     with _copy_lock:
-        if impl._reexport is None:
-            copy = impl._clone_pooled()  # exportable as it is (a plain clone may not be)
-            copy._mark_published()
-            impl._reexport = copy
-        return impl._reexport
+        if impl.reexport is None:
+            copy = impl.clone_pooled()  # exportable as it is (a plain clone may not be)
+            copy.mark_published()
+            impl.reexport = copy
+        return impl.reexport
 
 
 def _export_local(impl: WarpBufferImpl, kind: int | None, peer_uuids: frozenset[str] | set[str],
                   peer: PeerSlot | None) -> Any:
-    block = impl._block
-    if block is not None and impl._host is not None:  # cpu, a block of the arena (or private)
+    block = impl.block
+    if block is not None and impl.host is not None:  # cpu, a block of the arena (or private)
         if kind is not None and kind != _desc.KIND_HOST:
             raise ExportUnavailableError(f"a cpu buffer cannot be exported as kind {kind!r}")
         if not block.shared:
             raise ExportUnavailableError("this buffer lives in private memory (IPC is disabled, "
                                          "or the arena had no room)")
         return _describe(_desc.KIND_HOST, impl, block, peer)
-    device = impl._device
+    device = impl.wp_device
     if device.is_cpu:  # a private clone moves into the arena now (once)
         if kind not in (None, _desc.KIND_HOST):
             raise ExportUnavailableError(f"a cpu buffer cannot be exported as kind {kind!r}")
         with _copy_lock:
-            adopted = impl._adopt_block()
+            adopted = impl.adopt_block()
         if not adopted:
             raise ExportUnavailableError("this buffer lives in private memory (IPC is disabled, "
                                          "or the arena had no room)")
-        return _describe(_desc.KIND_HOST, impl, impl._block, peer)
+        return _describe(_desc.KIND_HOST, impl, impl.block, peer)
     device_word = _desc.uuid_word(device.uuid)
     if kind is None:
         if block.ipc_supported and device.uuid in peer_uuids:
@@ -203,23 +204,23 @@ def _export_local(impl: WarpBufferImpl, kind: int | None, peer_uuids: frozenset[
         return _describe_cuda(impl, block, peer, device_word)
     if kind != _desc.KIND_CUDA_STAGING:
         raise ExportUnavailableError(f"a CUDA buffer cannot be exported as kind {kind!r}")
-    staging = impl._staging
+    staging = impl.staging
     if staging is None:
         with _copy_lock:
-            staging = impl._staging
+            staging = impl.staging
             if staging is None:
-                staging = impl._staging = _stage(impl)
-    return _describe(kind, staging, staging._block, peer, device_word)
+                staging = impl.staging = _stage(impl)
+    return _describe(kind, staging, staging.block, peer, device_word)
 
 
 def _describe_cuda(impl: WarpBufferImpl, block: Any, peer: PeerSlot | None,
                    device_word: int) -> Any:
     """A same-GPU zero-copy descriptor (the block's kind: legacy CUDA IPC or VMM)."""
     if not block.ipc_supported:
-        raise ExportUnavailableError(f"{impl._device.alias} does not support CUDA IPC")
+        raise ExportUnavailableError(f"{impl.wp_device.alias} does not support CUDA IPC")
     mem_words = block.mem_words()  # ExportUnavailableError: memory it cannot export
-    if impl._event is None:
-        impl._complete_write(None)  # orders after whatever is pending on the current streams
+    if impl.write_event is None:
+        impl.complete_write(None)  # orders after whatever is pending on the current streams
     handles = mem_words + _desc.handle_words(block.ipc_event_handle())
     return _describe(block.cuda_kind, impl, block, peer, device_word, handles)
 
@@ -229,16 +230,16 @@ def _stage(impl: WarpBufferImpl) -> WarpBufferImpl:
     and wait for that copy only: the transport sends the descriptor synchronously after this, so
     the bytes must be there; nothing else on the device or stream is waited for."""
     staging = WarpBufferImpl.allocate(impl.size(), "cpu")
-    host_block = staging._block
+    host_block = staging.block
     if not host_block.shared:
         raise ExportUnavailableError("no arena room for a staging block")
     _pin(host_block)
-    stream = _cuda.write_stream(impl._device)
-    impl._wait_for_writer(stream)
-    done = _cuda.stage_to_host(impl._array, staging._array, stream)
-    impl._record_use(stream)  # the source block is not reused before the copy read it
+    stream = _cuda.write_stream(impl.wp_device)
+    impl.wait_for_writer(stream)
+    done = _cuda.stage_to_host(impl.wp_array, staging.wp_array, stream)
+    impl.record_use(stream)  # the source block is not reused before the copy read it
     wp.synchronize_event(done)
-    staging._mark_published()
+    staging.mark_published()
     return staging
 
 
@@ -274,10 +275,10 @@ def _describe(kind: int, impl: WarpBufferImpl, block: Any, peer: PeerSlot | None
                 raise ExportUnavailableError(f"cannot serve the arena to peers: {exc}") from None
     # The lease's export to the peer (its generation, the delivery it now waits for) and the
     # descriptor made of it: one C call.
-    if _desc._type is None:
+    if _desc.loaded_type is None:
         _desc.descriptor_type()
     try:
-        return _describe_native(impl._lease, peer, kind, impl._size, arena.pid, arena.session,
+        return _describe_native(impl.lease, peer, kind, impl.nbytes, arena.pid, arena.session,
                                 device_word, handles)
     except OSError as exc:
         raise ExportUnavailableError(f"cannot export this block: {exc}") from None
@@ -295,7 +296,7 @@ def import_buffer(descriptor: Any) -> WarpBufferImpl:
     unsealed arena), :class:`ExportBoundsError` (oversize), :class:`DescriptorError` (malformed)
     or :class:`ExportUnavailableError` (no such GPU here).
     """
-    if type(descriptor) is not (_desc._type or _desc.descriptor_type()):
+    if type(descriptor) is not (_desc.loaded_type or _desc.descriptor_type()):
         raise DescriptorError(f"expected a {_desc.DESCRIPTOR_TYPE}, got "
                               f"{type(descriptor).__name__}")
     values = _desc.fields_of(descriptor)
@@ -413,7 +414,7 @@ def _import_cuda(descriptor: Any, kind: int, capacity: int, size: int, device_wo
     keep = _CudaHold(impl, hold, base, event)
     WarpBufferImpl.__init__(impl, wrap_bytes(base.ptr, size, device, keep), device,
                             imported=descriptor, hold=keep)
-    impl._event = event
+    impl.write_event = event
     return impl
 
 

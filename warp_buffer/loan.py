@@ -88,46 +88,46 @@ class LoanedBufferImpl(WarpBufferImpl):
                  rearmable: bool = True) -> LoanedBufferImpl:
         impl = super().allocate(nbytes, device, rearmable=True)
         assert isinstance(impl, LoanedBufferImpl)
-        lease = impl._lease
+        lease = impl.lease
         impl.seal, impl.end_publish, impl.reclaim = (  # type: ignore[method-assign]
             lease.seal, lease.end_publish, lease.reclaim)  # type: ignore[union-attr]
-        if impl._host is None or not protection_enabled():
+        if impl.host is None or not protection_enabled():
             return impl
-        pages = _protected_pages(impl._block, nbytes)
+        pages = _protected_pages(impl.block, nbytes)
         if pages is not None:
             impl._pages = lease.fence = pages  # type: ignore[union-attr]
             if pages.window:  # the impl's storage is the window now: its arrays and every
-                impl._ptr = pages.addr  # view over them are protected with it
-                impl._host = array_at(pages.addr, nbytes)
+                impl.data_ptr = pages.addr  # view over them are protected with it
+                impl.host = array_at(pages.addr, nbytes)
         return impl
 
     def seal(self) -> None:
         """End the write (publish; CUDA: record the write's completion on the stream the loan's
         views write on). The pages turn read-only at :meth:`end_publish`."""
-        self._lease.seal()  # type: ignore[union-attr]
+        self.lease.seal()  # type: ignore[union-attr]
 
     def end_publish(self) -> None:
         """The message left on every route: make the pages read-only in this process now. The
         publisher's thread is still inside ``publish()``, so no write of its own comes between,
         and the ``mprotect`` (6-10 us after a sleep) runs while readers already wake."""
-        self._lease.end_publish()  # type: ignore[union-attr]
+        self.lease.end_publish()  # type: ignore[union-attr]
 
     def reclaim(self) -> bool:
         """Re-arm for the next loan if nobody can read the block (see the module docstring):
         writable again, one write handle allowed, not published. False while held."""
-        return self._lease.reclaim()  # type: ignore[union-attr]
+        return self.lease.reclaim()  # type: ignore[union-attr]
 
     @property
     def array(self) -> Any:
         """The storage as a 1-D uint8 ``wp.array`` that holds a reader's token (a new one per
         call): the loan is not re-armed while it, or a view of it, lives."""
-        owner = self._array
-        return wrap_bytes(owner.ptr, self._size, self._device, self._lease.hold())  # type: ignore[union-attr]
+        owner = self.wp_array
+        return wrap_bytes(owner.ptr, self.nbytes, self.wp_device, self.lease.hold())  # type: ignore[union-attr]
 
     def write_on(self, stream: Any) -> None:
         """CUDA: this loan's views write on ``stream`` (a ``wp.Stream``); publish records the
         write's completion there. A second stream is ordered after the first."""
-        lease = self._lease
+        lease = self.lease
         current = lease.write_stream  # type: ignore[union-attr]
         if current is not None and current is not stream:
             stream.wait_stream(current)

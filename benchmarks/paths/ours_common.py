@@ -232,7 +232,7 @@ class StampReader(TensorReceiver):
     def _on_message(self, msg: Any) -> None:
         if msg.data is not self._buffer:
             self._buffer = msg.data
-            self._head = memoryview(msg.data._host_view()[:STAMP_SIZE])
+            self._head = memoryview(msg.data.host_view()[:STAMP_SIZE])
         if self._deliver is not None:
             self._deliver(self._head)
         self._received += 1

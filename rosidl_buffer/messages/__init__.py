@@ -64,6 +64,7 @@ def get_type_hash(name: str) -> str:
 
 def fields_of(msg_type: type[Message]) -> tuple[FieldSpec, ...]:
     """The fields of a generated message class, in order."""
+    # underscored on purpose (a class attribute of every generated message): never a field name
     return msg_type._schema.fields
 
 
@@ -71,4 +72,5 @@ def buffer_fields(msg_type: type[Message]) -> frozenset[str]:
     """The names of ``msg_type``'s top-level unbounded ``uint8[]`` fields: held in a
     :class:`~rosidl_buffer.Buffer`, the ones that travel in backend form. A type with any is
     buffer-aware in rmw_zenoh's routing."""
+    # underscored on purpose (a class attribute of every generated message): never a field name
     return msg_type._buffer_fields

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from ..backend import MAX_BUFFER_DESCRIPTOR_SIZE, BufferBackend
-from ..buffer import Buffer
+from ..buffer import Buffer, impl_of, set_impl
 from ..buffer_impl import BufferImplBase, CpuBufferImpl, exact_array
 from ..endpoint import EndpointInfo
 from ..errors import (
@@ -148,7 +148,7 @@ def _name_bytes(name: Any, field: str) -> bytes:
 def _buffer_of(impl: BufferImplBase) -> Buffer:
     """A Buffer over ``impl`` (``Buffer._of``, without its call: once per received field)."""
     buffer = _new_buffer(Buffer)
-    buffer._impl = impl
+    set_impl(buffer, impl)
     return buffer
 
 
@@ -441,11 +441,11 @@ class _BufferField(_Field):
             value = Buffer(value)
         route = ctx.route
         if route is not None:
-            kind = type(value._impl)
+            kind = type(impl_of(value))
             cpu = _CPU_IMPLS.get(kind)
             route = None if (_judge_cpu(kind) if cpu is None else cpu) else route(value)
         if route is None:
-            host = value._host_view()
+            host = value.host_view()
             ctx.decisions.append((host, None, None))
             return _align(pos, 4) + 4 + host.nbytes
         backend_name, descriptor = route
@@ -585,7 +585,7 @@ class _BufferField(_Field):
                 f"field {self.name!r}: backend {backend_name!r} returned "
                 f"{type(impl).__name__}, not a BufferImplBase")
         buffer = _new_buffer(Buffer)  # (_buffer_of, inline: once per received descriptor)
-        buffer._impl = impl
+        set_impl(buffer, impl)
         return buffer, pos
 
 
