@@ -48,3 +48,49 @@ def test_package_imports_point_one_way(package: str) -> None:
     violations = {name: sorted(files) for name, files in imports.items()
                   if name in FORBIDDEN[package]}
     assert not violations, f"{package} imports what it must not: {violations}"
+
+
+#: Private names read on purpose outside their module: third-party internals we must reach,
+#: attributes this library sets on foreign objects for itself, and the generated message
+#: classes' class attributes (underscored so they never collide with a message's field names).
+PRIVATE_READS_ALLOWED = {"_src", "_C", "_set_throw_on_mutable_data_ptr", "_warp_buffer_keep",
+                         "_tensor_conversions_owner", "_rosidl_buffer_owner", "_schema",
+                         "_buffer_fields"}
+
+
+def private_reads_across_modules(package: str) -> list[str]:
+    """``x._name`` in ``package`` where ``x`` is not ``self``/``cls``, ``_name`` is not defined
+    or assigned in the same file, and ``x`` is not one of the package's private modules."""
+    found = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        local: set[str] = set()
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                local.add(node.name)
+            elif isinstance(node, ast.Name):
+                local.add(node.id)
+            elif isinstance(node, ast.alias):
+                local.add(node.asname or node.name.split(".")[-1])
+            elif isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) \
+                    and node.value.id in ("self", "cls"):
+                local.add(node.attr)
+            elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+                local.add(node.value)  # __slots__ entries
+        for node in ast.walk(tree):
+            if not (isinstance(node, ast.Attribute) and node.attr.startswith("_")
+                    and not node.attr.startswith("__")):
+                continue
+            owner = node.value
+            if isinstance(owner, ast.Name) and owner.id in ("self", "cls"):
+                continue
+            if node.attr in local or node.attr in PRIVATE_READS_ALLOWED:
+                continue
+            found.append(f"{path.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+@pytest.mark.parametrize("package", sorted(PROJECT_PACKAGES))
+def test_no_module_reads_another_modules_private_attributes(package: str) -> None:
+    """One owner per piece of state: what another module needs is its owner's public API."""
+    assert private_reads_across_modules(package) == []

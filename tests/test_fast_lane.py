@@ -609,3 +609,41 @@ def test_an_unknown_lane_switch_value_warns_once_and_leaves_the_lane_on(monkeypa
     assert caplog.text.count("neither on") == 1
     monkeypatch.setenv(fast_lane.ENV_SWITCH, "Off")
     assert not fast_lane.enabled()
+
+
+@pytest.mark.parametrize("lane", [True, False], ids=["lane-on", "lane-off"])
+def test_every_node_waits_on_one_kind_of_waker_and_closes_its_own(domain, lane) -> None:
+    """One waker: a node's executor waits on a LaneWaker whether the lane runs or not (there is
+    no second, queue-based waker), and closing the node releases that waker's eventfd."""
+    from buffer_pubsub import Node
+    with Node("one_waker", domain_id=domain, fast_lane=lane) as node:
+        waker = node.scheduler.waker
+        assert type(waker) is fast_lane.LaneWaker
+        assert waker.fd >= 0
+        assert (node.lane is waker) == (lane and fast_lane.enabled())
+    assert waker.fd == -1
+
+
+def test_a_users_own_waker_carries_no_lane_and_stays_open(domain) -> None:
+    """``Node(waker=...)`` with something that only waits and notifies: the node uses it, runs
+    no lane on it, and leaves it to its owner when it closes."""
+    from buffer_pubsub import Node
+
+    class Waker:
+        def __init__(self) -> None:
+            self.event, self.closed = threading.Event(), False
+
+        def wait(self, timeout: float | None) -> None:
+            self.event.wait(timeout)
+            self.event.clear()
+
+        def notify(self) -> None:
+            self.event.set()
+
+        def close(self) -> None:
+            self.closed = True
+
+    own = Waker()
+    with Node("own_waker", domain_id=domain, waker=own) as node:
+        assert node.scheduler.waker is own and node.lane is None
+    assert not own.closed
