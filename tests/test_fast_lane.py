@@ -137,9 +137,16 @@ def _bound(name: str) -> bool:
 
 
 def _maps_files(pid: int) -> set[str]:
-    """What process ``pid`` maps from /dev/shm or /tmp (named memory a crash could leave)."""
+    """The named files process ``pid`` maps shared from /dev/shm or /tmp (named memory a crash
+    could leave). Private mappings are not that: a checkout under /tmp maps its libraries."""
+    found = set()
     with open(f"/proc/{pid}/maps", encoding="ascii", errors="replace") as maps:
-        return {line.split()[-1] for line in maps if " /dev/shm/" in line or " /tmp/" in line}
+        for line in maps:
+            fields = line.split(maxsplit=5)
+            path = fields[5].strip() if len(fields) == 6 else ""
+            if "s" in fields[1] and path.startswith(("/dev/shm/", "/tmp/")):
+                found.add(path)
+    return found
 
 
 def test_sigkilled_writer_is_cleaned_and_reader_goes_on() -> None:
