@@ -627,7 +627,7 @@ def test_every_node_waits_on_one_kind_of_waker_and_closes_its_own(domain, lane) 
         waker = node.scheduler.waker
         assert type(waker) is fast_lane.LaneWaker
         assert waker.fd >= 0
-        assert (node.lane is waker) == (lane and fast_lane.enabled())
+        assert (node.lane is waker) == fast_lane.enabled(lane)
     assert waker.fd == -1
 
 

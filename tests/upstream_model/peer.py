@@ -52,7 +52,10 @@ def make_config(config_file: str | None = None, connect: list[str] | None = None
     else:
         config = zenoh.Config.from_json5(
             '{mode: "peer", listen: {endpoints: ["tcp/127.0.0.1:0"]},'
-            ' scouting: {multicast: {enabled: true, interface: "lo"}, gossip: {enabled: true}}}')
+            ' scouting: {multicast: {enabled: true, interface: "lo"}, gossip: {enabled: true}},'
+            # Zenoh's shared memory names files in /dev/shm that a killed test peer would leave;
+            # it is Zenoh's transport, below the rmw_zenoh protocol this package models.
+            ' transport: {shared_memory: {enabled: false}}}')
     if connect:
         config.insert_json5("connect/endpoints", _json_list(connect))
     if listen:
