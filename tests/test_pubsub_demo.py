@@ -36,6 +36,25 @@ def test_demo_passes_on_the_cpu_device():
         assert noise not in out + done.stderr
 
 
+def test_subscribers_already_on_the_topic_do_not_make_the_demo_start_early(topic):
+    """Two other subscriptions of the demo's topic (a recorder, ``topic echo``) were matched
+    before the demo's own: counting two, the publisher started before its subscribers listened
+    and they missed the first frames ("received 492/500, lost 0", demo: FAILED)."""
+    from buffer_pubsub import Node
+
+    domain = 250 + os.getpid() % 20
+    with Node("demo_onlooker", domain_id=domain) as onlooker:
+        for _ in range(2):
+            onlooker.create_subscription(demo.TENSOR, topic, lambda msg: None, depth=50)
+        done = subprocess.run(
+            [sys.executable, "-m", "warp_buffer_cli.main", "demo", "--frames", "30", "--height",
+             "16", "--width", "16", "--rate", "100", "--timeout", "40", "--device", "cpu",
+             "--domain", str(domain), "--topic", topic],
+            cwd=ROOT, capture_output=True, text=True, timeout=150)
+    assert done.returncode == 0, done.stdout + done.stderr[-3000:]
+    assert done.stdout.count("received 30/30") == 2, done.stdout
+
+
 def test_demo_fails_when_a_check_fails(monkeypatch, capsys):
     """The verdict is not hard-coded: a subscriber that sees wrong content makes it fail."""
     parser = argparse.ArgumentParser()

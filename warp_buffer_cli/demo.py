@@ -32,6 +32,8 @@ from ._arguments import number, topic_name
 
 TOPIC = "/warp_buffer_demo/frames"
 TENSOR = "tensor_msgs/msg/ExperimentalTensor"
+#: The node names of the demo's subscribers (the publisher waits for these two).
+DEMO_SUBSCRIBERS = frozenset({"demo_warp_subscriber", "demo_cpu_subscriber"})
 _CHILD = "from warp_buffer_cli.demo import child_main; child_main()"
 _PR_SET_PDEATHSIG = 1  # prctl(2)
 
@@ -116,7 +118,7 @@ def _publish(args: argparse.Namespace) -> int:
     _fill(wp.empty((1, 1), dtype=wp.float32, device=args.device), 0)
     with Node("demo_publisher", domain_id=args.domain) as node:
         pub = node.create_publisher(TENSOR, args.topic, depth=args.frames)
-        matched = pub.wait_for_subscriptions(2, timeout=args.timeout)
+        matched = _wait_for_demo_subscribers(node, pub, args.topic, args.timeout)
         _emit("READY")
         if not matched:
             _emit("RESULT", {"ok": False, "error": "subscribers not found"})
@@ -144,6 +146,22 @@ def _publish(args: argparse.Namespace) -> int:
     _emit("RESULT", {"ok": True, "published": args.frames,
                      "backend": msg.data.get_backend_type()})
     return 0
+
+
+def _wait_for_demo_subscribers(node: Any, pub: Any, topic: str, timeout: float) -> bool:
+    """Whether the demo's own two subscriptions matched within ``timeout``. Another subscriber of
+    the topic (a recorder, ``topic echo``) may match first: a count of two would then start the
+    frames before one of ours listens, and it would miss the first ones."""
+    deadline = time.monotonic() + timeout
+    while True:
+        served = {route.subscription_gid for route in pub.routes()}
+        names = {info.node_name for info in node.get_subscriptions_info_by_topic(topic)
+                 if info.endpoint_gid in served}
+        if DEMO_SUBSCRIBERS <= names:
+            return True
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
 
 
 def _release_output(msg: Any) -> None:
@@ -192,7 +210,7 @@ def record_frame(stats: dict[str, Any], msg: Any, info: Any,
 
 
 def _subscribe(args: argparse.Namespace, accept: str) -> int:
-    from buffer_pubsub import Node
+    from buffer_pubsub import Node, fast_lane
 
     # Import the conversion stack before matching: a first import inside the callback (torch
     # takes about a second) would delay every queued frame and skew the latency figures.
@@ -217,7 +235,9 @@ def _subscribe(args: argparse.Namespace, accept: str) -> int:
         record_frame(stats, msg, info, frame_is_right)
 
     with Node(f"demo_{accept}_subscriber", domain_id=args.domain) as node:
-        sub = node.create_subscription(TENSOR, args.topic, check, depth=args.frames,
+        # (a queue deeper than the same-host lane's keeps a subscription off it)
+        depth = min(args.frames, fast_lane.MAX_DEPTH)
+        sub = node.create_subscription(TENSOR, args.topic, check, depth=depth,
                                        acceptable_buffer_backends=accept, with_info=True)
         sub.wait_for_publishers(1, timeout=args.timeout)
         _emit("READY")
