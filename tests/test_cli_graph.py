@@ -147,7 +147,6 @@ def test_node_list_and_info(graph):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (("topic", "echo", "/no/such/topic"), "is not in the graph"),
     (("topic", "info", "/no/such/topic"), "is not in the graph"),
     (("node", "info", "/nobody"), "is not in the graph"),
     (("topic", "hz", "/x", "--window", "0"), "--window"),
@@ -157,3 +156,45 @@ def test_bad_input_is_one_line_and_a_non_zero_exit(graph, argv, message):
     done = cli(*argv, "--domain", str(domain), "--spin-time", "0.3")
     assert done.returncode == 1 and done.stdout == ""
     assert len(done.stderr.strip().splitlines()) == 1 and message in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("command", ["echo", "hz"])
+def test_echo_and_hz_wait_for_a_topic_that_is_not_published_yet(command):
+    """As ``ros2 topic echo / hz``: a monitor started before its publisher warns once on stderr
+    and waits (it failed at once with UnknownTopicError, so it could not watch a bag played
+    after it started), then reports the topic once it appears."""
+    import os
+    import time
+    import uuid
+
+    import numpy as np
+
+    from buffer_pubsub import Node
+
+    domain = 7900 + os.getpid() % 90
+    topic = f"/cli_graph/late_{uuid.uuid4().hex[:8]}"
+    argv = ["--once"] if command == "echo" else ["--count", "1", "--window", "2"]
+    monitor = subprocess.Popen(
+        [sys.executable, "-m", "warp_buffer_cli.main", "topic", command, topic, *argv,
+         "--domain", str(domain), "--spin-time", "0.2"],
+        cwd=ROOT, env=child_env(), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        warning = monitor.stderr.readline()
+        assert "does not appear to be published yet" in warning and topic in warning
+        assert monitor.poll() is None  # still waiting
+        with Node("late_talker", domain_id=domain) as node:
+            pub = node.create_publisher("std_msgs/msg/UInt8MultiArray", topic)
+            msg_type = pub.msg_type
+            deadline = time.monotonic() + 30
+            while monitor.poll() is None and time.monotonic() < deadline:
+                msg = msg_type(data=np.arange(4, dtype=np.uint8))
+                pub.publish(msg)
+                time.sleep(0.05)
+        out, err = monitor.communicate(timeout=30)
+    finally:
+        if monitor.poll() is None:
+            monitor.kill()
+            monitor.communicate()
+    assert monitor.returncode == 0, err
+    assert ("data:" in out) if command == "echo" else ("average rate" in out), out

@@ -11,6 +11,7 @@ import argparse
 import contextlib
 import json
 import os
+import sys
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -18,7 +19,7 @@ from typing import Any
 from rosidl_buffer.errors import RosidlBufferError
 
 __all__ = ["GraphCommandError", "UnknownTopicError", "add_graph_options", "graph_node",
-           "hidden", "resolve_topic", "routes_by_publisher"]
+           "hidden", "resolve_topic", "routes_by_publisher", "wait_for_topic"]
 
 #: How long a command watches the graph before it reports (peers answer in ~0.1-0.5 s here).
 DEFAULT_SPIN_TIME = 1.0
@@ -76,6 +77,24 @@ def resolve_topic(node: Any, topic: str) -> tuple[str, str]:
     if len(types) > 1:
         raise GraphCommandError(f"topic {name!r} has several types: {', '.join(types)}")
     return name, types[0]
+
+
+def wait_for_topic(node: Any, topic: str) -> tuple[str, str]:
+    """:func:`resolve_topic`, waiting for a topic nobody has yet (as ``ros2 topic echo / hz /
+    bw`` do: a monitor may start before its publisher), with one warning on stderr; Ctrl-C
+    ends the wait."""
+    warned = False
+    while True:
+        try:
+            return resolve_topic(node, topic)
+        except UnknownTopicError:
+            if not warned:
+                name = topic if topic.startswith("/") else "/" + topic
+                print(f"WARNING: topic [{name}] does not appear to be published yet; waiting "
+                      f"for it in domain {node.domain_id} (Ctrl-C to stop)", file=sys.stderr,
+                      flush=True)
+                warned = True
+            time.sleep(0.1)
 
 
 def routes_by_publisher(node: Any, timeout: float = 2.0) -> dict[str, list[dict[str, Any]]]:

@@ -95,16 +95,25 @@ class Recorder:
         return dict(self.node.get_topic_names_and_types())
 
     def wait_for_topics(self, topics: list[str], timeout: float,
-                        stop: threading.Event | None = None) -> dict[str, list[str]]:
+                        stop: threading.Event | None = None,
+                        waiting: Callable[[list[str]], None] | None = None
+                        ) -> dict[str, list[str]]:
         """The types of ``topics`` once each was discovered; :class:`UnknownTopicError` naming
-        those still unknown after ``timeout`` seconds; ``{}`` if ``stop`` is set first."""
-        deadline = time.monotonic() + timeout
+        those still unknown after ``timeout`` seconds; ``{}`` if ``stop`` is set first.
+        ``waiting(missing)`` is called once if some are still unknown after a second (and more
+        than a second is left)."""
+        start = time.monotonic()
+        deadline = start + timeout
         stop = stop or threading.Event()
         while True:
             found = self.graph_topics()
             missing = [t for t in topics if not found.get(t)]
             if not missing:
                 return {t: found[t] for t in topics}
+            now = time.monotonic()
+            if waiting is not None and now - start > 1.0 and deadline - now > 1.0:
+                waiting(missing)
+                waiting = None
             if stop.wait(0.05):
                 return {}
             if time.monotonic() >= deadline:
@@ -309,7 +318,11 @@ def _record(args: argparse.Namespace, stop: threading.Event) -> int:
                         backend=args.backend, max_cache_bytes=args.max_cache_size)
     try:
         if args.topics:
-            found = recorder.wait_for_topics(args.topics, args.discovery_timeout, stop)
+            found = recorder.wait_for_topics(
+                args.topics, args.discovery_timeout, stop,
+                lambda missing: print(f"{args.command_name}: waiting up to "
+                                      f"{args.discovery_timeout:g} s for {', '.join(missing)} "
+                                      "to be published", file=sys.stderr, flush=True))
             _check_types(found)  # all known before the bag is created
             for topic, types in found.items():
                 for type_name in types:

@@ -8,7 +8,7 @@ import collections
 import threading
 import time
 
-from .._graph import GraphCommandError, add_graph_options, graph_node, resolve_topic
+from .._graph import GraphCommandError, add_graph_options, graph_node, wait_for_topic
 
 __all__ = ["Window", "add_window_options", "measure"]
 
@@ -48,7 +48,7 @@ def measure(args: argparse.Namespace, report) -> int:
         raise GraphCommandError("--window must be >= 1 and --count >= 0")
     window = Window(args.window)
     with graph_node(args) as node:
-        topic, type_name = resolve_topic(node, args.topic_name)
+        topic, type_name = wait_for_topic(node, args.topic_name)
         node.create_subscription(type_name, topic, lambda data: window.add(len(data)),
                                  depth=100, raw=True)
         reports = 0

@@ -9,7 +9,7 @@ import argparse
 import queue
 import sys
 
-from .._graph import GraphCommandError, add_graph_options, graph_node, resolve_topic
+from .._graph import GraphCommandError, add_graph_options, graph_node, wait_for_topic
 from ._fields import csv_line, pick, to_plain, yaml_lines
 
 
@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     wanted = 1 if args.once else args.count
     inbox: queue.SimpleQueue = queue.SimpleQueue()
     with graph_node(args) as node:
-        topic, type_name = resolve_topic(node, args.topic_name)
+        topic, type_name = wait_for_topic(node, args.topic_name)
         node.create_subscription(
             type_name, topic, lambda msg: inbox.put(to_plain(msg, args.truncate_length)),
             depth=100, acceptable_buffer_backends=args.backend)
