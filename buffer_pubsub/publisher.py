@@ -394,7 +394,8 @@ class Publisher:
                 routes.append(RouteInfo(gid, ROUTE_CPU, "base key",
                                         "the type has no top-level uint8[]: classic rmw_zenoh"))
             elif id(peer) in own:
-                via = "same-host lane" if peer.lane is not None else "own stream (_buf/<gid>)"
+                via = ("same-host lane" if peer.lane is not None
+                       else "own stream (_buf/<gid>)" + self._no_lane(peer))
                 if peer.served:
                     why = "served by " + ", ".join(sorted(peer.served)) + self._why(peer, True)
                     routes.append(RouteInfo(gid, ROUTE_DESCRIPTOR, via, why + (
@@ -413,6 +414,23 @@ class Publisher:
                                             rate + ", thinning this stream itself" if rate
                                             else "")))
         return routes
+
+    def _no_lane(self, peer: _Peer) -> str:
+        """Why a served subscription of ours on this host and user takes Zenoh, not the lane."""
+        theirs, here = peer.token.locality, self.node.locality
+        if (not peer.served or theirs is None or theirs.host_id != here.host_id
+                or theirs.user_id != here.user_id):
+            return ""
+        if self.node.lane is None:
+            return ": the same-host lane is off in the publisher's process"
+        if self.history == wire.KEEP_ALL or peer.token.qos.keep_all:
+            return ": keep-all endpoints take Zenoh, whose congestion control blocks"
+        if peer.token.qos.depth > fast_lane.MAX_DEPTH:
+            return (f": its queue ({peer.token.qos.depth}) is deeper than the same-host lane's "
+                    f"{fast_lane.MAX_DEPTH} frames")
+        if not peer.ready:
+            return ": the same-host lane is being opened"
+        return ": the same-host lane could not be opened (the subscriber's lane is off?)"
 
     def _why(self, peer: _Peer, served: bool) -> str:
         """The backends' own reasons about ``peer``, where they give one (``peer_decision``)."""

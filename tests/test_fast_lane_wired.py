@@ -126,3 +126,23 @@ def test_a_slow_subscriber_on_the_lane_counts_its_backlog_as_dropped_not_lost(se
     assert "lane" in routes
     assert sub.counters.lost == 0 and sub.counters.dropped > 50
     assert sub.received + sub.counters.dropped == 300
+
+
+def test_topic_info_says_why_a_deep_subscription_takes_zenoh_and_not_the_lane(setting):
+    """A same-host subscription whose queue is deeper than the lane's ring takes its own Zenoh
+    stream; ``routes()`` (``topic info -v``) said only "own stream", and a user could not tell
+    why the lane was skipped."""
+    domain, topic, backends = setting
+    depth = fast_lane.MAX_DEPTH + 1
+    with Node("deep_sub_pub", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        sub = Child("sub", domain=domain, topic=topic, accept="fake", depth=depth)
+        try:
+            sub.wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            (route,) = pub.routes()
+        finally:
+            sub.close()
+    assert route.route == "descriptor", route
+    assert route.via.startswith("own stream (_buf/<gid>)")
+    assert f"({depth}) is deeper than the same-host lane's {fast_lane.MAX_DEPTH}" in route.via
