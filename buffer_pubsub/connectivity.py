@@ -10,6 +10,7 @@ endpoints), and a client that reaches no router within its connect timeout raise
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -21,7 +22,7 @@ import zenoh
 from .config import make_config, zenoh_error_text
 from .errors import ForkedAfterZenohError, TransportConfigError
 
-__all__ = ["WARN_AFTER_S", "open_session"]
+__all__ = ["WARN_AFTER_S", "open_session", "out_of_fds_hint"]
 
 _log = logging.getLogger("buffer_pubsub")
 
@@ -32,6 +33,12 @@ _LOCAL_HINT = "check the Zenoh configuration (listen and connect endpoints)"
 _FD_HINT = ("the process is out of file descriptors: raise `ulimit -n`, or share one Node "
             "between publishers and subscriptions instead of a Node each (each holds a Zenoh "
             "session)")
+
+
+def out_of_fds_hint(text: str) -> str | None:
+    """The remedy when ``text`` (an error's) says the process ran out of file descriptors (a
+    Zenoh session, a node's eventfd), else None."""
+    return _FD_HINT if os.strerror(errno.EMFILE) in text else None  # (ENFILE's says it too)
 
 
 def _get(config: zenoh.Config, key: str) -> object:
@@ -79,7 +86,7 @@ def open_session(config: zenoh.Config | str | os.PathLike[str] | None = None,
     except zenoh.ZError as exc:
         where = f"Zenoh router {', '.join(endpoints)}" if endpoints else "Zenoh"
         text = zenoh_error_text(exc)
-        hint = _FD_HINT if "Too many open files" in text else _HINT if endpoints else _LOCAL_HINT
+        hint = out_of_fds_hint(text) or (_HINT if endpoints else _LOCAL_HINT)
         raise TransportConfigError(f"cannot connect to {where}: {text} ({hint})") from exc
     finally:
         opened.set()

@@ -46,6 +46,7 @@ from typing import Any
 
 from rosidl_buffer.native import load_extension
 
+from .connectivity import out_of_fds_hint
 from .errors import PubSubError
 
 _ring = load_extension("buffer_pubsub._ring")
@@ -439,8 +440,9 @@ class LaneWaker(_ring.Waker):
         try:
             super().__init__(_callback_failed, max(0.0, float(busy_poll_s)))
         except (OSError, LaneError) as error:
-            raise LaneUnavailableError(f"no eventfd for the executor's waker ({error}){_fd_hint(error)}"
-                                       ) from None
+            hint = out_of_fds_hint(str(error))
+            raise LaneUnavailableError(f"no eventfd for the executor's waker ({error})"
+                                       + (f": {hint}" if hint else "")) from None
         self._lock = threading.Lock()
         self._pending: list[tuple[bool, _Attachment]] = []  # (attach?, attachment)
         self._attached: dict[int, _Attachment] = {}  # id(reader) -> attachment
@@ -552,13 +554,6 @@ class LaneWaker(_ring.Waker):
 
 
 _core_wait = _ring.Waker.wait
-
-
-def _fd_hint(error: BaseException) -> str:
-    """What to do when ``error`` is the process running out of file descriptors."""
-    if any(os.strerror(code) in str(error) for code in (errno.EMFILE, errno.ENFILE)):
-        return ": the process is out of file descriptors (raise its limit, ulimit -n)"
-    return ""
 
 
 def _callback_failed(reader: LaneReader, error: BaseException) -> None:

@@ -416,17 +416,18 @@ class Publisher:
         return routes
 
     def _no_lane(self, peer: _Peer) -> str:
-        """Why a served subscription of ours on this host and user takes Zenoh, not the lane."""
-        theirs, here = peer.token.locality, self.node.locality
-        if (not peer.served or theirs is None or theirs.host_id != here.host_id
-                or theirs.user_id != here.user_id):
+        """Why a subscription ``_lane_routes.serves`` picks for the lane (ours, on this host
+        and user, in another process, served by a backend) takes Zenoh instead ("" for others)."""
+        token = peer.token
+        if not _lane_routes.serves(self.node.locality, token, individual=peer.individual,
+                                   served=bool(peer.served)):
             return ""
         if self.node.lane is None:
             return ": the same-host lane is off in the publisher's process"
-        if self.history == wire.KEEP_ALL or peer.token.qos.keep_all:
+        if self.history == wire.KEEP_ALL or token.qos.keep_all:
             return ": keep-all endpoints take Zenoh, whose congestion control blocks"
-        if peer.token.qos.depth > fast_lane.MAX_DEPTH:
-            return (f": its queue ({peer.token.qos.depth}) is deeper than the same-host lane's "
+        if token.qos.depth > fast_lane.MAX_DEPTH:
+            return (f": its queue ({token.qos.depth}) is deeper than the same-host lane's "
                     f"{fast_lane.MAX_DEPTH} frames")
         if not peer.ready:
             return ": the same-host lane is being opened"
