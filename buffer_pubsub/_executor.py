@@ -26,6 +26,16 @@ from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Protocol
 
 from ._waker import Waker
+from .errors import InvalidTimeoutError
+
+if TYPE_CHECKING:
+    from .callback_groups import CallbackGroup
+    from .node import Node
+
+__all__ = ["InFlight", "NodeExecutor", "Runnable", "Target", "defer_wakeups", "give_wakeups",
+           "spinning_here", "user_spin", "wait_seconds"]
+
+_log = logging.getLogger(__name__)
 
 #: Wake-ups that scheduling on this thread asked for while a publish is under way (see
 #: defer_wakeups): given when it ends, so the woken executor does not wait for the GIL that the
@@ -49,16 +59,6 @@ def give_wakeups() -> None:
     pending, _deferred.wakers = _deferred.wakers, None
     for waker in pending:
         waker.notify()
-from .errors import InvalidTimeoutError
-
-if TYPE_CHECKING:
-    from .callback_groups import CallbackGroup
-    from .node import Node
-
-__all__ = ["InFlight", "NodeExecutor", "Runnable", "Target", "spinning_here", "user_spin",
-           "wait_seconds"]
-
-_log = logging.getLogger(__name__)
 
 
 class Runnable(Protocol):
