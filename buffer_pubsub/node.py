@@ -299,8 +299,9 @@ class Node:
         return self._owner
 
     def enter_executor(self, executor: Executor) -> None:
-        """``executor`` takes this node (called by its ``add_node``, not by users); refused while the node is
-        closed, in another executor, or spun by another thread (executor="manual")."""
+        """``executor`` takes this node (called by its ``add_node``, not by users); refused
+        while the node is closed, in another executor, or spun by another thread
+        (executor="manual")."""
         with self._lock:
             self._check_open()
             if self._owner is not None:

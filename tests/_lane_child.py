@@ -1,8 +1,8 @@
 """A fast-lane peer process for tests: ``python tests/_lane_child.py reader|writer NAME ...``.
 
 reader NAME DEPTH: attach a LaneReader to a LaneWaker, then ``wait(None)`` in a loop (woken only
-    by the ring's doorbell); prints ``ready``, then ``msg <text>`` per message; answers ``cpu?`` with
-    ``cpu <seconds of CPU this process used>``; exits on ``stop``.
+    by the ring's doorbell); prints ``ready``, then ``msg <text>`` per message; answers
+    ``cpu?`` with ``cpu <seconds of CPU this process used>``; exits on ``stop``.
 writer NAME COUNT INTERVAL_S: open the reader's service (retrying for 10 s), write ``m0`` ..
     ``m<COUNT-1>``, print ``done``, then write each stdin line as a message; exit on EOF.
 """
