@@ -360,8 +360,31 @@ def _check_setup(args: argparse.Namespace) -> str | None:
     return None
 
 
-def _terminated(signum: int, frame: Any) -> None:
-    raise SystemExit(128 + signum)
+class _Termination:
+    """The demo's SIGTERM and Ctrl-C handler: either ends the demo by an exception through the
+    ``finally`` that reaps the children (SystemExit(143) for SIGTERM, KeyboardInterrupt for
+    Ctrl-C); but while a child is being spawned it only notes the signal (an exception inside
+    ``Popen``, or before the child is recorded, would orphan it), and :meth:`deliver` raises it
+    once every spawned child is in hand."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self.deferred = True
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        self.signum = signum
+        if not self.deferred:
+            self._raise()
+
+    def deliver(self) -> None:
+        self.deferred = False
+        if self.signum is not None:
+            self._raise()
+
+    def _raise(self) -> None:
+        if self.signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise SystemExit(128 + (self.signum or signal.SIGTERM))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -380,11 +403,14 @@ def run(args: argparse.Namespace) -> int:
     print(f"warp-buffer demo: {args.frames} frames of {args.height}x{args.width} float32 on "
           f"Warp device {args.device!r}, domain {args.domain}, topic {args.topic}")
     children: dict[str, _Child] = {}
-    # SIGTERM ends the demo as Ctrl-C does: through the finally below, which reaps the children
-    previous = signal.signal(signal.SIGTERM, _terminated)
+    termination = _Termination()
+    previous = {signum: signal.signal(signum, termination)
+                for signum in (signal.SIGTERM, signal.SIGINT)}
     try:
         for role in ("warp", "cpu", "publisher"):
-            children[role] = _Child(role, args)
+            if termination.signum is None:
+                children[role] = _Child(role, args)
+        termination.deliver()
         publisher = children["publisher"]
         deadline = time.monotonic() + args.timeout + 30
         # Until both subscribers are done; a publisher that fails ends the demo at once.
@@ -397,11 +423,14 @@ def run(args: argparse.Namespace) -> int:
         failed_early = not (published and published.get("ok"))
         subs = {role: children[role].finish(1 if failed_early else 30) for role in ("warp", "cpu")}
     finally:
+        termination.deferred = True  # a second signal must not cut the reaping short
         for child in children.values():
             if child.proc.poll() is None:
                 child.proc.kill()
             child.proc.wait()
-        signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    termination.deliver()
     ok = bool(published and published.get("ok"))
     if ok:
         print(f"publisher: published {published['published']} frames "
