@@ -20,9 +20,11 @@ refuses is counted by reason in ``counters.refused``:
 Losses are judged per stream (see :mod:`._sequence`): a gap on Zenoh counts in ``lost``; a
 gap on the lane is the lane's keep-last queue overwriting what the executor had not taken yet,
 the subscription's own backlog, and counts in ``dropped`` with the overflow of its own keep-last
-queue. A message that cannot be deserialized (a typed ``RosidlBufferError``, e.g. a stale
-backend buffer, or any other exception a backend raises) counts in ``errors`` and the
-subscription goes on.
+queue; so does, for a keep-last subscription, a message whose backend memory its publisher
+reused before the import (``BufferOverwrittenError``: the reader fell more than its queue
+behind). Any other message that cannot be deserialized (a typed ``RosidlBufferError``, e.g. a
+backend buffer whose publisher is gone, or any other exception a backend raises) counts in
+``errors`` and the subscription goes on.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
-from rosidl_buffer import RosidlBufferError
+from rosidl_buffer import BufferOverwrittenError, RosidlBufferError
 from rosidl_buffer.messages import (
     Message,
     buffer_fields,
@@ -113,7 +115,8 @@ class SubscriptionCounters:
     lost: int = 0  # messages that never arrived: gaps in a stream's numbers on Zenoh
     errors: int = 0  # messages that failed to deserialize (on arrival for descriptor routes)
     # Overwritten in a keep-last queue before the callback ran: this subscription's own queue,
-    # or the lane's (which holds as many): the subscriber's backlog, not transport loss.
+    # or the lane's (which holds as many), or its payload reused by the publisher before the
+    # import: the subscriber's backlog, not transport loss.
     dropped: int = 0
     # Samples refused as malformed (see refused; a duplicate or late copy is no fault of input).
     rejected: int = 0
@@ -323,11 +326,22 @@ class Subscription:
                      arrived_on: str | None = None,
                      publisher: wire.EndpointToken | None = None) -> None:
         """Count a message that failed to deserialize (``arrived_on``: its route, when it failed
-        on arrival, before the queue saw its number: an error, not also a gap)."""
+        on arrival, before the queue saw its number: an error, not also a gap). One whose
+        backend memory its publisher reused, the reader having fallen more than its queue
+        behind, is what keep-last drops: counted in ``dropped``, not an error."""
+        overwritten = (isinstance(exc, BufferOverwrittenError)
+                       and self.history == wire.KEEP_LAST)
         with self._lock:
             if arrived_on is not None:
                 self._judge(attachment, arrived_on, _numbered_per_stream(arrived_on, publisher))
-            self.counters.errors += 1
+            if overwritten:
+                self.counters.dropped += 1
+            else:
+                self.counters.errors += 1
+        if overwritten:
+            _log.debug("%r: dropped a message from %s, overwritten before its import: %s",
+                       self, attachment.publisher_gid.hex(), exc)
+            return
         self.last_error = exc
         _log.warning("%r: dropped a message from %s: %s", self,
                      attachment.publisher_gid.hex(), exc,

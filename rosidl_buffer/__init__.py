@@ -10,6 +10,7 @@ from .endpoint import EndpointInfo, EndpointType, local_host_id, parse_acceptabl
 from .errors import (
     BackendError,
     BackendLoadError,
+    BufferOverwrittenError,
     CpuBackendRequiredError,
     DescriptorTooLargeError,
     DeserializationError,
@@ -24,6 +25,7 @@ __all__ = [
     "MAX_BUFFER_DESCRIPTOR_SIZE",
     "BackendError",
     "BackendLoadError",
+    "BufferOverwrittenError",
     "Buffer",
     "BufferBackend",
     "BufferImplBase",

@@ -19,6 +19,7 @@ __all__ = [
     "InvalidBufferDataError",
     "UnknownFieldError",
     "NativeExtensionMissingError",
+    "BufferOverwrittenError",
 ]
 
 
@@ -81,3 +82,10 @@ class UnknownFieldError(RosidlBufferError, AttributeError, TypeError):
 class NativeExtensionMissingError(RosidlBufferError, ImportError):
     """A native extension of the project (its per-message core, compiled from C at install) is
     not built or does not load; the message names it and the remedy. Also an ``ImportError``."""
+
+
+class BufferOverwrittenError(RosidlBufferError):
+    """The backend memory a descriptor names was reused for a later message before this reader
+    imported it: its publisher went more than the route's delivery queue (its keep-last depth
+    and the few descriptors a reader may hold in hand) ahead. What a keep-last queue drops, so a
+    transport counts it as dropped, not as an error."""

@@ -150,10 +150,39 @@ def _emit(line: str) -> None:
     sys.stdout.flush()
 
 
+def _stall_first_import(release_file: str) -> dict[str, str]:
+    """Make this process's first warp import wait, after its frame was taken off its route,
+    until ``release_file`` exists (printing ``TAKEN`` first): a reader descheduled between
+    taking a descriptor and importing it. Returns where the outcome of that import is noted."""
+    from warp_buffer_backend.backend import WarpBufferBackend
+
+    original = WarpBufferBackend.from_descriptor_with_endpoint
+    outcome: dict[str, str] = {}
+
+    def stalled(self, descriptor, endpoint_info):
+        if outcome:
+            return original(self, descriptor, endpoint_info)
+        outcome["import"] = "waiting"
+        _emit("TAKEN")
+        while not os.path.exists(release_file):
+            time.sleep(0.01)
+        try:
+            impl = original(self, descriptor, endpoint_info)
+        except Exception as exc:
+            outcome["import"] = type(exc).__name__
+            raise
+        outcome["import"] = "imported"
+        return impl
+
+    WarpBufferBackend.from_descriptor_with_endpoint = stalled
+    return outcome
+
+
 def run_sub(args: argparse.Namespace) -> int:
     from buffer_pubsub import Node
 
     records: list[dict[str, Any]] = []
+    stalled = _stall_first_import(args.stall_first_import) if args.stall_first_import else {}
     with Node(f"sub_{os.getpid()}", domain_id=args.domain) as node:
         def on_msg(msg, info) -> None:
             record = check_frame(msg, args.xor)
@@ -172,7 +201,7 @@ def run_sub(args: argparse.Namespace) -> int:
             time.sleep(0.01)
         time.sleep(0.1)  # a duplicate would land in this window
         counters = vars(sub.counters).copy()
-    _emit("RESULT " + json.dumps({"records": records, "counters": counters}))
+    _emit("RESULT " + json.dumps({"records": records, "counters": counters, **stalled}))
     return 0
 
 
@@ -239,6 +268,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stale-index", type=int, default=-1, help="pub: frame sent stale")
     parser.add_argument("--timeout", type=float, default=30.0)
     parser.add_argument("--max-rate", type=float, default=0.0, help="sub: its max_rate (Hz)")
+    parser.add_argument("--stall-first-import", default="",
+                        help="sub: the first warp import waits for this file (prints TAKEN)")
     args = parser.parse_args(argv)
     use_fake_backend()
     return {"sub": run_sub, "pub": run_pub, "relay": run_relay}[args.role](args)

@@ -9,7 +9,12 @@ from hypothesis import strategies as st
 
 from rosidl_buffer.messages import serialize_message
 from warp_buffer import _core, descriptor
-from warp_buffer.errors import DescriptorError, ExportBoundsError, StaleBufferError
+from warp_buffer.errors import (
+    DescriptorError,
+    ExportBoundsError,
+    RecycledBufferError,
+    StaleBufferError,
+)
 
 WIDTHS = (1, 1, 2, 4) + (8,) * 23
 values = st.tuples(*(st.integers(0, (1 << (8 * w)) - 1) for w in WIDTHS))
@@ -148,7 +153,8 @@ def test_an_import_holds_views_read_only_and_ends_with_its_last_reference() -> N
     ({"offset": DATA_OFFSET + DATA_BYTES}, ExportBoundsError, "start of"),
     ({"size": 0}, ExportBoundsError, "size"),
     ({"size": 8193}, ExportBoundsError, "size"),
-    ({"generation": (8 << 6) | 13}, StaleBufferError, "recycled"),
+    ({"generation": (6 << 6) | 13}, RecycledBufferError, "recycled"),  # the block moved on
+    ({"generation": (8 << 6) | 13}, StaleBufferError, "no export of generation"),  # never was
     ({"capacity": 4096, "size": 10}, ExportBoundsError, "not that of block"),
 ])
 def test_hostile_descriptors_are_typed_errors_that_hold_nothing(fields, error, words) -> None:

@@ -655,6 +655,51 @@ def test_a_frozen_warp_subscriber_on_the_lane_pins_a_bounded_number_of_blocks(
     assert pinned <= depth + IN_HAND + 8, f"{pinned} blocks pinned for a lane of depth {depth}"
 
 
+def test_a_lane_frame_recycled_before_its_import_counts_as_dropped(
+        domain, topic, backends, tmp_path):
+    """A keep-last reader descheduled between taking a frame off the lane and importing it,
+    while the publisher goes more than its window ahead, finds the block recycled: a
+    RecycledBufferError that the subscription counts in ``dropped`` (what its queue would have
+    dropped), not in ``errors``; the frames after it arrive intact."""
+    from tests._pubsub_helpers import warp_available
+    from warp_buffer_backend.backend import IN_HAND
+
+    if not warp_available():
+        pytest.skip("the warp backend is not available")
+    depth = 4
+    ahead = depth + IN_HAND + 40
+    release = tmp_path / "release"
+    reader = Child("sub", domain=domain, topic=topic, accept="warp", depth=depth,
+                   stall_first_import=release)
+    try:
+        with Node("recycle_pub", domain_id=domain, backends=backends) as node:
+            if node.lane is None:
+                pytest.skip("no fast lane here: Zenoh carries it, which bounds nothing")
+            pub = node.create_publisher(TENSOR, topic)
+            reader.wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            (peer,) = pub._remote.own
+            assert peer.lane is not None
+            pub.publish(make_frame(0, 0, 64 * 1024, "warp"))
+            reader._expect("TAKEN", 10)  # frame 0 is off the ring, its import waits
+            for index in range(1, ahead + 1):
+                pub.publish(make_frame(0, index, 64 * 1024, "warp"))
+            gc.collect()
+            release.touch()
+            time.sleep(0.3)
+            after = ahead + 1
+            pub.publish(make_frame(0, after, 64 * 1024, "warp"))
+            result = reader.stop(timeout=30)
+    finally:
+        reader.close()
+    assert result["import"] == "RecycledBufferError", result.get("import")
+    counters = result["counters"]
+    assert counters["errors"] == 0 and counters["dropped"] >= 1, counters
+    indexes = [r["index"] for r in result["records"]]
+    assert 0 not in indexes and after in indexes, indexes
+    assert all(r["ok"] and r["backend"] == "warp" for r in result["records"])
+
+
 def test_a_subscriber_behind_on_zenoh_loses_nothing_to_recycling(domain, topic, backends):
     """Over Zenoh nothing bounds what is in flight (its queues, the sockets): a subscriber
     that was stopped and resumes imports every descriptor still on its way, none recycled."""

@@ -15,6 +15,7 @@ import warp_buffer
 from rosidl_buffer import (
     MAX_BUFFER_DESCRIPTOR_SIZE,
     Buffer,
+    BufferOverwrittenError,
     CpuBufferImpl,
     EndpointInfo,
     EndpointType,
@@ -30,6 +31,7 @@ from warp_buffer import (
     ExportBoundsError,
     ExportUnavailableError,
     ForeignExportError,
+    RecycledBufferError,
     StaleBufferError,
     WarpBufferImpl,
     allocate_buffer,
@@ -281,8 +283,11 @@ def test_recycled_export_raises_stale(backend):
     gc.collect()
     recycled = allocate_buffer(3000, "cpu")
     assert recycled.get_impl().block is block
-    with pytest.raises(StaleBufferError):
+    with pytest.raises(StaleBufferError) as raised:
         backend.from_descriptor_with_endpoint(descriptor, publisher)
+    # the generic form a transport counts as dropped (keep-last), not as an error
+    assert isinstance(raised.value, RecycledBufferError)
+    assert isinstance(raised.value, BufferOverwrittenError)
 
 
 def test_an_imported_buffer_is_republished_from_a_local_copy(backend):

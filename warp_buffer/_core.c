@@ -47,7 +47,8 @@ static PyObject *core_pid(PyObject *module, PyObject *unused) {
 }
 
 /* warp_buffer.errors classes, set at import (set_error_classes) */
-PyObject *DescriptorError, *ExportBoundsError, *StaleBufferError, *ExportError;
+PyObject *DescriptorError, *ExportBoundsError, *StaleBufferError, *ExportError,
+    *RecycledBufferError;
 
 /* Raise cls (fallback until it is set) with a message formatted by C's printf (numbers only:
  * "%#llx" and friends, which PyUnicode_FromFormat lacks). */
@@ -200,20 +201,23 @@ static PyObject *core_unpack(PyObject *module, PyObject *const *args, Py_ssize_t
     return result;
 }
 
-/* set_error_classes(descriptor, bounds, stale, export): warp_buffer.errors' classes. */
+/* set_error_classes(descriptor, bounds, stale, export, recycled): warp_buffer.errors' classes. */
 static PyObject *set_error_classes(PyObject *module, PyObject *args) {
-    PyObject *classes[4];
-    if (!PyArg_ParseTuple(args, "OOOO", &classes[0], &classes[1], &classes[2], &classes[3]))
+    enum { N = 5 };
+    PyObject *classes[N];
+    if (!PyArg_ParseTuple(args, "OOOOO", &classes[0], &classes[1], &classes[2], &classes[3],
+                          &classes[4]))
         return NULL;
-    for (int i = 0; i < 4; i++) {
+    for (int i = 0; i < N; i++) {
         if (!PyType_Check(classes[i]) || !PyType_IsSubtype((PyTypeObject *)classes[i],
                                                            (PyTypeObject *)PyExc_Exception)) {
             PyErr_SetString(PyExc_TypeError, "exception classes");
             return NULL;
         }
     }
-    PyObject **slots[4] = {&DescriptorError, &ExportBoundsError, &StaleBufferError, &ExportError};
-    for (int i = 0; i < 4; i++) {
+    PyObject **slots[N] = {&DescriptorError, &ExportBoundsError, &StaleBufferError, &ExportError,
+                           &RecycledBufferError};
+    for (int i = 0; i < N; i++) {
         Py_INCREF(classes[i]);
         Py_XSETREF(*slots[i], classes[i]);
     }
@@ -245,7 +249,8 @@ static PyMethodDef core_methods[] = {
      "configure(write_state, complete_write, order_after_write, write_handle_error): the "
      "Python pieces the lease calls (warp_buffer.lease)."},
     {"set_error_classes", set_error_classes, METH_VARARGS,
-     "set_error_classes(descriptor, bounds, stale, export): warp_buffer.errors' classes."},
+     "set_error_classes(descriptor, bounds, stale, export, recycled): warp_buffer.errors' "
+     "classes."},
     {NULL}
 };
 

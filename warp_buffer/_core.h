@@ -84,7 +84,8 @@ enum { F_VERSION, F_KIND, F_SLOT, F_PID, F_SESSION, F_OFFSET, F_CAPACITY, F_SIZE
 
 #define DESC_FIELD_COUNT_USED 11  /* the import reads the fields up to device_uuid */
 
-extern PyObject *DescriptorError, *ExportBoundsError, *StaleBufferError, *ExportError;
+extern PyObject *DescriptorError, *ExportBoundsError, *StaleBufferError, *ExportError,
+    *RecycledBufferError;
 extern PyTypeObject SessionType, HoldType;
 
 /* Raise cls (fallback until set) with a message formatted by printf: numbers only. */

@@ -219,7 +219,7 @@ static int session_take(Session *s, uint64_t offset) {
                          (unsigned long long)offset, s->owner_pid, strerror(err));
                 return -1;
             }
-            raise_as(StaleBufferError, PyExc_RuntimeError,
+            raise_as(RecycledBufferError, PyExc_RuntimeError,
                      "block %#llx of process %u is being recycled", (unsigned long long)offset,
                      s->owner_pid);
             return -1;
@@ -359,9 +359,16 @@ static PyObject *session_import_block(Session *self, PyObject *values) {
     uint64_t generation = session_gens(self)[(offset - self->data_offset) / ARENA_MIN_BLOCK];
     if (generation != v[F_GENERATION]) {
         Py_DECREF(hold);
-        return raise_as(StaleBufferError, PyExc_RuntimeError, "block %#llx of process %u was "
-                        "recycled (a later publish reuses it)", (unsigned long long)offset,
-                        self->owner_pid);
+        /* Generations only grow: one the block has left behind (or a free block's 0) is a
+         * recycled export; any other names an export that never was (forged or corrupt). */
+        if (generation == 0 || generation >> ARENA_GENERATION_ORDER_BITS
+                               > v[F_GENERATION] >> ARENA_GENERATION_ORDER_BITS)
+            return raise_as(RecycledBufferError, PyExc_RuntimeError, "block %#llx of process %u "
+                            "was recycled (a later publish reuses it)",
+                            (unsigned long long)offset, self->owner_pid);
+        return raise_as(StaleBufferError, PyExc_RuntimeError, "block %#llx of process %u holds "
+                        "no export of generation %#llx", (unsigned long long)offset,
+                        self->owner_pid, (unsigned long long)v[F_GENERATION]);
     }
     uint64_t order = 63 - (uint64_t)__builtin_clzll(capacity);
     if ((generation & ((1u << ARENA_GENERATION_ORDER_BITS) - 1)) != order) {

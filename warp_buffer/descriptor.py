@@ -20,13 +20,20 @@ from typing import Any
 from rosidl_buffer.messages import get_message_type
 from rosidl_buffer.native import load_extension
 
-from .errors import DescriptorError, ExportBoundsError, ExportError, StaleBufferError
+from .errors import (
+    DescriptorError,
+    ExportBoundsError,
+    ExportError,
+    RecycledBufferError,
+    StaleBufferError,
+)
 
 #: The package's native core (the private extension module ``warp_buffer._core``), loaded here
 #: once with its error classes set: the package's modules (arena, attach, ipc, lease, loan)
 #: import it from here (``from .descriptor import _core``), never load it themselves.
 _core = load_extension("warp_buffer._core")
-_core.set_error_classes(DescriptorError, ExportBoundsError, StaleBufferError, ExportError)
+_core.set_error_classes(DescriptorError, ExportBoundsError, StaleBufferError, ExportError,
+                        RecycledBufferError)
 
 __all__ = [
     "DESCRIPTOR_TYPE",

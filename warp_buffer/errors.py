@@ -29,12 +29,15 @@ and keep running. Errors that also describe a standard condition inherit the mat
         │                           is not sealed against shrinking
         ├── ExportBoundsError       size or offset beyond the block (an oversize export)
         └── StaleBufferError        the data is gone: the block was recycled, or its publisher
-                                    exited before this process attached to its memory
+            │                       exited before this process attached to its memory
+            └── RecycledBufferError the block was recycled for a later publish (the reader
+                                    fell more than its queue behind); also a
+                                    rosidl_buffer BufferOverwrittenError
 """
 
 from __future__ import annotations
 
-from rosidl_buffer.errors import RosidlBufferError
+from rosidl_buffer.errors import BufferOverwrittenError, RosidlBufferError
 
 __all__ = [
     "WarpBufferError",
@@ -56,6 +59,7 @@ __all__ = [
     "ForeignExportError",
     "ExportBoundsError",
     "StaleBufferError",
+    "RecycledBufferError",
 ]
 
 
@@ -139,3 +143,10 @@ class StaleBufferError(ExportError):
     """The export no longer holds the published bytes: its block was recycled for a later publish
     (or is being recycled right now), or its publisher exited before this process attached to
     its memory."""
+
+
+class RecycledBufferError(StaleBufferError, BufferOverwrittenError):
+    """The export's block was recycled for a later publish (or is being recycled right now):
+    the publisher was more than this reader's delivery queue, and the descriptors a reader may
+    hold in hand, ahead when the import came. A keep-last reader's transport counts it as a
+    dropped message."""

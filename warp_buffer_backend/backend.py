@@ -49,7 +49,8 @@ __all__ = [
 _log = logging.getLogger(__name__)
 _WARP_TYPES: dict[type, bool] = {}  # impl type -> is it a WarpBufferImpl
 #: Descriptors a peer may hold beyond its delivery queue: taken off it, not yet imported (a
-#: reader descheduled in between loses the oldest of them if more than this are sent meanwhile).
+#: reader descheduled in between finds the oldest of them recycled if more than this are sent
+#: meanwhile: RecycledBufferError, which its keep-last subscription counts as dropped).
 IN_HAND = 16
 
 DESCRIPTOR_TYPE = _desc.DESCRIPTOR_TYPE
