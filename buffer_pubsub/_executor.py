@@ -103,6 +103,9 @@ def wait_seconds(timeout: float | None) -> float | None:
     does not wait; NaN and non-numbers are refused (InvalidTimeoutError)."""
     if timeout is None:
         return None
+    if isinstance(timeout, (str, bytes, bytearray)):  # float() would read "1": not a number
+        raise InvalidTimeoutError(
+            f"timeout must be a number of seconds or None, not {timeout!r}")
     try:
         seconds = float(timeout)
     except OverflowError:  # an int beyond any float (10**400): no limit, as inf

@@ -39,7 +39,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from ._executor import NodeExecutor, Runnable, user_spin, wait_seconds
-from .errors import ExecutorModeError, NodeClosedError
+from .errors import ExecutorModeError, InvalidEndpointError, NodeClosedError
 
 if TYPE_CHECKING:
     from .node import Node
@@ -81,7 +81,13 @@ class Executor:
 
         Raises :class:`ExecutorModeError` if the node is in another executor, spins itself
         (``node.spin()`` in another thread), or this executor was shut down;
-        :class:`NodeClosedError` if the node is closed."""
+        :class:`NodeClosedError` if the node is closed; :class:`InvalidEndpointError` for
+        anything but a :class:`~buffer_pubsub.Node`."""
+        from .node import Node
+
+        if not isinstance(node, Node):
+            raise InvalidEndpointError(f"add_node takes a buffer_pubsub Node, not "
+                                       f"{type(node).__name__} {node!r:.60}")
         with self._lock:
             if self._shutdown:
                 raise ExecutorModeError("this executor was shut down; create another")

@@ -18,10 +18,13 @@ from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
+from typing import Any
 
 from . import wire
+from ._executor import wait_seconds
+from .errors import InvalidEndpointError
 
-__all__ = ["EndpointKind", "Graph", "NodeInfo", "TopicEndpointInfo"]
+__all__ = ["EndpointKind", "Graph", "NodeInfo", "TopicEndpointInfo", "matching_wait"]
 
 _log = logging.getLogger(__name__)
 
@@ -32,6 +35,15 @@ class EndpointKind(enum.Enum):
     PUBLISHER = "PUBLISHER"
     SUBSCRIPTION = "SUBSCRIPTION"
 
+
+
+def matching_wait(count: Any, timeout: Any) -> tuple[int, float | None]:
+    """The arguments of a wait for matched endpoints, checked: ``count`` a whole number >= 0
+    (else :class:`InvalidEndpointError`), ``timeout`` in seconds as rclpy reads it (None,
+    negative or infinite: no limit; NaN or not a number: :class:`InvalidTimeoutError`)."""
+    if type(count) is bool or not isinstance(count, int) or count < 0:
+        raise InvalidEndpointError(f"count must be a whole number >= 0, not {count!r}")
+    return count, wait_seconds(timeout)
 
 @dataclass(frozen=True)
 class NodeInfo:
@@ -203,7 +215,9 @@ class Graph:
 
     def wait(self, kind: str, topic: str, type_name: str, type_hash: str, count: int,
              timeout: float | None) -> bool:
-        """Until :meth:`count` reaches ``count`` (False on timeout or close)."""
+        """Until :meth:`count` reaches ``count`` (False on timeout or close). ``timeout`` as
+        rclpy reads it (:func:`matching_wait`)."""
+        count, timeout = matching_wait(count, timeout)
         deadline = None if timeout is None else time.monotonic() + timeout
         with self.changed:
             while True:

@@ -54,7 +54,7 @@ from typing import Any
 from rosidl_buffer import Buffer, BufferImplBase
 from rosidl_buffer.messages import FieldKind, Message, buffer_fields, fields_of
 
-from .errors import LoanError
+from .errors import InvalidEndpointError, LoanError
 
 __all__ = ["DEFAULT_MAX_LOANS", "MAX_POOLS", "Loan", "LoanPool", "flat_buffer_fields",
            "loan_key"]
@@ -211,7 +211,11 @@ class _Pool:
 class LoanPool:
     """The pooled messages of one publisher, by factory key (see the module docstring)."""
 
-    def __init__(self, max_loans: int = DEFAULT_MAX_LOANS, max_pools: int = MAX_POOLS) -> None:
+    def __init__(self, max_loans: int = DEFAULT_MAX_LOANS, max_pools: int = MAX_POOLS,
+                 msg_type: type[Message] | None = None) -> None:
+        """``msg_type``: what the publisher publishes (a factory making anything else is
+        refused when the loan is taken, not when the block ends)."""
+        self.msg_type = msg_type
         self.max_loans = max_loans
         self.max_pools = max_pools
         self._lock = threading.Lock()
@@ -260,6 +264,11 @@ class LoanPool:
         if not isinstance(msg, Message):
             raise LoanError(f"the loan factory {factory!r} returned {type(msg).__name__}, "
                             "not a message")
+        msg_type = self.msg_type
+        if msg_type is not None and type(msg) is not msg_type and not isinstance(msg, msg_type):
+            raise InvalidEndpointError(
+                f"a publisher of {msg_type.__msgtype__} cannot loan a "
+                f"{type(msg).__msgtype__}: publish that type on a publisher of its own")
         places = None if full else _rearmable(msg)
         if places is not None:
             slot = _Slot(msg, places)

@@ -275,6 +275,7 @@ class Node:
         """This thread spins the node: refused on a node that spins itself, a closed one, one
         in an executor, or one another thread spins (its callbacks would overlap: they run one
         at a time)."""
+        self._check_open()
         if self._owner is not None:
             raise ExecutorModeError(
                 f"node {self.name!r} is in {self._owner!r}, which runs its callbacks; spin the "
@@ -283,7 +284,6 @@ class Node:
             raise ExecutorModeError(
                 f"node {self.name!r} runs callbacks on its own thread; create it with "
                 "executor='manual' to spin it")
-        self._check_open()
         if not self._spin_lock.acquire(blocking=False):
             raise ExecutorModeError(f"node {self.name!r} is already spinning (in another "
                                     "thread, or this callback's own spin)")
@@ -522,9 +522,10 @@ class Node:
                 # import. Reported whether or not a publisher of ours still matches it.
                 endpoint_gone(self.backends.values(), endpoint_info(token))
 
-    # -- the graph (rclpy's names) -------------------------------------------------------------
+    # -- the graph (rclpy's names; a closed node knows no graph: NodeClosedError) ----------------
     def get_topic_names_and_types(self) -> list[tuple[str, list[str]]]:
         """Topics seen in the graph (this domain) with their type names, like rclpy."""
+        self._check_open()
         topics: dict[str, set[str]] = {}
         for token in self.graph.endpoints():
             topics.setdefault(token.topic, set()).add(token.type_name)
@@ -537,10 +538,12 @@ class Node:
     def get_nodes(self) -> list[NodeInfo]:
         """Every node of the domain (name, namespace, enclave, Zenoh session), this one
         included."""
+        self._check_open()
         return sorted({node_info(t) for t in self.graph.nodes()},
                       key=lambda n: (n.namespace, n.name, n.zid))
 
     def _endpoints(self, kind: str, topic: str | None) -> list[TopicEndpointInfo]:
+        self._check_open()
         tokens = self.graph.endpoints(kind, topic)
         return [TopicEndpointInfo.from_token(t) for t in sorted(
             tokens, key=lambda t: (t.topic, t.namespace, t.node_name, t.gid))]

@@ -51,6 +51,7 @@ from ._executor import defer_wakeups, give_wakeups
 from ._info import endpoint_gone, endpoint_info
 from ._rate import RateLimit
 from ._snapshot import snapshot
+from .graph import matching_wait
 from .loan import Loan, LoanPool, flat_buffer_fields
 from ._validation import validate_message
 from ._zenoh import undeclare_quietly
@@ -245,7 +246,7 @@ class Publisher:
         self._out_lock = threading.Lock()
         self._undeclare_after_send = False  # see _undeclare
         self._flat_buffers = flat_buffer_fields(msg_type)
-        self._loans = LoanPool()
+        self._loans = LoanPool(msg_type=self.msg_type)
         # Peers in other processes and the streams that serve them, rebuilt on change.
         self._remote: _Routing = _NOBODY
         self._backends = tuple(node.backends.values())
@@ -455,7 +456,9 @@ class Publisher:
     def wait_for_subscriptions(self, count: int = 1, timeout: float | None = 10.0) -> bool:
         """Block until at least ``count`` subscriptions are matched and this publisher has
         settled the route to each (negotiated, same-host lane opened where one serves), so the
-        next publish() takes the route it keeps; False on timeout."""
+        next publish() takes the route it keeps; False on timeout. ``timeout`` as rclpy reads
+        it: None, negative or infinite waits without limit."""
+        count, timeout = matching_wait(count, timeout)
         deadline = None if timeout is None else time.monotonic() + timeout
         if not self.node.graph.wait(
                 wire.SUBSCRIPTION_KIND, self._token.topic, self._token.type_name,

@@ -234,7 +234,8 @@ class Subscription:
             wire.PUBLISHER_KIND, self._token.topic, self._token.type_name, self._token.type_hash)
 
     def wait_for_publishers(self, count: int = 1, timeout: float | None = 10.0) -> bool:
-        """Block until at least ``count`` publishers are matched; False on timeout."""
+        """Block until at least ``count`` publishers are matched; False on timeout.
+        ``timeout`` as rclpy reads it: None, negative or infinite waits without limit."""
         return self.node.graph.wait(
             wire.PUBLISHER_KIND, self._token.topic, self._token.type_name,
             self._token.type_hash, count, timeout)

@@ -355,6 +355,10 @@ def test_info_and_play_of_a_missing_or_damaged_bag_fail_in_one_line(tmp_path, do
     (damaged / "metadata.yaml").write_text("rosbag2_bagfile_information: [1, 2\n")
     _one_line_error(run_bag(domain, "info", str(damaged)), "BagReadError", str(damaged))
     _one_line_error(run_bag(domain, "play", str(damaged)), "BagReadError")
+    empty = tmp_path / "empty"  # a directory that exists is not said not to
+    empty.mkdir()
+    _one_line_error(run_bag(domain, "info", str(empty)), "BagReadError", "no metadata.yaml",
+                    "not a rosbag2 bag")
 
 
 def test_play_of_a_topic_the_bag_lacks_fails_in_one_line(recorded_bag, domain):

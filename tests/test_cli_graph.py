@@ -158,6 +158,16 @@ def test_bad_input_is_one_line_and_a_non_zero_exit(graph, argv, message):
     assert len(done.stderr.strip().splitlines()) == 1 and message in done.stderr, done.stderr
 
 
+@pytest.mark.parametrize("command", ["echo", "hz", "bw", "info"])
+@pytest.mark.parametrize("name", ["bad name", "/a//b", "/1x"])
+def test_a_topic_name_ros_2_refuses_is_a_usage_error_not_a_wait(command, name):
+    """An invalid topic name exits 2 at once, naming the rule (echo, hz and bw waited for it
+    forever, since nobody can publish it; info called it unknown)."""
+    done = cli("topic", command, name, "--domain", "7999", timeout=30)
+    assert done.returncode == 2 and done.stdout == "", (done.returncode, done.stderr)
+    assert "invalid topic name" in done.stderr and "Traceback" not in done.stderr
+
+
 @pytest.mark.parametrize("command", ["echo", "hz"])
 def test_echo_and_hz_wait_for_a_topic_that_is_not_published_yet(command):
     """As ``ros2 topic echo / hz``: a monitor started before its publisher warns once on stderr
@@ -198,3 +208,16 @@ def test_echo_and_hz_wait_for_a_topic_that_is_not_published_yet(command):
             monitor.communicate()
     assert monitor.returncode == 0, err
     assert ("data:" in out) if command == "echo" else ("average rate" in out), out
+
+
+def test_a_buffer_preview_honours_a_shorter_truncate_length():
+    import numpy as np
+
+    from rosidl_buffer import Buffer
+    from warp_buffer_cli.topic._fields import BUFFER_PREVIEW, to_plain
+
+    buffer = Buffer(np.arange(40, dtype=np.uint8))
+    assert to_plain(buffer, 4)["first_bytes"] == [0, 1, 2, 3]
+    assert to_plain(buffer, 0)["first_bytes"] == list(range(BUFFER_PREVIEW))
+    assert to_plain(buffer, 128) == {"backend": "cpu", "size": 40,
+                                     "first_bytes": list(range(BUFFER_PREVIEW))}

@@ -14,7 +14,7 @@ import time
 
 import pytest
 
-from buffer_pubsub import ExecutorModeError, Node, NodeClosedError
+from buffer_pubsub import ExecutorModeError, InvalidEndpointError, Node, NodeClosedError
 from buffer_pubsub.callback_groups import (
     MutuallyExclusiveCallbackGroup,
     ReentrantCallbackGroup,
@@ -307,6 +307,9 @@ def test_add_node_refuses_what_would_run_callbacks_twice(domain):
         node.close()
         with pytest.raises(NodeClosedError):
             first.add_node(node)
+        for not_a_node in ("node", None, first):
+            with pytest.raises(InvalidEndpointError, match="takes a buffer_pubsub Node"):
+                first.add_node(not_a_node)
         first.shutdown()
 
 

@@ -22,7 +22,7 @@ import torch
 
 from tests._pubsub_helpers import ROOT, TENSOR, Child, child_env, pattern
 
-from buffer_pubsub import Node  # noqa: E402
+from buffer_pubsub import InvalidEndpointError, Node  # noqa: E402
 from rosidl_buffer import Buffer, BufferImplBase, CpuBufferImpl, registry  # noqa: E402
 from rosidl_buffer.messages import get_message_type  # noqa: E402
 from tensor_conversions import numpy as tn  # noqa: E402
@@ -429,6 +429,12 @@ def test_loan_misuse_raises_typed_errors(domain, topic, backends):
                 pass
         with pytest.raises(LoanError, match="factory"):
             pub.loan(5)
+        entered = []
+        image = get_message_type("sensor_msgs/msg/Image")
+        with pytest.raises(InvalidEndpointError, match="cannot loan a sensor_msgs/msg/Image"):
+            with pub.loan(image):  # refused when taken, before the block runs
+                entered.append(True)
+        assert not entered
         assert isinstance(LoanError("x"), RuntimeError)
         pub.destroy()
         with pytest.raises(NodeClosedError):

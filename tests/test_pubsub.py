@@ -402,6 +402,12 @@ def test_misuse_raises_typed_errors(domain, topic, backends):
         pub.publish(make_frame(0, 0, 16, "cpu"))
     with pytest.raises(NodeClosedError):
         node.create_publisher(TENSOR, topic)
+    # a closed node knows no graph (it answered with its own closed endpoints) and spins nothing
+    for query in (node.get_topic_names_and_types, node.get_node_names_and_namespaces,
+                  lambda: node.count_subscribers(topic), lambda: node.count_publishers(topic),
+                  lambda: node.get_endpoints_by_node("n"), lambda: node.spin_once(0)):
+        with pytest.raises(NodeClosedError):
+            query()
     with pytest.raises(InvalidEndpointError):
         Node("bad/name")
 

@@ -289,6 +289,29 @@ def test_spin_timeouts_read_as_rclpy_and_never_abort(domain, topic, backends, la
     assert len(got) == 5
 
 
+def test_waits_for_matches_read_their_arguments_as_spin_does(domain, topic, backends):
+    """wait_for_subscriptions / wait_for_publishers: a NaN or string timeout and a count that
+    is not a whole number >= 0 are typed errors (NaN once spun forever on a core); None,
+    negative and infinite timeouts wait without limit, as spin_once's do."""
+    with Node("wait_args", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(TENSOR, topic)
+        sub = node.create_subscription(TENSOR, topic + "_other", lambda m: None)
+        for wait in (pub.wait_for_subscriptions, sub.wait_for_publishers):
+            for bad in (float("nan"), "1", b"1"):
+                with pytest.raises(InvalidTimeoutError):
+                    wait(1, timeout=bad)
+            for bad in ("a", -1, 1.5, True, None):
+                with pytest.raises(InvalidEndpointError, match="count"):
+                    wait(bad, timeout=0.05)
+            start = time.monotonic()
+            assert wait(1, timeout=0.05) is False
+            assert time.monotonic() - start < 5
+            for unlimited in (float("inf"), 1e300, -1):
+                assert wait(0, timeout=unlimited) is True
+        node.create_subscription(TENSOR, topic, lambda m: None)
+        assert pub.wait_for_subscriptions(1, timeout=-1) is True  # no limit: until it matches
+
+
 def test_a_node_is_spun_by_one_thread_at_a_time(domain, topic, backends):
     with Node("spin_one", domain_id=domain, backends=backends, executor="manual") as node:
         node.create_subscription(TENSOR, topic, lambda m: None)

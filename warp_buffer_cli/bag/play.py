@@ -40,7 +40,11 @@ def open_bag(path: str | os.PathLike[str]) -> Any:
         reader = Reader(Path(path))
         reader.open()
     except FileNotFoundError:
-        raise BagReadError(f"no bag at {path}: it does not exist") from None
+        where = Path(path)
+        why = ("it does not exist" if not where.exists() else
+               "no metadata.yaml in it: not a rosbag2 bag" if where.is_dir() else
+               "not a rosbag2 bag")
+        raise BagReadError(f"no bag at {path}: {why}") from None
     except Exception as exc:  # rosbags' ReaderError, YAML and storage errors: all unreadable
         raise BagReadError(f"cannot read the bag at {path}: {exc}") from exc
     return reader

@@ -25,8 +25,9 @@ def to_plain(value: Any, truncate: int) -> Any:
     if isinstance(value, Message):
         return {spec.name: to_plain(getattr(value, spec.name), truncate)
                 for spec in fields_of(type(value))}
-    if isinstance(value, Buffer):
-        head = value.to_numpy()[:BUFFER_PREVIEW] if len(value) else np.zeros(0, np.uint8)
+    if isinstance(value, Buffer):  # (a --truncate-length shorter than the preview wins)
+        shown = min(BUFFER_PREVIEW, truncate) if truncate else BUFFER_PREVIEW
+        head = value.to_numpy()[:shown] if len(value) else np.zeros(0, np.uint8)
         return {"backend": value.get_backend_type(), "size": len(value),
                 "first_bytes": [int(b) for b in head]}
     if isinstance(value, np.ndarray):

@@ -8,6 +8,7 @@ import collections
 import threading
 import time
 
+from .._arguments import absolute_topic_name
 from .._graph import GraphCommandError, add_graph_options, graph_node, wait_for_topic
 
 __all__ = ["Window", "add_window_options", "measure"]
@@ -34,7 +35,8 @@ class Window:
 
 
 def add_window_options(parser: argparse.ArgumentParser, default_window: int) -> None:
-    parser.add_argument("topic_name", help="the topic, e.g. /camera/image")
+    parser.add_argument("topic_name", type=absolute_topic_name,
+                        help="the topic, e.g. /camera/image")
     parser.add_argument("-w", "--window", type=int, default=default_window, metavar="N",
                         help=f"messages in the window (default {default_window})")
     parser.add_argument("--count", type=int, default=0, metavar="N",

@@ -9,12 +9,14 @@ import argparse
 import queue
 import sys
 
+from .._arguments import absolute_topic_name
 from .._graph import GraphCommandError, add_graph_options, graph_node, wait_for_topic
 from ._fields import csv_line, pick, to_plain, yaml_lines
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("topic_name", help="the topic, e.g. /camera/image")
+    parser.add_argument("topic_name", type=absolute_topic_name,
+                        help="the topic, e.g. /camera/image")
     parser.add_argument("--once", action="store_true", help="print the first message and exit")
     parser.add_argument("--csv", action="store_true", help="one comma-separated line a message")
     parser.add_argument("--field", default="", help="print only this field, e.g. header.stamp")

@@ -9,11 +9,13 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from .._arguments import absolute_topic_name
 from .._graph import add_graph_options, graph_node, hidden, resolve_topic, routes_by_publisher
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("topic_name", help="the topic, e.g. /camera/image")
+    parser.add_argument("topic_name", type=absolute_topic_name,
+                        help="the topic, e.g. /camera/image")
     parser.add_argument("-v", "--verbose", action="store_true", dest="detailed",
                         help="every endpoint with its QoS, backends and routes")
     add_graph_options(parser)
