@@ -36,7 +36,6 @@ class EndpointKind(enum.Enum):
     SUBSCRIPTION = "SUBSCRIPTION"
 
 
-
 def matching_wait(count: Any, timeout: Any) -> tuple[int, float | None]:
     """The arguments of a wait for matched endpoints, checked: ``count`` a whole number >= 0
     (else :class:`InvalidEndpointError`), ``timeout`` in seconds as rclpy reads it (None,
@@ -44,6 +43,7 @@ def matching_wait(count: Any, timeout: Any) -> tuple[int, float | None]:
     if type(count) is bool or not isinstance(count, int) or count < 0:
         raise InvalidEndpointError(f"count must be a whole number >= 0, not {count!r}")
     return count, wait_seconds(timeout)
+
 
 @dataclass(frozen=True)
 class NodeInfo:
