@@ -215,9 +215,8 @@ class Graph:
 
     def wait(self, kind: str, topic: str, type_name: str, type_hash: str, count: int,
              timeout: float | None) -> bool:
-        """Until :meth:`count` reaches ``count`` (False on timeout or close). ``timeout`` as
-        rclpy reads it (:func:`matching_wait`)."""
-        count, timeout = matching_wait(count, timeout)
+        """Until :meth:`count` reaches ``count`` (False on timeout or close); ``count`` and
+        ``timeout`` as :func:`matching_wait` returns them (None: no limit)."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self.changed:
             while True:

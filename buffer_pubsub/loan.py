@@ -265,7 +265,7 @@ class LoanPool:
             raise LoanError(f"the loan factory {factory!r} returned {type(msg).__name__}, "
                             "not a message")
         msg_type = self.msg_type
-        if msg_type is not None and type(msg) is not msg_type and not isinstance(msg, msg_type):
+        if msg_type is not None and not isinstance(msg, msg_type):
             raise InvalidEndpointError(
                 f"a publisher of {msg_type.__msgtype__} cannot loan a "
                 f"{type(msg).__msgtype__}: publish that type on a publisher of its own")

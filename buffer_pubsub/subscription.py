@@ -51,6 +51,7 @@ from rosidl_buffer.messages import (
 from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info, unknown_publisher_info
 from ._executor import spinning_here
+from .graph import matching_wait
 from ._inline import InlinePolicy
 from ._rate import RateLimit
 from ._sequence import Deduplicator, SequenceTracker
@@ -236,6 +237,7 @@ class Subscription:
     def wait_for_publishers(self, count: int = 1, timeout: float | None = 10.0) -> bool:
         """Block until at least ``count`` publishers are matched; False on timeout.
         ``timeout`` as rclpy reads it: None, negative or infinite waits without limit."""
+        count, timeout = matching_wait(count, timeout)
         return self.node.graph.wait(
             wire.PUBLISHER_KIND, self._token.topic, self._token.type_name,
             self._token.type_hash, count, timeout)

@@ -374,17 +374,18 @@ class _Termination:
     def __call__(self, signum: int, frame: Any) -> None:
         self.signum = signum
         if not self.deferred:
-            self._raise()
+            _end_by(signum)
 
     def deliver(self) -> None:
         self.deferred = False
         if self.signum is not None:
-            self._raise()
+            _end_by(self.signum)
 
-    def _raise(self) -> None:
-        if self.signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        raise SystemExit(128 + (self.signum or signal.SIGTERM))
+
+def _end_by(signum: int) -> None:
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    raise SystemExit(128 + signum)
 
 
 def run(args: argparse.Namespace) -> int:
