@@ -13,8 +13,8 @@ the two columns: the same Python code runs several times slower right after the 
 so an in-process budget is set by how much code a message runs, not by any one stage.
 
 Stage boundaries are stamped with ``perf_counter_ns`` by thin wrappers the benchmark puts, in
-its own process only, around ``validate_message`` and ``seal_and_list_backends`` (as the
-publisher calls them) and the executor's waker (``notify`` from the publisher, ``wait``
+its own process only, around ``seal_and_list_backends`` (as the publisher calls it, after
+validating the fields) and the executor's waker (``notify`` from the publisher, ``wait``
 returning on the executor thread); the callback stamps its entry. Each wrapper costs ~0.3 us.
 """
 
@@ -34,8 +34,7 @@ NBYTES = 4096
 WARMUP = 50
 # (label, from stamp, to stamp), in the order a message passes them.
 STAGES = (
-    ("publish: validate fields", "t0", "validated"),
-    ("publish: seal + backends", "validated", "sealed"),
+    ("publish: validate fields, seal + backends", "t0", "sealed"),
     ("publish: number, route, queue, notify", "sealed", "notified"),
     ("publish: rest until publish() returns", "notified", "returned"),
     ("executor: notify -> its wait returns (wake-up)", "notified", "woken"),
@@ -85,8 +84,7 @@ def measure(count: int, pause_us: float, domain_id: int) -> dict[str, Any]:
             return result
         return stamped
 
-    validate, seal = publisher_module.validate_message, publisher_module.seal_and_list_backends
-    publisher_module.validate_message = after("validated", validate)
+    seal = publisher_module.seal_and_list_backends
     publisher_module.seal_and_list_backends = after("sealed", seal)
     done = queue.SimpleQueue()
     bare_in: queue.SimpleQueue[Any] = queue.SimpleQueue()
@@ -137,8 +135,7 @@ def measure(count: int, pause_us: float, domain_id: int) -> dict[str, Any]:
                         bare.append(received - sent)
                 results[mode] = _summary(rows, bare)
     finally:
-        publisher_module.validate_message, publisher_module.seal_and_list_backends = \
-            validate, seal
+        publisher_module.seal_and_list_backends = seal
         bare_in.put(None)
         thread.join(timeout=1.0)
     return {"count": count, "pause_us": pause_us, "nbytes": NBYTES, "modes": results}

@@ -32,34 +32,10 @@ if TYPE_CHECKING:
     from .callback_groups import CallbackGroup
     from .node import Node
 
-__all__ = ["InFlight", "NodeExecutor", "Runnable", "Target", "defer_wakeups", "give_wakeups",
-           "spinning_here", "user_spin", "wait_seconds"]
+__all__ = ["InFlight", "NodeExecutor", "Runnable", "Target", "spinning_here", "user_spin",
+           "wait_seconds"]
 
 _log = logging.getLogger(__name__)
-
-#: Wake-ups that scheduling on this thread asked for while a publish is under way (see
-#: defer_wakeups): given when it ends, so the woken executor does not wait for the GIL that the
-#: rest of the publish holds.
-_deferred = threading.local()
-
-
-def defer_wakeups() -> bool:
-    """From now on this thread's :meth:`NodeExecutor.schedule` records the wake-ups it owes
-    instead of giving them; True when this call started the deferral (it must then call
-    :func:`give_wakeups`), False inside one already running (a publish from a callback's
-    publish)."""
-    if getattr(_deferred, "wakers", None) is not None:
-        return False
-    _deferred.wakers = []
-    return True
-
-
-def give_wakeups() -> None:
-    """End the deferral: wake every executor scheduled meanwhile, once each."""
-    pending, _deferred.wakers = _deferred.wakers, None
-    for waker in pending:
-        waker.notify()
-
 
 class Runnable(Protocol):
     node: Node
@@ -189,17 +165,23 @@ class NodeExecutor:
         return self._target
 
     def schedule(self, item: Runnable) -> None:
-        """Make ``item`` ready (the caller guarantees it is not ready already)."""
+        """Make ``item`` ready (the caller guarantees it is not ready already) and wake the
+        loop."""
+        waker = self.make_ready(item)
+        if waker is not None:
+            waker.notify()
+
+    def make_ready(self, item: Runnable) -> Waker | None:
+        """Make ``item`` ready without waking anyone; returns the waker its caller notifies
+        (None: handed to the user's executor, which woke itself). A publish wakes the
+        executors of its in-process subscriptions once it has sent everything, so a woken
+        executor does not wait for the GIL that the rest of the publish holds."""
         target = self._target
         if target is not None:
             target.schedule(item)
-            return
+            return None
         self._ready.append(item)
-        pending = getattr(_deferred, "wakers", None)
-        if pending is None:
-            self.waker.notify()
-        elif self.waker not in pending:
-            pending.append(self.waker)
+        return self.waker
 
     def has_ready(self) -> bool:
         """Whether anything waits to run. A message that arrives on the waiting thread (a lane

@@ -22,9 +22,13 @@ if TYPE_CHECKING:
 
 _lock = threading.Lock()
 _ids = itertools.count(0)
-_subscriptions: dict[str, list[Subscription]] = {}  # by domain-qualified base data key
+#: The local subscriptions by domain-qualified base data key: a tuple per key, replaced (never
+#: changed in place) under ``_lock``, so a publish reads it without the lock.
+SUBSCRIPTIONS: dict[str, tuple[Subscription, ...]] = {}
 _subscription_gids: set[bytes] = set()
-_publisher_gids: set[bytes] = set()
+#: The gids of this process's publishers (and of the last RETIRED_PUBLISHERS removed): a
+#: subscription drops the Zenoh copy of a sample whose gid is here (one set lookup, no lock).
+PUBLISHER_GIDS: set[bytes] = set()
 #: How many removed local publishers' gids are still recognized (see remove_publisher).
 RETIRED_PUBLISHERS = 4096
 _retired: collections.deque[bytes] = collections.deque()
@@ -47,23 +51,24 @@ def default_backends() -> dict[str, BufferBackend]:
 
 def add_subscription(key: str, subscription: Subscription) -> None:
     with _lock:
-        _subscriptions.setdefault(key, []).append(subscription)
+        SUBSCRIPTIONS[key] = (*SUBSCRIPTIONS.get(key, ()), subscription)
         _subscription_gids.add(subscription.gid)
 
 
 def remove_subscription(key: str, subscription: Subscription) -> None:
     with _lock:
-        subs = _subscriptions.get(key, [])
-        if subscription in subs:
-            subs.remove(subscription)
-        if not subs:
-            _subscriptions.pop(key, None)
+        subs = tuple(s for s in SUBSCRIPTIONS.get(key, ()) if s is not subscription)
+        if subs:
+            SUBSCRIPTIONS[key] = subs
+        else:
+            SUBSCRIPTIONS.pop(key, None)
         _subscription_gids.discard(subscription.gid)
 
 
-def local_subscriptions(key: str) -> list[Subscription]:
-    with _lock:
-        return list(_subscriptions.get(key, ()))
+def local_subscriptions(key: str) -> tuple[Subscription, ...]:
+    """The local subscriptions of ``key`` now (a snapshot; ``SUBSCRIPTIONS.get`` is the same
+    without a call, for the publish path)."""
+    return SUBSCRIPTIONS.get(key, ())
 
 
 def is_local_subscription(gid: bytes) -> bool:
@@ -72,7 +77,7 @@ def is_local_subscription(gid: bytes) -> bool:
 
 def add_publisher(gid: bytes) -> None:
     with _lock:
-        _publisher_gids.add(gid)
+        PUBLISHER_GIDS.add(gid)
 
 
 def remove_publisher(gid: bytes) -> None:
@@ -82,8 +87,4 @@ def remove_publisher(gid: bytes) -> None:
     with _lock:
         _retired.append(gid)
         if len(_retired) > RETIRED_PUBLISHERS:
-            _publisher_gids.discard(_retired.popleft())
-
-
-def is_local_publisher(gid: bytes) -> bool:
-    return gid in _publisher_gids  # checked for every arriving sample; atomic, no lock
+            PUBLISHER_GIDS.discard(_retired.popleft())

@@ -23,7 +23,7 @@ from __future__ import annotations
 import collections
 from dataclasses import dataclass
 
-__all__ = ["Deduplicator", "SequenceTracker", "Verdict"]
+__all__ = ["IN_ORDER", "Deduplicator", "SequenceTracker", "Verdict"]
 
 #: Largest step counted as loss; a larger jump (a restarted or spoofed counter) resynchronizes.
 LOST_WINDOW = 1 << 16
@@ -44,7 +44,8 @@ class Verdict:
     jump: bool = False
 
 
-_IN_ORDER = Verdict()
+#: The verdict of a message in order (the common case: one object, compared by identity).
+IN_ORDER = Verdict()
 _LATE = Verdict(late=True)
 _JUMP = Verdict(jump=True)
 
@@ -75,7 +76,7 @@ class SequenceTracker:
             if len(self._channels) >= MAX_TRACKED:
                 del self._channels[next(iter(self._channels))]
             self._channels[key] = _Channel(sequence)
-            return _IN_ORDER
+            return IN_ORDER
         step = sequence - state.last
         if step <= 0:
             if -step < LOST_WINDOW:
@@ -87,7 +88,7 @@ class SequenceTracker:
             return _JUMP
         state.last = sequence
         if numbered_per_channel:
-            return Verdict(lost=step - 1) if step > 1 else _IN_ORDER
+            return Verdict(lost=step - 1) if step > 1 else IN_ORDER
         return self._judge_stride(state, step)
 
     @staticmethod
@@ -96,14 +97,14 @@ class SequenceTracker:
         if state.odd_step:  # the previous step differed from the stride: judged now
             if step == state.odd_step:  # it repeats: the publisher's fan-out changed
                 state.stride, state.odd_step, state.odd_lost = step, 0, 0
-                return _IN_ORDER
+                return IN_ORDER
             lost, state.odd_step, state.odd_lost = state.odd_lost, 0, 0
         if state.stride == 0:
             state.stride = step
         elif step != state.stride:
             state.odd_step = step
             state.odd_lost = step // state.stride - 1 if step % state.stride == 0 else 0
-        return Verdict(lost=lost) if lost else _IN_ORDER
+        return Verdict(lost=lost) if lost else IN_ORDER
 
     def forget(self, gid: bytes) -> None:
         """Drop what is known of publisher ``gid`` (it left)."""

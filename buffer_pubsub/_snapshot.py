@@ -22,17 +22,23 @@ from typing import Any
 
 from rosidl_buffer.messages import FieldKind, Message, get_schema
 
-__all__ = ["snapshot"]
+__all__ = ["copier", "snapshot"]
 
 _copiers: dict[type, Callable[[Any], Any]] = {}
 
 
 def snapshot(msg: Message) -> Message:
     """A new message of ``msg``'s type holding ``msg``'s values (see the module docstring)."""
-    copier = _copiers.get(type(msg))
-    if copier is None:
-        copier = _copiers[type(msg)] = _compile(type(msg))
-    return copier(msg)  # type: ignore[no-any-return]
+    return copier(type(msg))(msg)  # type: ignore[no-any-return]
+
+
+def copier(cls: type) -> Callable[[Any], Any]:
+    """The compiled :func:`snapshot` of messages of exactly ``cls`` (a publisher keeps its
+    type's: one call per subscription on the publish path instead of two)."""
+    function = _copiers.get(cls)
+    if function is None:
+        function = _copiers[cls] = _compile(cls)
+    return function
 
 
 def _slot(cls: type, name: str) -> Any:

@@ -21,6 +21,7 @@ import dataclasses
 import json
 import logging
 import math
+import operator
 import os
 import threading
 import time
@@ -177,9 +178,8 @@ class Node:
     def __repr__(self) -> str:
         return f"Node({self.name!r}, namespace={self.namespace!r}, domain_id={self.domain_id})"
 
-    @property
-    def closed(self) -> bool:
-        return self._closed
+    #: Whether :meth:`close` was called (read-only; a C getter: every callback checks it).
+    closed = property(operator.attrgetter("_closed"))
 
     def close(self) -> None:
         """Undeclare every endpoint and token, stop the executor and close the Zenoh session.

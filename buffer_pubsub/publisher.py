@@ -44,16 +44,16 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import zenoh
 
 from rosidl_buffer import Buffer, BufferImplBase, EndpointInfo
+from rosidl_buffer.buffer import impl_of
 from rosidl_buffer.messages import Message, deserialize_message, iter_buffers, serialize_message
 
 from . import _lane_routes, _process, fast_lane, wire
-from ._executor import defer_wakeups, give_wakeups
 from ._info import endpoint_gone, endpoint_info
 from ._rate import RateLimit
-from ._snapshot import snapshot
+from ._snapshot import copier as snapshot_copier, snapshot
 from .graph import matching_wait
 from .loan import Loan, LoanPool, flat_buffer_fields
-from ._validation import validate_message
+from ._validation import validate_message, validator
 from ._zenoh import undeclare_quietly
 from .errors import (
     InvalidEndpointError,
@@ -64,11 +64,15 @@ from .errors import (
 )
 
 if TYPE_CHECKING:
+    from ._waker import Waker
     from .node import Node
 
 __all__ = ["Publisher", "RouteInfo", "seal_and_list_backends"]
 
 _log = logging.getLogger(__name__)
+#: Builds a wire.Attachment from its three values without the NamedTuple's generated __new__ (a
+#: Python frame, paid per message).
+new_attachment = tuple.__new__
 #: How long destroy() waits for a publish in flight on another thread before leaving the
 #: Zenoh publishers to that publish to undeclare.
 UNDECLARE_WAIT_S = 1.0
@@ -86,13 +90,13 @@ def seal_and_list_backends(msg: Message, flat: tuple[str, ...] | None
     if not buffers:
         return _NO_BACKENDS, 0, ()
     if len(buffers) == 1:  # the common case: one buffer, its backend's set made once
-        impl = buffers[0].get_impl()  # perf: its impl's methods, without Buffer's forwarding
-        impl.seal()
-        name = impl.get_backend_type()
+        impl = impl_of(buffers[0])  # perf: its impl's methods, without Buffer's forwarding
+        name, nbytes = impl.seal_for_publish()
         backends = _ONE_BACKEND.get(name)
         if backends is None:
             backends = _ONE_BACKEND.setdefault(name, frozenset((name,)))
-        return backends, impl.size(), (impl,)
+        # (an impl without an end_publish of its own is not called for it)
+        return backends, nbytes, (impl,) if type(impl).end_publish is not _NO_END else ()
     nbytes = 0
     for buffer in buffers:
         buffer.seal()
@@ -102,6 +106,7 @@ def seal_and_list_backends(msg: Message, flat: tuple[str, ...] | None
 
 
 _NO_BACKENDS: frozenset[str] = frozenset()
+_NO_END = BufferImplBase.end_publish  # the default: nothing to do
 _ONE_BACKEND: dict[str, frozenset[str]] = {}
 
 
@@ -246,6 +251,9 @@ class Publisher:
         self._out_lock = threading.Lock()
         self._undeclare_after_send = False  # see _undeclare
         self._flat_buffers = flat_buffer_fields(msg_type)
+        # Compiled once for the type: the publish path calls them, not their dispatchers.
+        self._validate = validator(msg_type)
+        self._snapshot = snapshot_copier(msg_type)  # what each in-process subscription gets
         self._loans = LoanPool(msg_type=self.msg_type)
         # Peers in other processes and the streams that serve them, rebuilt on change.
         self._remote: _Routing = _NOBODY
@@ -501,12 +509,15 @@ class Publisher:
         Field values are checked first, whoever listens (SerializationError); a payload larger
         than the transport carries raises PayloadTooLargeError before anything is sent.
         """
-        if type(msg) is not self.msg_type and not isinstance(msg, self.msg_type):
+        if type(msg) is self.msg_type:
+            self._validate(msg)
+        elif isinstance(msg, self.msg_type):  # a user's subclass
+            validate_message(msg)
+        else:
             raise InvalidEndpointError(
                 f"publisher of {self.msg_type.__msgtype__} got {type(msg).__name__}")
-        validate_message(msg)
         backends, nbytes, impls = seal_and_list_backends(msg, self._flat_buffers)  # write ends
-        deferring = defer_wakeups()  # in-process subscriptions are woken when publish() ends
+        wakers: list[Waker] | None = None  # of in-process subscriptions: woken when publish ends
         try:
             # perf: the flag and the peer tuple are read without the publisher's lock (each read
             # is atomic, and a destroy() racing this publish is no different from one that comes
@@ -521,21 +532,24 @@ class Publisher:
                     raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
                 stamp = self._last_stamp = max(time.time_ns(), self._last_stamp + 1)
                 if remote is _NOBODY:
-                    self._publish_intra(msg, backends, stamp)
+                    wakers = self._publish_intra(msg, backends, stamp)
                     return
                 try:
-                    self._publish_remote(msg, backends, nbytes, stamp, remote)
+                    wakers = self._publish_remote(msg, backends, nbytes, stamp, remote)
                 finally:
                     if self._undeclare_after_send:  # destroyed during this publish (see there)
                         undeclare_quietly(self._base, self._cpu)
         finally:
             for impl in impls:  # after the sends: readers are on their way meanwhile
                 impl.end_publish()
-            if deferring:
-                give_wakeups()
+            if wakers is not None:  # last: a woken executor finds the GIL free soon
+                for waker in wakers:
+                    waker.notify()
 
     def _publish_remote(self, msg: Message, backends: frozenset[str], nbytes: int, stamp: int,
-                        routing: _Routing) -> None:
+                        routing: _Routing) -> list[Waker] | None:
+        """Send to every route; returns the wakers of the in-process subscriptions served (see
+        :meth:`_publish_intra`)."""
         # Everything is serialized (and size-checked) before anything leaves, so a message too
         # large for the transport reaches nobody rather than some.
         need_base = routing.base
@@ -546,7 +560,10 @@ class Publisher:
             if peer.rate is not None and not peer.rate.admit(now):
                 continue  # at its max_rate: nothing serialized, nothing sent
             if peer.served & backends:
-                individual.append((peer, self._checked(self._serialize_for(peer, msg))))
+                payload = self._serialize_for(peer, msg)
+                if len(payload) > self.node.max_message_size:
+                    self._checked(payload)  # raises
+                individual.append((peer, payload))
             elif not need_base:
                 individual.append((peer, None))  # the shared CPU serialization
                 need_cpu = True
@@ -556,19 +573,21 @@ class Publisher:
             if nbytes > self.node.max_message_size:
                 self._checked(None, nbytes)  # hopeless: raise before copying a huge payload
             cpu_payload = self._out = self._checked(serialize_message(msg, out=self._out))
-        self._publish_intra(msg, backends, stamp)
+        wakers = (self._publish_intra(msg, backends, stamp)
+                  if self._intra_key in _process.SUBSCRIPTIONS else None)
         gid = self.gid
         try:
             for peer, payload in individual:
                 self._put_individual(peer, cpu_payload if payload is None else payload, stamp)
             if routing.cpu:
-                self._cpu.put(cpu_payload, attachment=wire.Attachment(  # type: ignore[union-attr]
-                    next(self._cpu_sequences), stamp, gid).encode())
+                self._cpu.put(cpu_payload, attachment=new_attachment(  # type: ignore[union-attr]
+                    wire.Attachment, (next(self._cpu_sequences), stamp, gid)).encode())
             if need_base:
-                self._base.put(cpu_payload, attachment=wire.Attachment(
-                    next(self._base_sequences), stamp, gid).encode())
+                self._base.put(cpu_payload, attachment=new_attachment(
+                    wire.Attachment, (next(self._base_sequences), stamp, gid)).encode())
         except zenoh.ZError as exc:
             raise TransportError(f"publish on {self.topic_name}: {exc}") from exc
+        return wakers
 
     def _checked(self, payload: bytearray | None, nbytes: int = 0) -> bytearray:
         """``payload`` if Zenoh carries it, else PayloadTooLargeError (None: always raise, for
@@ -583,33 +602,45 @@ class Publisher:
                 "see transport/link/rx/max_message_size); split it, or use a buffer backend")
         return payload
 
-    def _publish_intra(self, msg: Message, backends: frozenset[str], stamp: int) -> None:
-        subscriptions = _process.local_subscriptions(self._intra_key)
+    def _publish_intra(self, msg: Message, backends: frozenset[str], stamp: int
+                       ) -> list[Waker] | None:
+        """Queue a snapshot of ``msg`` for each subscription of this process; returns the
+        wakers of their executors (None: nobody to wake), which publish() notifies last."""
+        subscriptions = _process.SUBSCRIPTIONS.get(self._intra_key)
         if not subscriptions:
-            return
-        attachment = wire.Attachment(next(self._intra_sequences), stamp, self.gid)
+            return None
+        attachment = new_attachment(
+            wire.Attachment, (next(self._intra_sequences), stamp, self.gid))
         copy: Message | None = None
+        wakers: list[Waker] | None = None
         domain_id = self.node.domain_id
+        make_snapshot = self._snapshot if type(msg) is self.msg_type else snapshot
         for subscription in subscriptions:
             if subscription.node.domain_id != domain_id:
                 continue
             if not backends or backends.issubset(subscription.accepted):
                 # the values as published, in an object of its own (see _snapshot)
-                subscription.deliver_intra(snapshot(msg), attachment)
+                waker = subscription.deliver_intra(make_snapshot(msg), attachment)
             else:
                 if copy is None:
                     copy = cpu_copy(msg)
-                subscription.deliver_intra(snapshot(copy), attachment)
+                waker = subscription.deliver_intra(snapshot(copy), attachment)
+            if waker is not None:
+                if wakers is None:
+                    wakers = [waker]
+                elif waker not in wakers:
+                    wakers.append(waker)
+        return wakers
 
     def _serialize_for(self, peer: _Peer, msg: Message) -> bytearray:
         backends = self.node.backends
 
         def route(buffer: Buffer) -> tuple[str, Any] | None:
-            name = buffer.get_backend_type()
+            impl = impl_of(buffer)
+            name = impl.get_backend_type()
             if name not in peer.served:
                 return None
-            descriptor = backends[name].create_descriptor_with_endpoint(
-                buffer.get_impl(), peer.route_info)
+            descriptor = backends[name].create_descriptor_with_endpoint(impl, peer.route_info)
             return None if descriptor is None else (name, descriptor)
 
         return serialize_message(msg, route=route)
@@ -618,7 +649,8 @@ class Publisher:
         with peer.lock:
             if peer.gone:
                 return  # the subscription vanished while we were publishing: nobody to send to
-            attachment = wire.Attachment(next(peer.sequences), stamp, self.gid).encode()
+            attachment = new_attachment(
+                wire.Attachment, (next(peer.sequences), stamp, self.gid)).encode()
             lane = peer.lane
             if lane is not None and lane.fits(len(attachment) + len(payload)):
                 try:

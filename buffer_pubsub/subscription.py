@@ -54,11 +54,12 @@ from ._executor import spinning_here
 from .graph import matching_wait
 from ._inline import InlinePolicy
 from ._rate import RateLimit
-from ._sequence import Deduplicator, SequenceTracker
+from ._sequence import IN_ORDER, Deduplicator, SequenceTracker
 from ._zenoh import undeclare_quietly
 from .errors import NodeClosedError, PubSubError
 
 if TYPE_CHECKING:
+    from ._waker import Waker
     from .callback_groups import CallbackGroup
     from .node import Node
 
@@ -264,7 +265,7 @@ class Subscription:
             with self._lock:
                 self._refuse(REFUSED_ATTACHMENT)
             return
-        if _process.is_local_publisher(attachment.publisher_gid):
+        if attachment.publisher_gid in _process.PUBLISHER_GIDS:
             return  # delivered intra-process already
         if self.max_rate_hz and not self._due(attachment, route):
             return
@@ -284,8 +285,7 @@ class Subscription:
             with self._lock:
                 self._refuse(REFUSED_ATTACHMENT)
             return
-        gid = attachment.publisher_gid
-        if _process.is_local_publisher(gid):
+        if attachment.publisher_gid in _process.PUBLISHER_GIDS:
             return  # delivered intra-process already (never sent here; a forged frame)
         if self.max_rate_hz and not self._due(attachment, ROUTE_LANE):
             return
@@ -350,12 +350,41 @@ class Subscription:
                      attachment.publisher_gid.hex(), exc,
                      exc_info=not isinstance(exc, RosidlBufferError))
 
-    def deliver_intra(self, msg: Message, attachment: wire.Attachment) -> None:
+    def deliver_intra(self, msg: Message, attachment: wire.Attachment) -> Waker | None:
         """A message from a publisher of this process (its snapshot), on the publisher's
-        thread."""
+        thread: queued, never run here. Returns the waker of the executor that runs it, for
+        the publisher to notify once its publish has sent everything (None: nothing to wake).
+
+        The intra-process case of :meth:`_enqueue` in one call (it runs for every in-process
+        message): the stream is numbered exactly by its publisher, no duplicate can come, and
+        nothing is owned."""
         if self.max_rate_hz and not self._due(attachment, ROUTE_INTRA):
-            return
-        self._enqueue((msg, attachment, ROUTE_INTRA, time.time_ns(), False))
+            return None
+        item = (msg, attachment, ROUTE_INTRA, time.time_ns(), False)
+        evicted = None
+        with self._lock:
+            if self._closed:
+                return None
+            verdict = self._sequences.track("intra", attachment.publisher_gid,
+                                            attachment.sequence_number, True)
+            if verdict is not IN_ORDER:
+                if verdict.lost:
+                    self.counters.lost += verdict.lost
+                elif verdict.jump:
+                    self.counters.sequence_jumps += 1
+                if verdict.late and self.history == wire.KEEP_LAST:
+                    self._refuse(REFUSED_LATE)
+                    return None
+            queue = self._queue
+            if len(queue) == queue.maxlen:
+                self.counters.dropped += 1
+                evicted = queue[0]
+            queue.append(item)
+            schedule = not self._scheduled
+            self._scheduled = True
+        if evicted is not None and evicted[4]:  # an owned message (a lane's) leaves the queue
+            release_buffers(evicted[0])
+        return self.node.scheduler.make_ready(self) if schedule else None
 
     def _judge(self, attachment: wire.Attachment, route: str, exact: bool) -> bool:
         """Count what ``attachment`` says of its stream (gaps, jumps; ``exact``: see
@@ -363,6 +392,8 @@ class Subscription:
         seen there (call with ``self._lock`` held)."""
         verdict = self._sequences.track(_STREAM[route], attachment.publisher_gid,
                                         attachment.sequence_number, exact)
+        if verdict is IN_ORDER:
+            return False
         if verdict.lost:
             if route == ROUTE_LANE:
                 self.counters.dropped += verdict.lost  # the lane's keep-last queue overwrote
@@ -401,7 +432,9 @@ class Subscription:
         # Only our publishers in other processes may send a message twice (see _sequence), and
         # only their stamps are known to be unique: another implementation may stamp alike.
         ours = publisher is not None and publisher.locality is not None
-        exact = _numbered_per_stream(route, publisher)
+        # (_numbered_per_stream, inline: once per message)
+        exact = route in _EXACT_ROUTES or ours or publisher is not None and (
+            publisher.backends is None)
         with self._lock:
             if self._closed:
                 closed = True

@@ -315,6 +315,9 @@ class QoSProfile:
 
 
 # --------------------------------------------------------------------------- attachment
+_new_tuple = tuple.__new__
+
+
 class Attachment(NamedTuple):
     """The 33-byte attachment of every sample (a NamedTuple: built once per message on the hot
     path, several times cheaper than a frozen dataclass)."""
@@ -337,7 +340,7 @@ class Attachment(NamedTuple):
         sequence, stamp, prefix, gid = _ATTACHMENT.unpack(data)
         if prefix != _GID_LENGTH_PREFIX:
             raise WireFormatError(f"attachment gid length prefix is {prefix:#x}, not 0x10")
-        return cls(sequence, stamp, gid)
+        return _new_tuple(cls, (sequence, stamp, gid))  # (not cls(...): its __new__ is Python)
 
 
 # --------------------------------------------------------------------------- backends segment

@@ -148,6 +148,12 @@ class BufferImplBase(abc.ABC):
         a backend that orders writes (an event, a write handle) closes them here. Idempotent.
         """
 
+    def seal_for_publish(self) -> tuple[str, int]:
+        """:meth:`seal`, then the backend type and :meth:`size`: what a publish asks of each
+        buffer, in one call (a backend may override it to answer without three)."""
+        self.seal()
+        return self.get_backend_type(), self.size()
+
     def end_publish(self) -> None:
         """Every route of a publish has sent the message (called once per publish, after
         :meth:`seal` and the last send, also when sending failed). A backend that fences off
@@ -226,6 +232,11 @@ class CpuBufferImpl(BufferImplBase):
 
     def get_backend_type(self) -> str:
         return CPU_BACKEND
+
+    def seal_for_publish(self) -> tuple[str, int]:
+        if type(self) is not CpuBufferImpl:  # a subclass may seal, name or size its own way
+            return super().seal_for_publish()
+        return CPU_BACKEND, self._size  # (host storage has nothing to seal)
 
     def size(self) -> int:
         return self._size

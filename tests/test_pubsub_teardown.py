@@ -66,7 +66,7 @@ def peer(domain, topic):
 
 
 def _registered(subscription) -> bool:
-    return any(s is subscription for subs in _process._subscriptions.values() for s in subs)
+    return any(s is subscription for subs in _process.SUBSCRIPTIONS.values() for s in subs)
 
 
 @pytest.mark.parametrize("how", ["destroy", "close"])

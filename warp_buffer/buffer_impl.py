@@ -228,6 +228,12 @@ class WarpBufferImpl(BufferImplBase):
     def size(self) -> int:
         return self.nbytes
 
+    def seal_for_publish(self) -> tuple[str, int]:
+        lease = self.lease  # (as seal())
+        if lease is not None:
+            lease.seal()
+        return WARP_BACKEND, self.nbytes
+
     def _check_live(self) -> None:
         if self._released:
             raise HandleReleasedError(_RELEASED)

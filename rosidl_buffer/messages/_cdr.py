@@ -34,8 +34,7 @@ import operator
 import struct
 import sys
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -91,8 +90,10 @@ def _pad(out: bytearray, pos: int, alignment: int) -> int:
     return pos
 
 
-@dataclass
-class _SizeContext:
+class _SizeContext(NamedTuple):
+    """Pass one's context (a NamedTuple: made once per message, built by ``_new_context``
+    without a Python ``__new__``)."""
+
     route: BufferRoute | None
     decisions: list[Any]
 
@@ -104,8 +105,9 @@ class _SizeContext:
         return _SizeContext(None, self.decisions)
 
 
-@dataclass
-class _ReadContext:
+class _ReadContext(NamedTuple):
+    """A read's context (a NamedTuple, as :class:`_SizeContext`)."""
+
     data: memoryview
     owner: Any
     backends: Mapping[str, BufferBackend] | None
@@ -129,6 +131,7 @@ _call = operator.call
 _repeat = itertools.repeat
 _drain = collections.deque(maxlen=0).extend  # runs an iterator at C speed, keeps nothing
 _new_buffer = Buffer.__new__
+_new_context = tuple.__new__  # a context NamedTuple from its values, no Python frame
 
 
 def _judge_cpu(kind: type) -> bool:
@@ -787,7 +790,7 @@ def _plan(message: Message, route: BufferRoute | None) -> tuple[_MessageCodec, i
     if not isinstance(message, Message):
         raise SerializationError(f"not a generated message: {type(message).__name__}")
     codec = _codec(message.__msgtype__)
-    ctx = _SizeContext(route, [])
+    ctx = _new_context(_SizeContext, (route, []))
     end = codec.size(message, _ORIGIN, ctx)
     return codec, end, ctx.decisions
 
@@ -843,7 +846,7 @@ def deserialize_message(
     if header != CDR_HEADER[:2]:
         kind = "big-endian CDR is not supported" if header == b"\x00\x00" else "unknown encoding"
         raise DeserializationError(f"CDR header {header.hex()}: {kind}")
-    ctx = _ReadContext(view, data, backends, endpoint_info)
+    ctx = _new_context(_ReadContext, (view, data, backends, endpoint_info, True))
     try:
         message, _ = codec.read(ctx, _ORIGIN)
     except RosidlBufferError:
