@@ -173,3 +173,22 @@ def test_a_fixed_layout_descriptor_is_packed_with_one_struct_call_and_sized_once
     monkeypatch.setattr(codec, "fixed", None)  # the field-by-field path
     assert round_trip() == fast
     assert received == [desc.fields_of(sent)] * 2
+
+
+def test_the_inline_numeric_sequences_read_back_and_refuse_every_truncation():
+    msg = _tensor(strides=np.array([1], np.int64))
+    msg.shape = np.array([4, 1], np.int64)
+    data = bytes(serialize_message(msg))
+    back = deserialize_message(data, TENSOR)
+    assert back.shape.tolist() == [4, 1] and back.strides.tolist() == [1]
+    assert bytes(serialize_message(back)) == data
+    for cut in range(4, len(data)):  # every cut inside the fields after the header
+        with pytest.raises(DeserializationError):
+            deserialize_message(data[:cut], TENSOR)
+
+
+def test_an_inline_sequence_count_past_the_data_is_a_truncation():
+    data = bytearray(serialize_message(_tensor()))
+    data[8:12] = (0xFFFFFFF0).to_bytes(4, "little")  # the shape's count, absurd
+    with pytest.raises(DeserializationError, match="truncated"):
+        deserialize_message(bytes(data), TENSOR)

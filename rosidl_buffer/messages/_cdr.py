@@ -702,7 +702,8 @@ def _codec_namespace(codec: _MessageCodec) -> dict[str, Any]:
     """The names the compiled functions of ``codec`` use (see :func:`_codec_source`)."""
     namespace: dict[str, Any] = {
         "cls": codec.cls, "new": codec.cls.__new__, "wrong_type": _wrong_type,
-        "struct_error": struct.error,
+        "struct_error": struct.error, "ndarray": np.ndarray, "frombuffer": np.frombuffer,
+        "u32": _U32.unpack_from, "write_array": _write_array,
     }
     for i, step in enumerate(codec.steps):
         namespace[f"S{i}"] = step
@@ -710,6 +711,11 @@ def _codec_namespace(codec: _MessageCodec) -> dict[str, Any]:
             namespace[f"L{i}"] = step.layouts
             namespace[f"N{i}"] = tuple(length for _, length in step.layouts)
             names = step.names
+        elif type(step) is _NumericArray and step.unchecked and step.spec.is_sequence:
+            # the inline form's names (see _codec_source)
+            namespace[f"W{i}"], namespace[f"D{i}"] = step.width, step.dtype
+            namespace[f"NAT{i}"] = step.native
+            names = (step.name,)
         elif type(step) is _Nested:
             nested = _codec(step.spec.element)
             namespace[f"CS{i}"], namespace[f"CW{i}"] = nested.size, nested.write
@@ -762,6 +768,35 @@ def _codec_source(steps: list[Any]) -> str:
                      f"        ({targets},) = unpacker.unpack_from(data, pos)",
                      *(f"        set_{name}(m, v_{name})" for name in step.names),
                      "        pos += length"]
+        elif kind is _NumericArray and step.unchecked and step.spec.is_sequence:
+            # An unbounded sequence of numbers (a tensor's shape and strides): inline when it
+            # is a 1-D array (sized, then written as it is when already in the wire dtype) and
+            # when it fits the data (read); anything else goes to the field, which converts,
+            # checks and raises as ever.
+            get = _get(step.name)
+            size += [f"    v = {get}",
+                     "    if v.__class__ is ndarray and v.ndim == 1:",
+                     "        pos += 4 + (4 - pos) % 4",
+                     f"        if v.shape[0]: pos += (4 - pos) % W{i} + v.shape[0] * W{i}",
+                     "    else:",
+                     f"        pos = S{i}.size(v, pos, ctx)"]
+            write += [f"    v = {get}",
+                      f"    if (v.__class__ is ndarray and v.dtype is NAT{i} and v.ndim == 1",
+                      "            and v.flags.c_contiguous):",
+                      f"        pos = write_array(v, out, pos, True, W{i})",
+                      "    else:",
+                      f"        pos = S{i}.write(v, out, pos, decisions)"]
+            read += ["    p = pos + (4 - pos) % 4",
+                     "    n = u32(data, p)[0] if p + 4 <= len(data) else -1",
+                     "    p += 4",
+                     "    if n > 0:",
+                     f"        p += (4 - p) % W{i}",
+                     f"    if n >= 0 and p + n * W{i} <= len(data):",
+                     f"        set_{step.name}(m, frombuffer(data, D{i}, n, p).astype(NAT{i}))",
+                     f"        pos = p + n * W{i}",
+                     "    else:",
+                     f"        value, pos = S{i}.read(ctx, pos)",
+                     f"        set_{step.name}(m, value)"]
         elif kind is _Nested:
             # a nested message's buffers never travel as descriptors (see the module doc)
             size.append(f"    pos = CS{i}({_get(step.name)}, pos, ctx.inner())")
