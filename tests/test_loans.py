@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import numpy as np
@@ -333,7 +334,7 @@ def test_publish_ends_the_write_before_the_sends_and_fences_after_them(domain, t
 
         def recorded(*args):
             events.append("send")
-            deliver(*args)
+            return deliver(*args)
 
         sub.deliver_intra = recorded
         pub.publish(msg)
@@ -343,6 +344,39 @@ def test_publish_ends_the_write_before_the_sends_and_fences_after_them(domain, t
         with pytest.raises(Exception, match="closed"):
             pub.publish(msg)  # a publish that fails after the seal still ends it
         assert events == ["seal", "end_publish"]
+
+
+class _RecordingWaker:
+    """A waker (see buffer_pubsub._waker) that records its notifications."""
+
+    def __init__(self, events: list[str]) -> None:
+        self.events = events
+        self._event = threading.Event()
+
+    def wait(self, timeout):
+        self._event.wait(timeout)
+        self._event.clear()
+
+    def notify(self) -> None:
+        self.events.append("notify")
+        self._event.set()
+
+
+def test_publish_wakes_the_in_process_executor_last_and_once(domain, topic, backends):
+    # Woken before the fence, the executor thread would wait for the GIL the publish holds.
+    events: list[str] = []
+    msg = get_message_type(TENSOR)(dtype_code=1, dtype_bits=8, dtype_lanes=1, shape=[16],
+                                   data=Buffer(_RecordingImpl(events)))
+    received = []
+    with Node("wake_order", domain_id=domain, backends=backends, executor="manual",
+              waker=_RecordingWaker(events)) as node:
+        for _ in range(2):  # two subscriptions of one executor: one wake-up
+            node.create_subscription(TENSOR, topic, received.append)
+        pub = node.create_publisher(TENSOR, topic)
+        events.clear()
+        pub.publish(msg)
+        assert events == ["seal", "end_publish", "notify"]
+        assert node.spin_once(0) == 2 and len(received) == 2
 
 
 def test_writing_through_a_view_kept_past_publish_faults(domain, topic):
