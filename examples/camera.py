@@ -44,6 +44,8 @@ def main() -> int:
     new_frame = functools.partial(tw.allocate_image_msg, HEIGHT, WIDTH, "rgb8",
                                   backend="warp", device=device)
     published = 0
+    # Compiled before the first frame, not at its launch (seconds on a cold kernel cache).
+    wp.load_module(pipeline_kernels, device=device)
     with Node("camera", **node_options(args)) as node:
         images = node.create_publisher("sensor_msgs/msg/Image", IMAGE_TOPIC, depth=2)
         matched = images.wait_for_subscriptions(args.subscribers, timeout=30)

@@ -51,6 +51,8 @@ def main() -> int:
     device = args.device or default_device()
     factory = functools.partial(new_scan, device)  # once: the loan pool is keyed by it
     published = 0
+    # Compiled before the first frame, not at its launch (seconds on a cold kernel cache).
+    wp.load_module(pipeline_kernels, device=device)
     with Node("lidar", **node_options(args)) as node:
         scans = node.create_publisher(PointCloud2, SCAN_TOPIC, depth=2)
         scans.wait_for_subscriptions(args.subscribers, timeout=30)
