@@ -477,3 +477,116 @@ def test_the_record_benchmark_runs_and_reports_both_backends(tmp_path):
         assert r["published"] == 10 and 0 < r["recorded"] <= 10
         assert r["recorded"] + r["dropped"] + r["lost"] == r["published"]
     assert [p.name for p in tmp_path.iterdir()] == ["figures.json"]  # bags deleted
+
+
+# --------------------------------------------------------------------------- reindex
+def _frame_index(raw: bytes, size: int) -> int | None:
+    """Which frame a stored tensor CDR is (None: none of the published ones)."""
+    from rosidl_buffer.messages import deserialize_message
+
+    data = deserialize_message(raw, TENSOR).data.to_numpy()
+    for index in range(400):
+        if np.array_equal(data, frame_bytes(index, size)):
+            return index
+    return None
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_killed_recording_is_made_readable_by_reindex(tmp_path, domain, topic, storage):
+    bag = tmp_path / "killed"
+    publisher = helper("publish", domain, topic, "--count", "400", "--rate", "50",
+                       "--size", str(SIZE))
+    recorder = None
+    try:
+        publisher.read_until("READY")
+        recorder = bag_cli(domain, "record", topic, topic + "_text", "-o", str(bag), "-s",
+                           storage)
+        recorder.read_until(f"recording {topic}_text")
+        time.sleep(3.0)  # mid-stream, past a sqlite3 commit
+        recorder.proc.kill()  # no chance to close: no metadata.yaml, no MCAP footer
+        recorder.proc.wait(timeout=30)
+    finally:
+        if recorder is not None:
+            recorder.close()
+        publisher.tell("stop")
+        publisher.close()
+    assert not (bag / "metadata.yaml").exists()
+    _one_line_error(run_bag(domain, "info", str(bag)), "BagReadError", "bag reindex")
+    done = run_bag(domain, "reindex", str(bag))
+    assert done.returncode == 0 and done.stderr == "", done.stderr
+    assert done.stdout.startswith(f"reindexed {bag}: ")
+    stored = read_bag(bag)
+    frames = stored[topic]
+    assert len(frames) > 10  # at 50/s for 3 s, what reached the disk
+    indexes = [_frame_index(raw, SIZE) for _, raw in frames]
+    assert None not in indexes and indexes == sorted(set(indexes))  # intact, in order, once
+    assert metadata(bag)["message_count"] == len(frames) + len(stored.get(topic + "_text", []))
+    info = run_bag(domain, "info", "--json", str(bag))
+    assert info.returncode == 0 and json.loads(info.stdout)["messages"] == len(frames) + len(
+        stored.get(topic + "_text", []))
+    again = run_bag(domain, "reindex", str(bag))  # a readable bag is left as it is
+    assert again.returncode == 0 and read_bag(bag) == stored
+
+
+def _closed_mcap_bag(path: pathlib.Path, count: int) -> list[bytes]:
+    """A closed MCAP bag of ``count`` large tensor messages (a chunk each); their CDR."""
+    from rosbags.rosbag2 import StoragePlugin
+
+    from rosidl_buffer.messages import get_typestore, serialize_message
+    from warp_buffer_cli.bag.writer import DIRECT_BYTES, BagWriter
+
+    payloads = [bytes(serialize_message(expected_messages(i, DIRECT_BYTES)[0]))
+                for i in range(count)]
+    writer = BagWriter(path, version=BagWriter.VERSION_LATEST, storage_plugin=StoragePlugin.MCAP)
+    writer.open()
+    connection = writer.add_connection("/frames", TENSOR, typestore=get_typestore())
+    for i, payload in enumerate(payloads):
+        writer.write(connection, 1_000 + i, payload)
+    writer.close()
+    return payloads
+
+
+def _record_offsets(path: pathlib.Path, opcode: int) -> list[int]:
+    import struct
+
+    data = path.read_bytes()
+    offsets, at = [], 8
+    while at + 9 <= len(data):
+        op, length = struct.unpack_from("<BQ", data, at)
+        if op == opcode:
+            offsets.append(at)
+        at += 9 + length
+    return offsets
+
+
+@pytest.mark.parametrize("cut", ["inside the fourth chunk", "inside a record header",
+                                 "after the data section"])
+def test_reindex_ends_an_mcap_file_after_its_last_whole_record(tmp_path, domain, cut):
+    from warp_buffer_cli.bag.reindex import reindex
+
+    bag = tmp_path / "bag"
+    payloads = _closed_mcap_bag(bag, 5)
+    mcap = bag / "bag.mcap"
+    chunks = _record_offsets(mcap, 0x06)[1:]  # (the first holds the schema and the channel)
+    assert len(chunks) == 5
+    at = {"inside the fourth chunk": chunks[3] + 1000, "inside a record header": chunks[3] + 4,
+          "after the data section": _record_offsets(mcap, 0x0F)[0] + 3}[cut]
+    with mcap.open("r+b") as file:
+        file.truncate(at)
+    (bag / "metadata.yaml").unlink()
+    report = reindex(bag)
+    kept = 5 if cut == "after the data section" else 3
+    assert report["messages"] == kept and report["topics"] == 1 and report["cut_bytes"] > 0
+    assert [raw for _, raw in read_bag(bag)["/frames"]] == payloads[:kept]
+
+
+def test_reindex_refuses_what_is_no_bag_in_one_line(tmp_path, domain):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    _one_line_error(run_bag(domain, "reindex", str(empty)), "BagReadError", "reindex needs one")
+    garbage = tmp_path / "garbage"
+    garbage.mkdir()
+    (garbage / "garbage.mcap").write_bytes(b"not an mcap file at all")
+    _one_line_error(run_bag(domain, "reindex", str(garbage)), "BagReadError", "not an MCAP file")
+    assert (garbage / "garbage.mcap").read_bytes() == b"not an mcap file at all"  # untouched
+    _one_line_error(run_bag(domain, "reindex", str(tmp_path / "missing")), "BagReadError")

@@ -10,7 +10,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from warp_buffer_cli.bag.mcap import DIRECT_BYTES, BagWriter
+from warp_buffer_cli.bag.writer import DIRECT_BYTES, BagWriter
 
 TENSOR = "tensor_msgs/msg/ExperimentalTensor"
 STRING = "std_msgs/msg/String"
@@ -114,8 +114,26 @@ def test_the_direct_path_is_what_writes_large_messages(tmp_path, monkeypatch):
     assert seen and max(seen) < DIRECT_BYTES
 
 
-def test_sqlite3_storage_is_rosbags_own():
+def test_sqlite3_storage_is_rosbags_own_committed_each_second(tmp_path, monkeypatch):
+    import sqlite3
+
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    assert BagWriter.STORAGE_PLUGINS[StoragePlugin.SQLITE3] is Writer.STORAGE_PLUGINS[
-        StoragePlugin.SQLITE3]
+    from rosidl_buffer.messages import get_typestore
+    from warp_buffer_cli.bag import writer as writer_module
+
+    storage = BagWriter.STORAGE_PLUGINS[StoragePlugin.SQLITE3]
+    assert issubclass(storage, Writer.STORAGE_PLUGINS[StoragePlugin.SQLITE3])
+    monkeypatch.setattr(writer_module, "COMMIT_S", 0.0)  # every write committed
+    bag = BagWriter(tmp_path / "bag", version=BagWriter.VERSION_LATEST,
+                    storage_plugin=StoragePlugin.SQLITE3)
+    bag.open()
+    connection = bag.add_connection("/t", "std_msgs/msg/String", typestore=get_typestore())
+    bag.write(connection, 1, b"\x00\x01\x00\x00\x01\x00\x00\x00\x00")
+    # Seen by another connection before the writer closes: committed.
+    other = sqlite3.connect(tmp_path / "bag" / "bag.db3")
+    try:
+        assert other.execute("SELECT COUNT(*) FROM messages").fetchone() == (1,)
+    finally:
+        other.close()
+    bag.close()

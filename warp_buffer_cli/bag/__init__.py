@@ -15,6 +15,8 @@ COMMANDS = {
     "record": ("warp_buffer_cli.bag.record", "record topics of the graph into a new bag"),
     "play": ("warp_buffer_cli.bag.play", "republish a bag's messages with their recorded timing"),
     "info": ("warp_buffer_cli.bag.info", "describe a bag: files, duration, topics and counts"),
+    "reindex": ("warp_buffer_cli.bag.reindex",
+                "rebuild the metadata of a bag whose recording never ended (killed)"),
 }
 
 

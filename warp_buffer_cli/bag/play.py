@@ -42,12 +42,19 @@ def open_bag(path: str | os.PathLike[str]) -> Any:
     except FileNotFoundError:
         where = Path(path)
         why = ("it does not exist" if not where.exists() else
-               "no metadata.yaml in it: not a rosbag2 bag" if where.is_dir() else
+               _no_metadata(where) if where.is_dir() else
                "not a rosbag2 bag")
         raise BagReadError(f"no bag at {path}: {why}") from None
     except Exception as exc:  # rosbags' ReaderError, YAML and storage errors: all unreadable
         raise BagReadError(f"cannot read the bag at {path}: {exc}") from exc
     return reader
+
+
+def _no_metadata(directory: Path) -> str:
+    if any(p.suffix in (".mcap", ".db3") for p in directory.iterdir()):
+        return (f"no metadata.yaml beside its storage file: a recording that never ended? "
+                f"`warp-buffer bag reindex {directory}` rebuilds it")
+    return "no metadata.yaml in it: not a rosbag2 bag"
 
 
 def message_class(type_name: str, definition: Any = None) -> Any:

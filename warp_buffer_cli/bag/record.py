@@ -172,7 +172,7 @@ class Recorder:
     def _create_writer(self) -> Any:
         from rosbags.rosbag2 import StoragePlugin
 
-        from .mcap import BagWriter
+        from .writer import BagWriter
 
         plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
         try:

@@ -1,4 +1,9 @@
-"""rosbags' bag writer with large messages written to MCAP in one write each.
+"""rosbags' bag writer, with large messages written to MCAP in one write each, and a sqlite3
+bag committed each second.
+
+A killed recorder loses what its storage did not hold yet: rosbags commits a sqlite3 bag once,
+when it closes, so here it commits at most :data:`COMMIT_S` seconds apart (``bag reindex``
+recovers such a bag, and an MCAP one up to its last chunk on disk).
 
 rosbags' MCAP storage builds every message record in a ``BytesIO``, appends it to the pending
 chunk's ``BytesIO``, and copies the chunk twice more when it closes it: for a 16 MiB frame that
@@ -12,14 +17,19 @@ the summary). Smaller messages, compression and everything else are rosbags' own
 from __future__ import annotations
 
 import struct
+import time
 from collections import defaultdict
 from io import BytesIO
 from typing import Any
 
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
+from rosbags.rosbag2.storage_sqlite3 import Sqlite3Writer
 
-__all__ = ["DIRECT_BYTES", "BagWriter"]
+__all__ = ["COMMIT_S", "DIRECT_BYTES", "BagWriter"]
+
+#: Longest time a sqlite3 bag's messages wait for their commit.
+COMMIT_S = 1.0
 
 #: Messages from this size on get a chunk of their own (rosbags closes a chunk past 1 MiB).
 DIRECT_BYTES = 1 << 20
@@ -71,7 +81,24 @@ def _chunk_index(timestamp: int, chunk_start: int, chunk_end: int, channel: int,
     return record
 
 
-class BagWriter(Writer):
-    """rosbags' ``Writer`` whose MCAP storage writes large messages in one write each."""
+class _CommittingSqlite3Writer(Sqlite3Writer):
+    """rosbags' sqlite3 storage writer, committed at most COMMIT_S seconds apart."""
 
-    STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _DirectMcapWriter}
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._committed = time.monotonic()
+
+    def write(self, connection: Any, timestamp: int, data: bytes | memoryview) -> None:
+        super().write(connection, timestamp, data)
+        now = time.monotonic()
+        if now - self._committed >= COMMIT_S:
+            self.conn.commit()
+            self._committed = now
+
+
+class BagWriter(Writer):
+    """rosbags' ``Writer`` whose MCAP storage writes large messages in one write each and
+    whose sqlite3 storage commits each second."""
+
+    STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _DirectMcapWriter,
+                       StoragePlugin.SQLITE3: _CommittingSqlite3Writer}

@@ -1,0 +1,188 @@
+"""Make a bag whose recording never ended readable again, as ``ros2 bag reindex`` does.
+
+A recorder killed without a chance to close (SIGKILL, a power cut, a full disk) leaves its bag
+without ``metadata.yaml``, and its MCAP file without the index and footer a reader looks for, so
+``bag info`` and ``bag play`` (and ``ros2 bag``) cannot open it. ``bag reindex DIR`` rebuilds
+``metadata.yaml`` from the storage file. An MCAP file is first cut after its last complete
+record (a message the crash cut short is lost) and ended with a data-end record and a footer
+without a summary, so readers scan its records instead of an index. A sqlite3 bag keeps what
+its recorder committed (each second). A bag that ended well is left as it is.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sqlite3
+import struct
+from io import StringIO
+from pathlib import Path
+from typing import Any
+
+from .errors import BagReadError
+
+__all__ = ["add_arguments", "reindex", "run"]
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_OP_HEADER, _OP_FOOTER, _OP_DATA_END = 0x01, 0x02, 0x0F
+_RECORD = struct.Struct("<BQ")  # opcode, length of the content that follows
+# A data-end record (no data CRC) and a footer with no summary (no summary CRC), then the magic.
+_TAIL = (_RECORD.pack(_OP_DATA_END, 4) + bytes(4) + _RECORD.pack(_OP_FOOTER, 20) + bytes(20)
+         + MCAP_MAGIC)
+METADATA = "metadata.yaml"
+BAG_VERSION = 9  # what the recorder writes (rosbags' latest)
+
+
+def reindex(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Rebuild the ``metadata.yaml`` of the bag directory ``path`` from its one storage file
+    (``.mcap`` or ``.db3``); returns what it found: ``file``, ``messages``, ``topics`` and
+    ``cut_bytes`` (the unfinished record cut off an MCAP file). :class:`BagReadError` when
+    ``path`` holds no such file or it is not one."""
+    root = Path(path)
+    if not root.is_dir():
+        raise BagReadError(f"no bag directory at {path}" + (
+            ": it does not exist" if not root.exists() else ""))
+    files = sorted(p for p in root.iterdir() if p.suffix in (".mcap", ".db3"))
+    if len(files) != 1:
+        raise BagReadError(f"{path} holds {len(files)} .mcap / .db3 files; reindex needs one")
+    storage = files[0]
+    cut = 0
+    if storage.suffix == ".mcap":
+        cut = end_mcap(storage)
+        info = _mcap_info(storage)
+    else:
+        info = _sqlite_info(storage)
+    _write_metadata(root / METADATA, storage, info)
+    return {"file": storage.name, "messages": info["message_count"],
+            "topics": len(info["topics"]), "cut_bytes": cut}
+
+
+def end_mcap(path: Path) -> int:
+    """End the MCAP file ``path`` where its last complete record ends, with a data-end record
+    and a footer; returns the bytes cut off. A file that ends with a footer is left alone."""
+    with path.open("r+b") as file:
+        size = os.fstat(file.fileno()).st_size
+        if file.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+            raise BagReadError(f"{path} is not an MCAP file")
+        file.seek(size - len(MCAP_MAGIC))
+        if size >= 2 * len(MCAP_MAGIC) + 9 + 20 and file.read() == MCAP_MAGIC:
+            return 0  # closed by its writer
+        end = len(MCAP_MAGIC)
+        first = True
+        while end + _RECORD.size <= size:
+            file.seek(end)
+            opcode, length = _RECORD.unpack(file.read(_RECORD.size))
+            if first and opcode != _OP_HEADER:
+                raise BagReadError(f"{path} does not start with an MCAP header record")
+            first = False
+            if opcode in (_OP_DATA_END, _OP_FOOTER) or length > size - end - _RECORD.size:
+                break  # what the writer's end began, or a record the crash cut short
+            end += _RECORD.size + length
+        if first:
+            raise BagReadError(f"{path} ends before its MCAP header: nothing to recover")
+        file.truncate(end)
+        file.seek(end)
+        file.write(_TAIL)
+    return size - end
+
+
+def _mcap_info(path: Path) -> dict[str, Any]:
+    from rosbags.rosbag2.metadata import dump_qos_v9
+    from rosbags.rosbag2.storage_mcap import McapReader
+
+    reader = McapReader(path)
+    try:
+        reader.open()
+        connections, meta = list(reader.connections), reader.metadata  # (close clears them)
+    except Exception as exc:  # rosbags' ReaderError and the like: the file is damaged inside
+        raise BagReadError(f"cannot read {path}: {exc}") from exc
+    finally:
+        reader.close()
+    count = meta.message_count
+    topics = [{
+        "topic_metadata": {
+            "name": c.topic, "type": c.msgtype,
+            "serialization_format": c.ext.serialization_format,
+            "offered_qos_profiles": dump_qos_v9(c.ext.offered_qos_profiles),
+            "type_description_hash": c.digest,
+        },
+        "message_count": c.msgcount,
+    } for c in connections]
+    # (the reader's end and duration count one past the last stamp)
+    return {"message_count": count, "start": meta.start_time if count else 0,
+            "duration": max(0, meta.duration - 1) if count else 0, "topics": topics}
+
+
+def _sqlite_info(path: Path) -> dict[str, Any]:
+    from ruamel.yaml import YAML
+
+    try:
+        # Read-write: opening rolls back what the recorder had not committed (its journal).
+        connection = sqlite3.connect(f"file:{path}?mode=rw", uri=True)
+        try:
+            rows = connection.execute(
+                "SELECT id, name, type, serialization_format, offered_qos_profiles, "
+                "type_description_hash FROM topics ORDER BY id").fetchall()
+            stats = {topic: (count, first, last) for topic, count, first, last in
+                     connection.execute("SELECT topic_id, COUNT(*), MIN(timestamp), "
+                                        "MAX(timestamp) FROM messages GROUP BY topic_id")}
+        finally:
+            connection.close()
+    except sqlite3.Error as exc:
+        raise BagReadError(f"cannot read {path}: {exc}") from exc
+    yaml = YAML(typ="safe")
+    topics = [{
+        "topic_metadata": {
+            "name": name, "type": type_name, "serialization_format": serialization,
+            "offered_qos_profiles": yaml.load(qos) if qos else [],
+            "type_description_hash": digest or "",
+        },
+        "message_count": stats.get(topic_id, (0, 0, 0))[0],
+    } for topic_id, name, type_name, serialization, qos, digest in rows]
+    count = sum(s[0] for s in stats.values())
+    start = min((s[1] for s in stats.values()), default=0)
+    end = max((s[2] for s in stats.values()), default=0)
+    return {"message_count": count, "start": start, "duration": end - start,
+            "topics": topics}
+
+
+def _write_metadata(target: Path, storage: Path, info: dict[str, Any]) -> None:
+    """``metadata.yaml`` as rosbags' writer makes it (version 9), written atomically."""
+    from ruamel.yaml import YAML
+
+    span = {"starting_time": {"nanoseconds_since_epoch": info["start"]},
+            "duration": {"nanoseconds": info["duration"]}}
+    metadata = {"rosbag2_bagfile_information": {
+        "version": BAG_VERSION,
+        "storage_identifier": "mcap" if storage.suffix == ".mcap" else "sqlite3",
+        "relative_file_paths": [storage.name],
+        "duration": span["duration"],
+        "starting_time": span["starting_time"],
+        "message_count": info["message_count"],
+        "topics_with_message_count": info["topics"],
+        "compression_format": "",
+        "compression_mode": "",
+        "files": [{"path": storage.name, **span, "message_count": info["message_count"]}],
+        "custom_data": None,
+        "ros_distro": "rosbags",
+    }}
+    yaml = YAML(typ="safe")
+    yaml.default_flow_style = False
+    text = StringIO()
+    yaml.dump(metadata, text)
+    temporary = target.with_suffix(".yaml.tmp")
+    temporary.write_text(text.getvalue(), "utf8")
+    temporary.replace(target)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("bag", metavar="DIR", help="the bag directory")
+
+
+def run(args: argparse.Namespace) -> int:
+    report = reindex(args.bag)
+    cut = (f"; cut {report['cut_bytes']} bytes of a record the recording did not finish"
+           if report["cut_bytes"] else "")
+    print(f"reindexed {args.bag}: {report['file']}, {report['topics']} topic"
+          f"{'s' if report['topics'] != 1 else ''}, {report['messages']} messages{cut}")
+    return 0
