@@ -38,7 +38,7 @@ import zenoh
 from .errors import TransportConfigError
 
 __all__ = ["CONFIG_URI_ENV", "CONNECT_TIMEOUT_ENV", "DEFAULT_CONFIG", "DROP_FRAGMENTS_WAIT_US",
-           "ROUTER_DEFAULTS", "ROUTER_ENV", "connect_timeout_s", "make_config",
+           "NO_SHARED_MEMORY", "ROUTER_DEFAULTS", "ROUTER_ENV", "connect_timeout_s", "make_config",
            "make_router_config", "resolve_domain_id", "zenoh_error_text"]
 
 ROUTER_ENV = "WARP_BUFFER_ZENOH_ROUTER"
@@ -50,16 +50,19 @@ DEFAULT_CONNECT_TIMEOUT_S = 10.0
 #: How long (us) a keep-last message may take to queue its fragments (see DEFAULT_CONFIG).
 DROP_FRAGMENTS_WAIT_US = 500_000
 
+#: Zenoh's SHM transport off, in every configuration we make: it made CPU-fallback samples
+#: slower here (its buffers have no Python buffer protocol, so Python copies in and out), and
+#: it names segments in /dev/shm (``<id>.zenoh``) that a killed process leaves behind.
+#: Same-host zero copy is the backends' job.
+NO_SHARED_MEMORY: dict[str, Any] = {"enabled": False}
+
 #: The embedded default (no router): loopback-only peer discovery by multicast scouting.
 DEFAULT_CONFIG: dict[str, Any] = {
     "mode": "peer",
     "listen": {"endpoints": ["tcp/127.0.0.1:0"]},
     "scouting": {"multicast": {"enabled": True, "interface": "lo"}, "gossip": {"enabled": True}},
     "transport": {
-        # Zenoh's SHM transport made CPU-fallback samples slower here (its buffers have no
-        # Python buffer protocol, so Python copies in and out); same-host zero copy is the
-        # backends' job.
-        "shared_memory": {"enabled": False},
+        "shared_memory": NO_SHARED_MEMORY,
         # A keep-last (DROP) message that needs many fragments may take this long to queue them
         # all before the rest is dropped (Zenoh's default, 50 ms, lost every CPU message over
         # ~40 MiB on loopback here, ~6 MB on 1 GbE, even with no congestion). A peer already
@@ -72,7 +75,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
 
 
 #: ``warp-buffer router``: rmw_zenoh's router defaults (listen on every address at port 7447,
-#: multicast scouting off, gossip on, peers told only of the router, timestamps on).
+#: multicast scouting off, gossip on, peers told only of the router, timestamps on), Zenoh's
+#: SHM transport off (see NO_SHARED_MEMORY).
 ROUTER_DEFAULTS: dict[str, Any] = {
     "mode": "router",
     "listen": {"endpoints": ["tcp/[::]:7447"]},
@@ -85,6 +89,7 @@ ROUTER_DEFAULTS: dict[str, Any] = {
     },
     "timestamping": {"enabled": {"router": True, "peer": True, "client": True}},
     "queries_default_timeout": 600000,
+    "transport": {"shared_memory": NO_SHARED_MEMORY},
 }
 
 
@@ -105,6 +110,7 @@ def _client_config(endpoint: str) -> dict[str, Any]:
         "mode": "client",
         "connect": {"endpoints": [endpoint], "timeout_ms": int(connect_timeout_s() * 1000)},
         "scouting": {"multicast": {"enabled": False}},
+        "transport": {"shared_memory": NO_SHARED_MEMORY},
     }
 
 

@@ -135,3 +135,27 @@ def test_connect_timeout_env_is_validated(monkeypatch: pytest.MonkeyPatch) -> No
     assert config.connect_timeout_s() == 2.5
     del os.environ[config.CONNECT_TIMEOUT_ENV]
     assert config.connect_timeout_s() == config.DEFAULT_CONNECT_TIMEOUT_S
+
+
+def _zenoh_segments(pid: int | str) -> set[str]:
+    """The Zenoh shared-memory segments (``/dev/shm/*.zenoh``) process ``pid`` maps."""
+    with open(f"/proc/{pid}/maps", encoding="utf-8") as maps:
+        return {line.split()[-1] for line in maps if line.rstrip().endswith(".zenoh")}
+
+
+@pytest.mark.multiprocess
+def test_a_router_and_its_clients_map_no_named_shared_memory(tmp_path: pathlib.Path) -> None:
+    # Zenoh's SHM transport names its segments in /dev/shm: a killed router or client would
+    # leave them behind. Same-host zero copy is the backends' job; the transport stays off it.
+    socket_path = tmp_path / "router.sock"
+    router = _start_router(socket_path)
+    try:
+        assert router.stdout is not None
+        assert router.stdout.readline().startswith("warp-buffer router ")
+        with Node("shm_user", router=f"unixsock-stream/{socket_path}") as node:
+            assert node.session.info.routers_zid()  # connected
+            assert _zenoh_segments("self") == set()
+            assert _zenoh_segments(router.pid) == set()
+    finally:
+        router.kill()
+        router.communicate()
