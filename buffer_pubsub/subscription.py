@@ -355,36 +355,36 @@ class Subscription:
         thread: queued, never run here. Returns the waker of the executor that runs it, for
         the publisher to notify once its publish has sent everything (None: nothing to wake).
 
-        The intra-process case of :meth:`_enqueue` in one call (it runs for every in-process
-        message): the stream is numbered exactly by its publisher, no duplicate can come, and
-        nothing is owned."""
+        The intra-process case of :meth:`_enqueue`, without its other routes' branches (it runs
+        for every in-process message): the stream is numbered exactly by its publisher, no
+        duplicate can come, nothing runs inline and nothing is owned."""
         if self.max_rate_hz and not self._due(attachment, ROUTE_INTRA):
             return None
         item = (msg, attachment, ROUTE_INTRA, time.time_ns(), False)
-        evicted = None
         with self._lock:
             if self._closed:
                 return None
-            verdict = self._sequences.track("intra", attachment.publisher_gid,
-                                            attachment.sequence_number, True)
-            if verdict is not IN_ORDER:
-                if verdict.lost:
-                    self.counters.lost += verdict.lost
-                elif verdict.jump:
-                    self.counters.sequence_jumps += 1
-                if verdict.late and self.history == wire.KEEP_LAST:
-                    self._refuse(REFUSED_LATE)
-                    return None
-            queue = self._queue
-            if len(queue) == queue.maxlen:
-                self.counters.dropped += 1
-                evicted = queue[0]
-            queue.append(item)
-            schedule = not self._scheduled
-            self._scheduled = True
+            if self._judge(attachment, ROUTE_INTRA, True) and self.history == wire.KEEP_LAST:
+                self._refuse(REFUSED_LATE)  # (as _enqueue)
+                return None
+            evicted, schedule = self._queue_item(item)
         if evicted is not None and evicted[4]:  # an owned message (a lane's) leaves the queue
             release_buffers(evicted[0])
         return self.node.scheduler.make_ready(self) if schedule else None
+
+    def _queue_item(self, item: tuple[Any, ...]) -> tuple[tuple[Any, ...] | None, bool]:
+        """Append ``item`` to the keep-last queue (call with ``self._lock`` held); returns the
+        item it pushed out (counted in ``dropped``), if any, and whether the subscription must
+        be made ready (it was not)."""
+        queue = self._queue
+        evicted = None
+        if len(queue) == queue.maxlen:
+            self.counters.dropped += 1
+            evicted = queue[0]
+        queue.append(item)
+        schedule = not self._scheduled
+        self._scheduled = True
+        return evicted, schedule
 
     def _judge(self, attachment: wire.Attachment, route: str, exact: bool) -> bool:
         """Count what ``attachment`` says of its stream (gaps, jumps; ``exact``: see
@@ -461,12 +461,7 @@ class Subscription:
                     if not run_now:
                         gate.release()  # type: ignore[union-attr]  # Zenoh arrivals have one
                 if not run_now:
-                    if len(queue) == queue.maxlen:
-                        self.counters.dropped += 1
-                        evicted = queue[0]
-                    queue.append(item)
-                    schedule = not self._scheduled
-                    self._scheduled = True
+                    evicted, schedule = self._queue_item(item)
         if run_now:
             try:
                 ran = self._run_item(item, inline=True)
