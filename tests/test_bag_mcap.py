@@ -7,6 +7,7 @@ from __future__ import annotations
 import pathlib
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -137,3 +138,26 @@ def test_sqlite3_storage_is_rosbags_own_committed_each_second(tmp_path, monkeypa
     finally:
         other.close()
     bag.close()
+
+
+def test_reindex_refuses_a_bag_its_writer_still_holds(tmp_path):
+    from rosbags.rosbag2 import StoragePlugin
+
+    from rosidl_buffer.messages import get_typestore
+    from warp_buffer_cli.bag.errors import BagReadError
+    from warp_buffer_cli.bag.reindex import reindex
+
+    path = tmp_path / "bag"
+    writer = BagWriter(path, version=BagWriter.VERSION_LATEST, storage_plugin=StoragePlugin.MCAP)
+    writer.open()
+    try:
+        connection = writer.add_connection("/t", "std_msgs/msg/String", typestore=get_typestore())
+        writer.write(connection, 1, bytes(2 * DIRECT_BYTES))  # on disk already (direct)
+        before = (path / "bag.mcap").read_bytes()
+        with pytest.raises(BagReadError, match="held by another process"):
+            reindex(path)
+        assert (path / "bag.mcap").read_bytes() == before  # not cut, no footer added
+        assert not (path / "metadata.yaml").exists()
+    finally:
+        writer.close()
+    assert reindex(path) == {"file": "bag.mcap", "messages": 1, "topics": 1, "cut_bytes": 0}

@@ -6,7 +6,8 @@ without ``metadata.yaml``, and its MCAP file without the index and footer a read
 ``metadata.yaml`` from the storage file. An MCAP file is first cut after its last complete
 record (a message the crash cut short is lost) and ended with a data-end record and a footer
 without a summary, so readers scan its records instead of an index. A sqlite3 bag keeps what
-its recorder committed (each second). A bag that ended well is left as it is.
+its recorder committed (each second). A bag that ended well is left as it is; a bag still being
+recorded (its recorder holds the directory) is refused.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import BagReadError
+from .lock import BagBusyError, locked_bag
 
 __all__ = ["add_arguments", "reindex", "run"]
 
@@ -47,12 +49,16 @@ def reindex(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise BagReadError(f"{path} holds {len(files)} .mcap / .db3 files; reindex needs one")
     storage = files[0]
     cut = 0
-    if storage.suffix == ".mcap":
-        cut = end_mcap(storage)
-        info = _mcap_info(storage)
-    else:
-        info = _sqlite_info(storage)
-    _write_metadata(root / METADATA, storage, info)
+    try:
+        with locked_bag(root):  # never a bag its recorder still writes
+            if storage.suffix == ".mcap":
+                cut = end_mcap(storage)
+                info = _mcap_info(storage)
+            else:
+                info = _sqlite_info(storage)
+            _write_metadata(root / METADATA, storage, info)
+    except BagBusyError as exc:
+        raise BagReadError(f"cannot reindex {path}: {exc}") from None
     return {"file": storage.name, "messages": info["message_count"],
             "topics": len(info["topics"]), "cut_bytes": cut}
 

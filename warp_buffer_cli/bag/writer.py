@@ -3,7 +3,8 @@ bag committed each second.
 
 A killed recorder loses what its storage did not hold yet: rosbags commits a sqlite3 bag once,
 when it closes, so here it commits at most :data:`COMMIT_S` seconds apart (``bag reindex``
-recovers such a bag, and an MCAP one up to its last chunk on disk).
+recovers such a bag, and an MCAP one up to its last chunk on disk). While it writes, the writer
+holds the bag's directory (:mod:`.lock`): ``bag reindex`` refuses a bag still being recorded.
 
 rosbags' MCAP storage builds every message record in a ``BytesIO``, appends it to the pending
 chunk's ``BytesIO``, and copies the chunk twice more when it closes it: for a 16 MiB frame that
@@ -16,6 +17,7 @@ the summary). Smaller messages, compression and everything else are rosbags' own
 
 from __future__ import annotations
 
+import os
 import struct
 import time
 from collections import defaultdict
@@ -25,6 +27,8 @@ from typing import Any
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Writer
+
+from .lock import lock_directory
 
 __all__ = ["COMMIT_S", "DIRECT_BYTES", "BagWriter"]
 
@@ -97,8 +101,35 @@ class _CommittingSqlite3Writer(Sqlite3Writer):
 
 
 class BagWriter(Writer):
-    """rosbags' ``Writer`` whose MCAP storage writes large messages in one write each and
-    whose sqlite3 storage commits each second."""
+    """rosbags' ``Writer`` whose MCAP storage writes large messages in one write each, whose
+    sqlite3 storage commits each second, and which holds the bag's directory while it writes."""
 
     STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _DirectMcapWriter,
                        StoragePlugin.SQLITE3: _CommittingSqlite3Writer}
+
+    _lock_fd: int | None = None
+
+    def open(self) -> None:
+        super().open()  # (creates the directory)
+        try:
+            self._lock_fd = lock_directory(self.path)
+        except BaseException:
+            super().abort()
+            raise
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            self._unlock()
+
+    def abort(self) -> None:
+        try:
+            super().abort()
+        finally:
+            self._unlock()
+
+    def _unlock(self) -> None:
+        fd, self._lock_fd = self._lock_fd, None
+        if fd is not None:
+            os.close(fd)
