@@ -517,7 +517,9 @@ class Publisher:
             raise InvalidEndpointError(
                 f"publisher of {self.msg_type.__msgtype__} got {type(msg).__name__}")
         backends, nbytes, impls = seal_and_list_backends(msg, self._flat_buffers)  # write ends
-        wakers: list[Waker] | None = None  # of in-process subscriptions: woken when publish ends
+        # The executors of in-process subscriptions served: woken when publish() ends, also when
+        # a later route fails.
+        wakers: list[Waker] = []
         try:
             # perf: the flag and the peer tuple are read without the publisher's lock (each read
             # is atomic, and a destroy() racing this publish is no different from one that comes
@@ -532,24 +534,22 @@ class Publisher:
                     raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
                 stamp = self._last_stamp = max(time.time_ns(), self._last_stamp + 1)
                 if remote is _NOBODY:
-                    wakers = self._publish_intra(msg, backends, stamp)
+                    self._publish_intra(msg, backends, stamp, wakers)
                     return
                 try:
-                    wakers = self._publish_remote(msg, backends, nbytes, stamp, remote)
+                    self._publish_remote(msg, backends, nbytes, stamp, remote, wakers)
                 finally:
                     if self._undeclare_after_send:  # destroyed during this publish (see there)
                         undeclare_quietly(self._base, self._cpu)
         finally:
             for impl in impls:  # after the sends: readers are on their way meanwhile
                 impl.end_publish()
-            if wakers is not None:  # last: a woken executor finds the GIL free soon
-                for waker in wakers:
-                    waker.notify()
+            for waker in wakers:  # last: a woken executor finds the GIL free soon
+                waker.notify()
 
     def _publish_remote(self, msg: Message, backends: frozenset[str], nbytes: int, stamp: int,
-                        routing: _Routing) -> list[Waker] | None:
-        """Send to every route; returns the wakers of the in-process subscriptions served (see
-        :meth:`_publish_intra`)."""
+                        routing: _Routing, wakers: list[Waker]) -> None:
+        """Send to every route (``wakers``: see :meth:`_publish_intra`)."""
         # Everything is serialized (and size-checked) before anything leaves, so a message too
         # large for the transport reaches nobody rather than some.
         need_base = routing.base
@@ -573,8 +573,8 @@ class Publisher:
             if nbytes > self.node.max_message_size:
                 self._checked(None, nbytes)  # hopeless: raise before copying a huge payload
             cpu_payload = self._out = self._checked(serialize_message(msg, out=self._out))
-        wakers = (self._publish_intra(msg, backends, stamp)
-                  if self._intra_key in _process.SUBSCRIPTIONS else None)
+        if self._intra_key in _process.SUBSCRIPTIONS:
+            self._publish_intra(msg, backends, stamp, wakers)
         gid = self.gid
         try:
             for peer, payload in individual:
@@ -587,7 +587,6 @@ class Publisher:
                     wire.Attachment, (next(self._base_sequences), stamp, gid)).encode())
         except zenoh.ZError as exc:
             raise TransportError(f"publish on {self.topic_name}: {exc}") from exc
-        return wakers
 
     def _checked(self, payload: bytearray | None, nbytes: int = 0) -> bytearray:
         """``payload`` if Zenoh carries it, else PayloadTooLargeError (None: always raise, for
@@ -602,17 +601,16 @@ class Publisher:
                 "see transport/link/rx/max_message_size); split it, or use a buffer backend")
         return payload
 
-    def _publish_intra(self, msg: Message, backends: frozenset[str], stamp: int
-                       ) -> list[Waker] | None:
-        """Queue a snapshot of ``msg`` for each subscription of this process; returns the
-        wakers of their executors (None: nobody to wake), which publish() notifies last."""
+    def _publish_intra(self, msg: Message, backends: frozenset[str], stamp: int,
+                       wakers: list[Waker]) -> None:
+        """Queue a snapshot of ``msg`` for each subscription of this process; adds the wakers
+        of their executors to ``wakers`` (once each), which publish() notifies last."""
         subscriptions = _process.SUBSCRIPTIONS.get(self._intra_key)
         if not subscriptions:
-            return None
+            return
         attachment = new_attachment(
             wire.Attachment, (next(self._intra_sequences), stamp, self.gid))
         copy: Message | None = None
-        wakers: list[Waker] | None = None
         domain_id = self.node.domain_id
         make_snapshot = self._snapshot if type(msg) is self.msg_type else snapshot
         for subscription in subscriptions:
@@ -625,12 +623,8 @@ class Publisher:
                 if copy is None:
                     copy = cpu_copy(msg)
                 waker = subscription.deliver_intra(snapshot(copy), attachment)
-            if waker is not None:
-                if wakers is None:
-                    wakers = [waker]
-                elif waker not in wakers:
-                    wakers.append(waker)
-        return wakers
+            if waker is not None and waker not in wakers:
+                wakers.append(waker)
 
     def _serialize_for(self, peer: _Peer, msg: Message) -> bytearray:
         backends = self.node.backends

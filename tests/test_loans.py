@@ -379,6 +379,33 @@ def test_publish_wakes_the_in_process_executor_last_and_once(domain, topic, back
         assert node.spin_once(0) == 2 and len(received) == 2
 
 
+def test_a_publish_failing_after_its_in_process_delivery_still_wakes_the_executor(
+        domain, topic, backends, monkeypatch):
+    import buffer_pubsub.publisher as publisher_module
+    from buffer_pubsub.errors import TransportError
+
+    events: list[str] = []
+    msg = get_message_type(TENSOR)(dtype_code=1, dtype_bits=8, dtype_lanes=1, shape=[16],
+                                   data=Buffer(_RecordingImpl(events)))
+    received = []
+    with Node("wake_on_failure", domain_id=domain, backends=backends, executor="manual",
+              waker=_RecordingWaker(events)) as node:
+        node.create_subscription(TENSOR, topic, received.append)
+        pub = node.create_publisher(TENSOR, topic)
+
+        def failing(msg, backends, nbytes, stamp, routing, wakers):
+            pub._publish_intra(msg, backends, stamp, wakers)  # delivered in process, then
+            raise TransportError("a remote route failed")  # a Zenoh put fails
+
+        monkeypatch.setattr(pub, "_publish_remote", failing)
+        pub._remote = publisher_module._Routing((), True, False)  # as if a peer were matched
+        events.clear()
+        with pytest.raises(TransportError):
+            pub.publish(msg)
+        assert events == ["seal", "end_publish", "notify"]
+        assert node.spin_once(0) == 1 and len(received) == 1
+
+
 def test_writing_through_a_view_kept_past_publish_faults(domain, topic):
     proc = subprocess.run([sys.executable, "-c", _STALE_CHILD, str(domain), topic], cwd=ROOT,
                           env=child_env(), capture_output=True, text=True, timeout=60)
