@@ -49,6 +49,8 @@ DEFAULT_CONNECT_TIMEOUT_S = 10.0
 
 #: How long (us) a keep-last message may take to queue its fragments (see DEFAULT_CONFIG).
 DROP_FRAGMENTS_WAIT_US = 500_000
+#: Zenoh's queue of data batches per link (see DEFAULT_CONFIG).
+DATA_QUEUE_BATCHES = 8
 
 #: Zenoh's SHM transport off, in every configuration we make: it made CPU-fallback samples
 #: slower here (its buffers have no Python buffer protocol, so Python copies in and out), and
@@ -68,8 +70,13 @@ DEFAULT_CONFIG: dict[str, Any] = {
         # ~40 MiB on loopback here, ~6 MB on 1 GbE, even with no congestion). A peer already
         # frozen still costs 1 ms a message (wait_before_drop): only the message in flight
         # when it froze waits up to this.
-        "link": {"tx": {"queue": {"congestion_control": {
-            "drop": {"max_wait_before_drop_fragments": DROP_FRAGMENTS_WAIT_US}}}}},
+        "link": {"tx": {"queue": {
+            "congestion_control": {
+                "drop": {"max_wait_before_drop_fragments": DROP_FRAGMENTS_WAIT_US}},
+            # Zenoh's default, 2 batches of 64 KiB, holds less than one 300 KB frame: a
+            # keep-last frame was dropped whenever the reader stalled for one frame period
+            # (a loaded host's hiccup). 8 batches ride out a few frames' worth.
+            "size": {"data": DATA_QUEUE_BATCHES}}}},
     },
 }
 
@@ -110,7 +117,8 @@ def _client_config(endpoint: str) -> dict[str, Any]:
         "mode": "client",
         "connect": {"endpoints": [endpoint], "timeout_ms": int(connect_timeout_s() * 1000)},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"shared_memory": NO_SHARED_MEMORY},
+        "transport": {"shared_memory": NO_SHARED_MEMORY,
+                      "link": {"tx": {"queue": {"size": {"data": DATA_QUEUE_BATCHES}}}}},
     }
 
 

@@ -3,6 +3,7 @@ file (``buffer_pubsub.config`` and ``buffer_pubsub.connectivity``)."""
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import pathlib
@@ -159,3 +160,13 @@ def test_a_router_and_its_clients_map_no_named_shared_memory(tmp_path: pathlib.P
     finally:
         router.kill()
         router.communicate()
+
+
+def test_a_nodes_data_queue_holds_more_than_one_demo_frame() -> None:
+    # Zenoh's default (2 batches of 64 KiB) held less than one 240x320 float32 frame (300 KB):
+    # a keep-last frame was dropped whenever the reader stalled for one frame period.
+    frame = 240 * 320 * 4
+    for made in (config.make_config(), config.make_config(router="tcp/localhost:7447")):
+        batches = json.loads(made.get_json("transport/link/tx/queue/size"))["data"]
+        batch = json.loads(made.get_json("transport/link/tx/batch_size"))
+        assert batches * batch >= 1.5 * frame, (batches, batch)
