@@ -362,14 +362,22 @@ class _RecordingWaker:
         self._event.set()
 
 
-def test_publish_wakes_the_in_process_executor_last_and_once(domain, topic, backends):
-    # Woken before the fence, the executor thread would wait for the GIL the publish holds.
+def _recorded(domain: int, backends, name: str):
+    """What the two wake-up tests record into: its events, a message whose storage records its
+    seal and fence, the node (manual executor) whose waker records its notifications."""
     events: list[str] = []
     msg = get_message_type(TENSOR)(dtype_code=1, dtype_bits=8, dtype_lanes=1, shape=[16],
                                    data=Buffer(_RecordingImpl(events)))
+    node = Node(name, domain_id=domain, backends=backends, executor="manual",
+                waker=_RecordingWaker(events))
+    return events, msg, node
+
+
+def test_publish_wakes_the_in_process_executor_last_and_once(domain, topic, backends):
+    # Woken before the fence, the executor thread would wait for the GIL the publish holds.
+    events, msg, node = _recorded(domain, backends, "wake_order")
     received = []
-    with Node("wake_order", domain_id=domain, backends=backends, executor="manual",
-              waker=_RecordingWaker(events)) as node:
+    with node:
         for _ in range(2):  # two subscriptions of one executor: one wake-up
             node.create_subscription(TENSOR, topic, received.append)
         pub = node.create_publisher(TENSOR, topic)
@@ -384,12 +392,9 @@ def test_a_publish_failing_after_its_in_process_delivery_still_wakes_the_executo
     import buffer_pubsub.publisher as publisher_module
     from buffer_pubsub.errors import TransportError
 
-    events: list[str] = []
-    msg = get_message_type(TENSOR)(dtype_code=1, dtype_bits=8, dtype_lanes=1, shape=[16],
-                                   data=Buffer(_RecordingImpl(events)))
+    events, msg, node = _recorded(domain, backends, "wake_on_failure")
     received = []
-    with Node("wake_on_failure", domain_id=domain, backends=backends, executor="manual",
-              waker=_RecordingWaker(events)) as node:
+    with node:
         node.create_subscription(TENSOR, topic, received.append)
         pub = node.create_publisher(TENSOR, topic)
 
