@@ -70,9 +70,6 @@ if TYPE_CHECKING:
 __all__ = ["Publisher", "RouteInfo", "seal_and_list_backends"]
 
 _log = logging.getLogger(__name__)
-#: Builds a wire.Attachment from its three values without the NamedTuple's generated __new__ (a
-#: Python frame, paid per message).
-new_attachment = tuple.__new__
 #: How long destroy() waits for a publish in flight on another thread before leaving the
 #: Zenoh publishers to that publish to undeclare.
 UNDECLARE_WAIT_S = 1.0
@@ -560,10 +557,7 @@ class Publisher:
             if peer.rate is not None and not peer.rate.admit(now):
                 continue  # at its max_rate: nothing serialized, nothing sent
             if peer.served & backends:
-                payload = self._serialize_for(peer, msg)
-                if len(payload) > self.node.max_message_size:
-                    self._checked(payload)  # raises
-                individual.append((peer, payload))
+                individual.append((peer, self._checked(self._serialize_for(peer, msg))))
             elif not need_base:
                 individual.append((peer, None))  # the shared CPU serialization
                 need_cpu = True
@@ -580,11 +574,11 @@ class Publisher:
             for peer, payload in individual:
                 self._put_individual(peer, cpu_payload if payload is None else payload, stamp)
             if routing.cpu:
-                self._cpu.put(cpu_payload, attachment=new_attachment(  # type: ignore[union-attr]
-                    wire.Attachment, (next(self._cpu_sequences), stamp, gid)).encode())
+                self._cpu.put(cpu_payload, attachment=wire.new_attachment(  # type: ignore[union-attr]
+                    (next(self._cpu_sequences), stamp, gid)).encode())
             if need_base:
-                self._base.put(cpu_payload, attachment=new_attachment(
-                    wire.Attachment, (next(self._base_sequences), stamp, gid)).encode())
+                self._base.put(cpu_payload, attachment=wire.new_attachment(
+                    (next(self._base_sequences), stamp, gid)).encode())
         except zenoh.ZError as exc:
             raise TransportError(f"publish on {self.topic_name}: {exc}") from exc
 
@@ -608,8 +602,7 @@ class Publisher:
         subscriptions = _process.SUBSCRIPTIONS.get(self._intra_key)
         if not subscriptions:
             return
-        attachment = new_attachment(
-            wire.Attachment, (next(self._intra_sequences), stamp, self.gid))
+        attachment = wire.new_attachment((next(self._intra_sequences), stamp, self.gid))
         copy: Message | None = None
         domain_id = self.node.domain_id
         make_snapshot = self._snapshot if type(msg) is self.msg_type else snapshot
@@ -643,8 +636,7 @@ class Publisher:
         with peer.lock:
             if peer.gone:
                 return  # the subscription vanished while we were publishing: nobody to send to
-            attachment = new_attachment(
-                wire.Attachment, (next(peer.sequences), stamp, self.gid)).encode()
+            attachment = wire.new_attachment((next(peer.sequences), stamp, self.gid)).encode()
             lane = peer.lane
             if lane is not None and lane.fits(len(attachment) + len(payload)):
                 try:

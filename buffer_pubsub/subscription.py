@@ -432,9 +432,7 @@ class Subscription:
         # Only our publishers in other processes may send a message twice (see _sequence), and
         # only their stamps are known to be unique: another implementation may stamp alike.
         ours = publisher is not None and publisher.locality is not None
-        # (_numbered_per_stream, inline: once per message)
-        exact = route in _EXACT_ROUTES or ours or publisher is not None and (
-            publisher.backends is None)
+        exact = _numbered_per_stream(route, publisher)
         with self._lock:
             if self._closed:
                 closed = True

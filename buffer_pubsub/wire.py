@@ -36,6 +36,7 @@ Our extension: a locality segment
 
 from __future__ import annotations
 
+import functools
 import struct
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -64,6 +65,7 @@ __all__ = [
     "gid_from_key",
     "liveliness_domain_selector",
     "mangle",
+    "new_attachment",
     "parse_token",
     "subscription_channel",
 ]
@@ -315,9 +317,6 @@ class QoSProfile:
 
 
 # --------------------------------------------------------------------------- attachment
-_new_tuple = tuple.__new__
-
-
 class Attachment(NamedTuple):
     """The 33-byte attachment of every sample (a NamedTuple: built once per message on the hot
     path, several times cheaper than a frozen dataclass)."""
@@ -340,7 +339,12 @@ class Attachment(NamedTuple):
         sequence, stamp, prefix, gid = _ATTACHMENT.unpack(data)
         if prefix != _GID_LENGTH_PREFIX:
             raise WireFormatError(f"attachment gid length prefix is {prefix:#x}, not 0x10")
-        return _new_tuple(cls, (sequence, stamp, gid))  # (not cls(...): its __new__ is Python)
+        return new_attachment((sequence, stamp, gid))
+
+
+#: ``new_attachment((sequence, stamp, gid))``: an Attachment built in C, without the NamedTuple's
+#: generated ``__new__`` (a Python frame on every publish and arrival).
+new_attachment = functools.partial(tuple.__new__, Attachment)
 
 
 # --------------------------------------------------------------------------- backends segment

@@ -229,9 +229,7 @@ class WarpBufferImpl(BufferImplBase):
         return self.nbytes
 
     def seal_for_publish(self) -> tuple[str, int]:
-        lease = self.lease  # (as seal())
-        if lease is not None:
-            lease.seal()
+        self.seal()  # (a loan's is its lease's own, bound in C)
         return WARP_BACKEND, self.nbytes
 
     def _check_live(self) -> None:
