@@ -329,8 +329,16 @@ def test_samples_without_attachment_are_rejected_and_base_key_serves_plain_peers
         raw_token = raw.liveliness().declare_token(token.key())
         pub = node.create_publisher(TENSOR, topic)
         assert pub.wait_for_subscriptions(2, timeout=10)
-        raw.put(wire.cpu_channel_key(base), bytes(serialize_message(tensor())))  # no attachment
-        time.sleep(0.3)
+        # The bare put goes out once Zenoh routes its key to our subscription (a fixed sleep
+        # lost it on a loaded host), and the frame after it has been judged.
+        bare = raw.declare_publisher(wire.cpu_channel_key(base))
+        deadline = time.monotonic() + 10
+        while not bare.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        bare.put(bytes(serialize_message(tensor())))  # no attachment
+        while not sub.counters.rejected and time.monotonic() < deadline:
+            time.sleep(0.01)
+        bare.undeclare()
         pub.publish(make_frame(0, 7, SIZE, BACKEND))
         deadline = time.monotonic() + 5
         while (not plain or not got) and time.monotonic() < deadline:
