@@ -528,6 +528,36 @@ def test_a_killed_recording_is_made_readable_by_reindex(tmp_path, domain, topic,
     assert again.returncode == 0 and read_bag(bag) == stored
 
 
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_recording_killed_while_idle_keeps_every_small_message(tmp_path, domain, topic,
+                                                                  storage):
+    """Small messages (far below rosbags' 1 MiB MCAP chunk) reach the file within a second of
+    their write even when no later message comes to push them out."""
+    bag = tmp_path / "idle"
+    count, size = 12, 1024
+    publisher = helper("publish", domain, topic, "--count", str(count), "--size", str(size))
+    recorder = None
+    try:
+        publisher.read_until("READY")
+        recorder = bag_cli(domain, "record", topic, topic + "_text", "-o", str(bag), "-s",
+                           storage)
+        published = json.loads(publisher.read_until("RESULT ")[len("RESULT "):])
+        assert published["published"] == count and published["matched"]
+        time.sleep(3.0)  # the last messages reach the recorder, then past the flush
+        recorder.proc.kill()
+        recorder.proc.wait(timeout=30)
+    finally:
+        if recorder is not None:
+            recorder.close()
+        publisher.tell("stop")
+        publisher.close()
+    done = run_bag(domain, "reindex", str(bag))
+    assert done.returncode == 0, done.stderr
+    stored = read_bag(bag)
+    assert [_frame_index(raw, size) for _, raw in stored[topic]] == list(range(count))
+    assert len(stored[topic + "_text"]) == count
+
+
 def _closed_mcap_bag(path: pathlib.Path, count: int) -> list[bytes]:
     """A closed MCAP bag of ``count`` large tensor messages (a chunk each); their CDR."""
     from rosbags.rosbag2 import StoragePlugin

@@ -5,6 +5,7 @@ CRCs checked, and record by record), whatever mix of large and small messages.""
 from __future__ import annotations
 
 import pathlib
+import time
 
 import numpy as np
 import pytest
@@ -138,6 +139,32 @@ def test_sqlite3_storage_is_rosbags_own_committed_each_second(tmp_path, monkeypa
     finally:
         other.close()
     bag.close()
+
+
+def test_small_mcap_messages_reach_the_file_within_commit_s(tmp_path, monkeypatch):
+    from rosbags.rosbag2 import StoragePlugin
+
+    from rosidl_buffer.messages import get_typestore
+    from warp_buffer_cli.bag import writer as writer_module
+
+    monkeypatch.setattr(writer_module, "COMMIT_S", 0.2)
+    path = tmp_path / "bag"
+    bag = BagWriter(path, version=BagWriter.VERSION_LATEST, storage_plugin=StoragePlugin.MCAP)
+    bag.open()
+    try:
+        connection = bag.add_connection("/t", "std_msgs/msg/String", typestore=get_typestore())
+        first, second = b"first-message-body", b"second-message-body"
+        bag.write(connection, 1, first)  # nothing written for COMMIT_S before: in the file now
+        bag.write(connection, 2, second)  # 0.2 s not passed: still in rosbags' pending chunk
+        on_disk = (path / "bag.mcap").read_bytes()
+        assert first in on_disk and second not in on_disk
+        bag.flush_if_due()
+        assert second not in (path / "bag.mcap").read_bytes()  # not due yet
+        time.sleep(0.25)
+        bag.flush_if_due()  # what the recorder's writer thread calls when nothing comes
+        assert second in (path / "bag.mcap").read_bytes()
+    finally:
+        bag.close()
 
 
 def test_reindex_refuses_a_bag_its_writer_still_holds(tmp_path):

@@ -50,13 +50,15 @@ class WriteCache:
             self._items.append((item, 0))
             self._cond.notify()
 
-    def get(self) -> Any | None:
-        """The oldest item, waiting for one; None once the cache is closed and empty."""
+    def get(self, timeout: float | None = None) -> Any | None:
+        """The oldest item, waiting for one; None once the cache is closed and empty.
+        Raises :class:`TimeoutError` when ``timeout`` seconds pass with nothing queued."""
         with self._cond:
             while not self._items:
                 if self._closed:
                     return None
-                self._cond.wait()
+                if not self._cond.wait(timeout):
+                    raise TimeoutError("nothing queued")
             item, nbytes = self._items.popleft()
             self.queued_bytes -= nbytes
             return item

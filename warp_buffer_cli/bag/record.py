@@ -200,7 +200,16 @@ class Recorder:
         return on_message
 
     def _write_loop(self) -> None:
-        while (item := self.cache.get()) is not None:
+        from . import writer as bag_writer  # (rosbags is imported only by a recording)
+
+        while True:
+            try:
+                item = self.cache.get(timeout=bag_writer.COMMIT_S)
+            except TimeoutError:  # nothing came: what was written must not wait for more
+                self._flush_if_due()
+                continue
+            if item is None:
+                return
             if item[0] == "call":
                 _, call, outcome, done = item
                 try:
@@ -221,6 +230,14 @@ class Recorder:
                 continue
             record.messages += 1
             record.nbytes += len(data)
+
+    def _flush_if_due(self) -> None:
+        if self._writer is None or self.write_error is not None:
+            return
+        try:
+            self._writer.flush_if_due()
+        except Exception as exc:  # as a failed write: stop writing, keep the bag readable
+            self.write_error = exc
 
     def _finalize(self) -> None:
         try:

@@ -1,10 +1,13 @@
-"""rosbags' bag writer, with large messages written to MCAP in one write each, and a sqlite3
-bag committed each second.
+"""rosbags' bag writer, with large messages written to MCAP in one write each, and what it
+holds flushed each second.
 
 A killed recorder loses what its storage did not hold yet: rosbags commits a sqlite3 bag once,
-when it closes, so here it commits at most :data:`COMMIT_S` seconds apart (``bag reindex``
-recovers such a bag, and an MCAP one up to its last chunk on disk). While it writes, the writer
-holds the bag's directory (:mod:`.lock`): ``bag reindex`` refuses a bag still being recorded.
+when it closes, and keeps an MCAP bag's small messages in memory until their chunk passes 1 MiB.
+Here a written message waits at most :data:`COMMIT_S` seconds before it is in the file (the
+sqlite3 transaction committed, the MCAP chunk closed and flushed): checked at each write and,
+when no message comes, by the recorder's writer thread (:meth:`BagWriter.flush_if_due`).
+``bag reindex`` recovers such a bag. While it writes, the writer holds the bag's directory
+(:mod:`.lock`): ``bag reindex`` refuses a bag still being recorded.
 
 rosbags' MCAP storage builds every message record in a ``BytesIO``, appends it to the pending
 chunk's ``BytesIO``, and copies the chunk twice more when it closes it: for a 16 MiB frame that
@@ -32,7 +35,7 @@ from .lock import lock_directory
 
 __all__ = ["COMMIT_S", "DIRECT_BYTES", "BagWriter"]
 
-#: Longest time a sqlite3 bag's messages wait for their commit.
+#: Longest time a written message waits before it is in the bag's file.
 COMMIT_S = 1.0
 
 #: Messages from this size on get a chunk of their own (rosbags closes a chunk past 1 MiB).
@@ -43,10 +46,38 @@ _MESSAGE_HEADER = struct.Struct("<BQHIQQ")  # op, record length, channel, sequen
 _CHUNK_HEADER = struct.Struct("<BQQQQIIQ")  # op, length, start, end, size, crc, "", compressed
 
 
-class _DirectMcapWriter(McapWriter):
+class _Flushing:
+    """A storage writer whose written messages reach its file at most COMMIT_S seconds apart."""
+
+    _flushed = 0.0
+    _pending = False
+
+    def flush_if_due(self) -> None:
+        """Put what was written into the file if it waited COMMIT_S seconds or more."""
+        now = time.monotonic()
+        if self._pending and now - self._flushed >= COMMIT_S:
+            self._flush()
+            self._pending = False
+            self._flushed = now
+
+    def _flush(self) -> None:
+        raise NotImplementedError
+
+
+class _DirectMcapWriter(_Flushing, McapWriter):
     """rosbags' MCAP storage writer; large uncompressed messages go to the file directly."""
 
     def write(self, connection: Any, timestamp: int, data: bytes | memoryview) -> None:
+        self._pending = True
+        self._write(connection, timestamp, data)
+        self.flush_if_due()
+
+    def _flush(self) -> None:
+        if self.chunk.bio.tell():
+            self.close_chunk()
+        self.bio.flush()  # (out of Python's buffer: a killed process loses nothing of it)
+
+    def _write(self, connection: Any, timestamp: int, data: bytes | memoryview) -> None:
         if len(data) < DIRECT_BYTES or self.compression:
             super().write(connection, timestamp, data)
             return
@@ -85,29 +116,33 @@ def _chunk_index(timestamp: int, chunk_start: int, chunk_end: int, channel: int,
     return record
 
 
-class _CommittingSqlite3Writer(Sqlite3Writer):
+class _CommittingSqlite3Writer(_Flushing, Sqlite3Writer):
     """rosbags' sqlite3 storage writer, committed at most COMMIT_S seconds apart."""
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self._committed = time.monotonic()
 
     def write(self, connection: Any, timestamp: int, data: bytes | memoryview) -> None:
         super().write(connection, timestamp, data)
-        now = time.monotonic()
-        if now - self._committed >= COMMIT_S:
-            self.conn.commit()
-            self._committed = now
+        self._pending = True
+        self.flush_if_due()
+
+    def _flush(self) -> None:
+        self.conn.commit()
 
 
 class BagWriter(Writer):
     """rosbags' ``Writer`` whose MCAP storage writes large messages in one write each, whose
-    sqlite3 storage commits each second, and which holds the bag's directory while it writes."""
+    storage puts what it was given in the file each second, and which holds the bag's
+    directory while it writes."""
 
     STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _DirectMcapWriter,
                        StoragePlugin.SQLITE3: _CommittingSqlite3Writer}
 
     _lock_fd: int | None = None
+
+    def flush_if_due(self) -> None:
+        """Put what was written into the file if it waited :data:`COMMIT_S` or more (a writer
+        that gets no message for a while calls this: nothing waits on a next write)."""
+        if self.storage is not None:
+            self.storage.flush_if_due()
 
     def open(self) -> None:
         super().open()  # (creates the directory)
