@@ -491,18 +491,17 @@ def _frame_index(raw: bytes, size: int) -> int | None:
     return None
 
 
-@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
-def test_a_killed_recording_is_made_readable_by_reindex(tmp_path, domain, topic, storage):
-    bag = tmp_path / "killed"
-    publisher = helper("publish", domain, topic, "--count", "400", "--rate", "50",
-                       "--size", str(SIZE))
+def _kill_a_recording(bag: pathlib.Path, domain: int, topic: str, storage: str,
+                      publish: list[str], wait: Any) -> None:
+    """Record ``topic`` (and its text topic) of a publisher run with ``publish`` options into
+    ``bag``; SIGKILL the recorder once ``wait(publisher, recorder)`` returns."""
+    publisher = helper("publish", domain, topic, *publish)
     recorder = None
     try:
         publisher.read_until("READY")
         recorder = bag_cli(domain, "record", topic, topic + "_text", "-o", str(bag), "-s",
                            storage)
-        recorder.read_until(f"recording {topic}_text")
-        time.sleep(3.0)  # mid-stream, past a sqlite3 commit
+        wait(publisher, recorder)
         recorder.proc.kill()  # no chance to close: no metadata.yaml, no MCAP footer
         recorder.proc.wait(timeout=30)
     finally:
@@ -510,6 +509,18 @@ def test_a_killed_recording_is_made_readable_by_reindex(tmp_path, domain, topic,
             recorder.close()
         publisher.tell("stop")
         publisher.close()
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_killed_recording_is_made_readable_by_reindex(tmp_path, domain, topic, storage):
+    bag = tmp_path / "killed"
+
+    def mid_stream(publisher: Proc, recorder: Proc) -> None:
+        recorder.read_until(f"recording {topic}_text")
+        time.sleep(3.0)  # mid-stream, past a sqlite3 commit
+
+    _kill_a_recording(bag, domain, topic, storage,
+                      ["--count", "400", "--rate", "50", "--size", str(SIZE)], mid_stream)
     assert not (bag / "metadata.yaml").exists()
     _one_line_error(run_bag(domain, "info", str(bag)), "BagReadError", "bag reindex")
     done = run_bag(domain, "reindex", str(bag))
@@ -535,22 +546,14 @@ def test_a_recording_killed_while_idle_keeps_every_small_message(tmp_path, domai
     their write even when no later message comes to push them out."""
     bag = tmp_path / "idle"
     count, size = 12, 1024
-    publisher = helper("publish", domain, topic, "--count", str(count), "--size", str(size))
-    recorder = None
-    try:
-        publisher.read_until("READY")
-        recorder = bag_cli(domain, "record", topic, topic + "_text", "-o", str(bag), "-s",
-                           storage)
+
+    def idle_after_the_last(publisher: Proc, recorder: Proc) -> None:
         published = json.loads(publisher.read_until("RESULT ")[len("RESULT "):])
         assert published["published"] == count and published["matched"]
         time.sleep(3.0)  # the last messages reach the recorder, then past the flush
-        recorder.proc.kill()
-        recorder.proc.wait(timeout=30)
-    finally:
-        if recorder is not None:
-            recorder.close()
-        publisher.tell("stop")
-        publisher.close()
+
+    _kill_a_recording(bag, domain, topic, storage, ["--count", str(count), "--size", str(size)],
+                      idle_after_the_last)
     done = run_bag(domain, "reindex", str(bag))
     assert done.returncode == 0, done.stderr
     stored = read_bag(bag)
@@ -589,25 +592,80 @@ def _record_offsets(path: pathlib.Path, opcode: int) -> list[int]:
     return offsets
 
 
+def _independent_read(path: pathlib.Path) -> tuple[Any, list[tuple[int, bytes]]]:
+    """The summary and the (log time, data) of every message, read through the summary's
+    indexes by the ``mcap`` library (the format's reference reader, not rosbags)."""
+    from mcap.reader import make_reader
+
+    with path.open("rb") as handle:
+        reader = make_reader(handle)
+        summary = reader.get_summary()
+        messages = [(m.log_time, bytes(m.data)) for _, _, m in reader.iter_messages(
+            log_time_order=False)]
+    return summary, messages
+
+
 @pytest.mark.parametrize("cut", ["inside the fourth chunk", "inside a record header",
+                                 "right after the fourth chunk", "inside the fourth chunk's index",
                                  "after the data section"])
-def test_reindex_ends_an_mcap_file_after_its_last_whole_record(tmp_path, domain, cut):
+def test_reindex_ends_an_mcap_file_as_its_writer_would(tmp_path, domain, cut):
     from warp_buffer_cli.bag.reindex import reindex
 
     bag = tmp_path / "bag"
     payloads = _closed_mcap_bag(bag, 5)
     mcap = bag / "bag.mcap"
     chunks = _record_offsets(mcap, 0x06)[1:]  # (the first holds the schema and the channel)
-    assert len(chunks) == 5
+    indexes = _record_offsets(mcap, 0x07)[-5:]  # (one after each message's chunk)
+    assert len(chunks) == 5 and all(i > c for i, c in zip(indexes, chunks))
     at = {"inside the fourth chunk": chunks[3] + 1000, "inside a record header": chunks[3] + 4,
+          "right after the fourth chunk": indexes[3],
+          "inside the fourth chunk's index": indexes[3] + 12,
           "after the data section": _record_offsets(mcap, 0x0F)[0] + 3}[cut]
     with mcap.open("r+b") as file:
         file.truncate(at)
     (bag / "metadata.yaml").unlink()
     report = reindex(bag)
-    kept = 5 if cut == "after the data section" else 3
-    assert report["messages"] == kept and report["topics"] == 1 and report["cut_bytes"] > 0
+    kept = {"after the data section": 5, "right after the fourth chunk": 4,
+            "inside the fourth chunk's index": 4}.get(cut, 3)
+    assert report["messages"] == kept and report["topics"] == 1
+    assert report["cut_bytes"] > 0 or cut == "right after the fourth chunk"
     assert [raw for _, raw in read_bag(bag)["/frames"]] == payloads[:kept]
+    # Indexed as its writer would have left it: a summary with every chunk and message.
+    summary, messages = _independent_read(mcap)
+    assert len(summary.chunk_indexes) == kept + 1 and summary.statistics.message_count == kept
+    assert [data for _, data in messages] == payloads[:kept]
+
+
+def test_a_reindexed_bag_reads_in_time_order_whatever_the_write_order(tmp_path):
+    """A recorder writes messages of two topics as their callbacks hand them over, which can
+    be out of time order by a little; a closed bag is read in time order through its index, and
+    so is a reindexed one (a scan of an unindexed file refuses such a file)."""
+    from rosbags.rosbag2 import StoragePlugin
+
+    from rosidl_buffer.messages import get_typestore
+    from warp_buffer_cli.bag.reindex import reindex
+    from warp_buffer_cli.bag.writer import BagWriter
+
+    bag = tmp_path / "bag"
+    writer = BagWriter(bag, version=BagWriter.VERSION_LATEST, storage_plugin=StoragePlugin.MCAP)
+    writer.open()
+    store = get_typestore()
+    first = writer.add_connection("/a", "std_msgs/msg/String", typestore=store)
+    second = writer.add_connection("/b", "std_msgs/msg/String", typestore=store)
+    stamps = [(first, 30), (second, 10), (first, 20), (second, 50), (first, 40)]
+    for connection, stamp in stamps:
+        writer.write(connection, stamp, b"\x00\x01\x00\x00" + bytes([stamp, 0, 0, 0]))
+    writer.close()
+    mcap = bag / "bag.mcap"
+    with mcap.open("r+b") as file:
+        file.truncate(_record_offsets(mcap, 0x0F)[0])  # the summary, as a kill leaves it
+    (bag / "metadata.yaml").unlink()
+    assert reindex(bag)["messages"] == 5
+    stored = read_bag(bag)
+    assert [t for t, _ in stored["/a"]] == [20, 30, 40] and [t for t, _ in stored["/b"]] == [10, 50]
+    summary, messages = _independent_read(mcap)
+    assert summary.statistics.channel_message_counts == {1: 3, 2: 2}
+    assert sorted(t for t, _ in messages) == [10, 20, 30, 40, 50]
 
 
 def test_reindex_refuses_what_is_no_bag_in_one_line(tmp_path, domain):

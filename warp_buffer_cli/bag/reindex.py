@@ -1,13 +1,13 @@
 """Make a bag whose recording never ended readable again, as ``ros2 bag reindex`` does.
 
 A recorder killed without a chance to close (SIGKILL, a power cut, a full disk) leaves its bag
-without ``metadata.yaml``, and its MCAP file without the index and footer a reader looks for, so
-``bag info`` and ``bag play`` (and ``ros2 bag``) cannot open it. ``bag reindex DIR`` rebuilds
-``metadata.yaml`` from the storage file. An MCAP file is first cut after its last complete
-record (a message the crash cut short is lost) and ended with a data-end record and a footer
-without a summary, so readers scan its records instead of an index. A sqlite3 bag keeps what
-its recorder committed (each second). A bag that ended well is left as it is; a bag still being
-recorded (its recorder holds the directory) is refused.
+without ``metadata.yaml``, and its MCAP file without the summary and footer a reader looks for,
+so ``bag info`` and ``bag play`` (and ``ros2 bag``) cannot open it. ``bag reindex DIR`` ends an
+MCAP file as its writer would have (:mod:`.mcap_end`: cut after its last complete chunk, then
+the summary and the footer; a message the crash cut short is lost) and writes ``metadata.yaml``
+from the storage file. A sqlite3 bag keeps what its recorder committed (each second). A bag
+that ended well is left as it is; a bag still being recorded (its recorder holds the directory)
+is refused.
 """
 
 from __future__ import annotations
@@ -15,22 +15,16 @@ from __future__ import annotations
 import argparse
 import os
 import sqlite3
-import struct
 from io import StringIO
 from pathlib import Path
 from typing import Any
 
 from .errors import BagReadError
 from .lock import BagBusyError, locked_bag
+from .mcap_end import McapContents, end_mcap, is_closed
 
 __all__ = ["add_arguments", "reindex", "run"]
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-_OP_HEADER, _OP_FOOTER, _OP_DATA_END = 0x01, 0x02, 0x0F
-_RECORD = struct.Struct("<BQ")  # opcode, length of the content that follows
-# A data-end record (no data CRC) and a footer with no summary (no summary CRC), then the magic.
-_TAIL = (_RECORD.pack(_OP_DATA_END, 4) + bytes(4) + _RECORD.pack(_OP_FOOTER, 20) + bytes(20)
-         + MCAP_MAGIC)
 METADATA = "metadata.yaml"
 BAG_VERSION = 9  # what the recorder writes (rosbags' latest)
 
@@ -52,48 +46,51 @@ def reindex(path: str | os.PathLike[str]) -> dict[str, Any]:
     try:
         with locked_bag(root):  # never a bag its recorder still writes
             if storage.suffix == ".mcap":
-                cut = end_mcap(storage)
-                info = _mcap_info(storage)
+                cut = _end_mcap(storage)
+                info = _mcap_info(storage)  # (read back: the ended file opens)
             else:
                 info = _sqlite_info(storage)
-            _write_metadata(root / METADATA, storage, info)
+            _write_metadata(root / METADATA, _metadata_text(storage, info))
     except BagBusyError as exc:
         raise BagReadError(f"cannot reindex {path}: {exc}") from None
     return {"file": storage.name, "messages": info["message_count"],
             "topics": len(info["topics"]), "cut_bytes": cut}
 
 
-def end_mcap(path: Path) -> int:
-    """End the MCAP file ``path`` where its last complete record ends, with a data-end record
-    and a footer; returns the bytes cut off. A file that ends with a footer is left alone."""
-    with path.open("r+b") as file:
-        size = os.fstat(file.fileno()).st_size
-        if file.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-            raise BagReadError(f"{path} is not an MCAP file")
-        file.seek(size - len(MCAP_MAGIC))
-        if size >= 2 * len(MCAP_MAGIC) + 9 + 20 and file.read() == MCAP_MAGIC:
-            return 0  # closed by its writer
-        end = len(MCAP_MAGIC)
-        first = True
-        while end + _RECORD.size <= size:
-            file.seek(end)
-            opcode, length = _RECORD.unpack(file.read(_RECORD.size))
-            if first and opcode != _OP_HEADER:
-                raise BagReadError(f"{path} does not start with an MCAP header record")
-            first = False
-            if opcode in (_OP_DATA_END, _OP_FOOTER) or length > size - end - _RECORD.size:
-                break  # what the writer's end began, or a record the crash cut short
-            end += _RECORD.size + length
-        if first:
-            raise BagReadError(f"{path} ends before its MCAP header: nothing to recover")
-        file.truncate(end)
-        file.seek(end)
-        file.write(_TAIL)
-    return size - end
+def _end_mcap(path: Path) -> int:
+    """End the MCAP file ``path`` unless its writer did; the bytes cut off."""
+    with path.open("rb") as file:
+        if is_closed(file, os.fstat(file.fileno()).st_size):
+            return 0
+    cut, _ = end_mcap(path, lambda contents: _metadata_text(path, _contents_info(contents)))
+    return cut
+
+
+def _contents_info(contents: McapContents) -> dict[str, Any]:
+    """The metadata of what an MCAP file's data section holds."""
+    from rosbags.rosbag2.storage_mcap import get_qos
+
+    counts = contents.message_counts()
+    first, last = contents.time_span()
+    topics = [_topic(c.topic, c.schema, c.message_encoding, get_qos(c.metadata), "",
+                     counts[c.id]) for c in contents.channels.values()]
+    count = sum(counts.values())
+    return {"message_count": count, "start": first if count else 0,
+            "duration": last - first if count else 0, "topics": topics}
+
+
+def _topic(name: str, type_name: str, serialization: str, qos: Any, digest: str,
+           count: int) -> dict[str, Any]:
+    from rosbags.rosbag2.metadata import dump_qos_v9
+
+    return {"topic_metadata": {"name": name, "type": type_name,
+                               "serialization_format": serialization,
+                               "offered_qos_profiles": dump_qos_v9(qos),
+                               "type_description_hash": digest},
+            "message_count": count}
 
 
 def _mcap_info(path: Path) -> dict[str, Any]:
-    from rosbags.rosbag2.metadata import dump_qos_v9
     from rosbags.rosbag2.storage_mcap import McapReader
 
     reader = McapReader(path)
@@ -105,15 +102,8 @@ def _mcap_info(path: Path) -> dict[str, Any]:
     finally:
         reader.close()
     count = meta.message_count
-    topics = [{
-        "topic_metadata": {
-            "name": c.topic, "type": c.msgtype,
-            "serialization_format": c.ext.serialization_format,
-            "offered_qos_profiles": dump_qos_v9(c.ext.offered_qos_profiles),
-            "type_description_hash": c.digest,
-        },
-        "message_count": c.msgcount,
-    } for c in connections]
+    topics = [_topic(c.topic, c.msgtype, c.ext.serialization_format,
+                     c.ext.offered_qos_profiles, c.digest, c.msgcount) for c in connections]
     # (the reader's end and duration count one past the last stamp)
     return {"message_count": count, "start": meta.start_time if count else 0,
             "duration": max(0, meta.duration - 1) if count else 0, "topics": topics}
@@ -152,8 +142,15 @@ def _sqlite_info(path: Path) -> dict[str, Any]:
             "topics": topics}
 
 
-def _write_metadata(target: Path, storage: Path, info: dict[str, Any]) -> None:
-    """``metadata.yaml`` as rosbags' writer makes it (version 9), written atomically."""
+def _write_metadata(target: Path, text: str) -> None:
+    """``metadata.yaml``, written atomically."""
+    temporary = target.with_suffix(".yaml.tmp")
+    temporary.write_text(text, "utf8")
+    temporary.replace(target)
+
+
+def _metadata_text(storage: Path, info: dict[str, Any]) -> str:
+    """``metadata.yaml`` as rosbags' writer makes it (version 9)."""
     from ruamel.yaml import YAML
 
     span = {"starting_time": {"nanoseconds_since_epoch": info["start"]},
@@ -176,9 +173,7 @@ def _write_metadata(target: Path, storage: Path, info: dict[str, Any]) -> None:
     yaml.default_flow_style = False
     text = StringIO()
     yaml.dump(metadata, text)
-    temporary = target.with_suffix(".yaml.tmp")
-    temporary.write_text(text.getvalue(), "utf8")
-    temporary.replace(target)
+    return text.getvalue()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

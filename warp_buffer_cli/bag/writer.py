@@ -32,6 +32,7 @@ from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Writer
 
 from .lock import lock_directory
+from .mcap_end import chunk_index
 
 __all__ = ["COMMIT_S", "DIRECT_BYTES", "BagWriter"]
 
@@ -99,21 +100,11 @@ class _DirectMcapWriter(_Flushing, McapWriter):
         index_start = chunk_end
         self.bio.write(struct.pack("<BQHIQQ", _OP_MESSAGE_INDEX, 2 + 4 + 16, connection.id, 16,
                                    timestamp, 0))  # one message, at offset 0 of the content
-        self.chunks.append(_chunk_index(timestamp, chunk_start, chunk_end, connection.id,
-                                        index_start, self.bio.tell() - chunk_end,
-                                        content_length))
+        self.chunks.append(chunk_index(timestamp, timestamp, chunk_start,
+                                       chunk_end - chunk_start, {connection.id: index_start},
+                                       self.bio.tell() - chunk_end, "", content_length,
+                                       content_length))
         self.chunk = PendingChunk(2**63 - 1, 0, BytesIO(), defaultdict(list))
-
-
-def _chunk_index(timestamp: int, chunk_start: int, chunk_end: int, channel: int,
-                 index_start: int, index_length: int, content_length: int) -> BytesIO:
-    """The chunk index record's body, as rosbags keeps it until the summary is written."""
-    record = BytesIO()
-    record.write(struct.pack("<QQQQI", timestamp, timestamp, chunk_start, chunk_end - chunk_start,
-                             10))
-    record.write(struct.pack("<HQ", channel, index_start))
-    record.write(struct.pack("<QIQQ", index_length, 0, content_length, content_length))
-    return record
 
 
 class _CommittingSqlite3Writer(_Flushing, Sqlite3Writer):

@@ -1,0 +1,243 @@
+"""End an MCAP file whose writer never closed it, as that writer would have closed it.
+
+A recorder killed mid-recording leaves the records it wrote, the last one perhaps cut short,
+and neither the summary (schemas, channels, chunk indexes, statistics) nor the footer a reader
+looks for. :func:`end_mcap` reads the data section once, cuts the file after its last complete
+chunk, writes the message indexes of that chunk if the crash took them (they follow the chunk
+in the file, a write later), and appends what rosbags' writer appends when it closes: the
+``rosbag2`` metadata record, the data-end record, the summary and the footer. The result is an
+indexed file every reader opens as if its recorder had closed it: indexed readers also merge
+its messages in time order, which a scan of an unindexed file requires of the file itself
+(messages of two topics received on two threads reach the writer out of order by microseconds).
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from collections import defaultdict
+from dataclasses import dataclass, field
+from io import BytesIO
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from .errors import BagReadError
+
+__all__ = ["MCAP_MAGIC", "McapContents", "chunk_index", "end_mcap", "is_closed"]
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
+_OP_CHUNK, _OP_MESSAGE_INDEX, _OP_DATA_END = 0x06, 0x07, 0x0F
+_RECORD = struct.Struct("<BQ")  # opcode, length of the content that follows
+_U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+_CHUNK_TIMES = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed CRC
+_MESSAGE_HEAD = struct.Struct("<HIQ")  # channel, sequence, log time
+_FOOTER_SIZE = _RECORD.size + 20
+
+
+@dataclass
+class _Chunk:
+    start: int
+    length: int  # the whole record's
+    start_time: int
+    end_time: int
+    compression: str
+    compressed_size: int
+    uncompressed_size: int
+    messages: dict[int, list[tuple[int, int]]]  # channel -> (log time, offset in the content)
+    index_offsets: dict[int, int] = field(default_factory=dict)  # channel -> its index record
+    index_end: int = 0
+
+    @property
+    def end(self) -> int:
+        return self.start + self.length
+
+
+@dataclass
+class McapContents:
+    """What an MCAP file's data section holds (rosbags' ``Schema`` and ``Channel`` tuples)."""
+
+    schemas: dict[int, Any] = field(default_factory=dict)
+    channels: dict[int, Any] = field(default_factory=dict)
+    chunks: list[_Chunk] = field(default_factory=list)
+
+    def message_counts(self) -> dict[int, int]:
+        """Messages per channel, every channel listed."""
+        counts = dict.fromkeys(self.channels, 0)
+        for chunk in self.chunks:
+            for channel, entries in chunk.messages.items():
+                counts[channel] = counts.get(channel, 0) + len(entries)
+        return counts
+
+    def time_span(self) -> tuple[int, int]:
+        """First and last log time (rosbags' empty values when there is no message)."""
+        stamps = [t for c in self.chunks for e in c.messages.values() for t, _ in e]
+        return (min(stamps), max(stamps)) if stamps else (2**63 - 1, 0)
+
+
+def is_closed(file: BinaryIO, size: int) -> bool:
+    """Whether the file ends with a footer and the magic (closed by its writer)."""
+    if size < 2 * len(MCAP_MAGIC) + _FOOTER_SIZE:
+        return False
+    file.seek(size - len(MCAP_MAGIC))
+    return file.read() == MCAP_MAGIC
+
+
+def end_mcap(path: Path, metadata_text: Any) -> tuple[int, McapContents]:
+    """End the unclosed MCAP file ``path`` (see the module); ``metadata_text(contents)`` gives
+    the text of its ``rosbag2`` metadata record (the bag's ``metadata.yaml``). Returns the bytes
+    cut off and what the file holds. :class:`BagReadError` when it is no MCAP file."""
+    with path.open("r+b") as file:
+        size = os.fstat(file.fileno()).st_size
+        if file.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+            raise BagReadError(f"{path} is not an MCAP file")
+        contents, end = _scan(file, size, path)
+        named = {schema.name for schema in contents.schemas.values()}
+        if any(channel.schema not in named for channel in contents.channels.values()):
+            raise BagReadError(f"{path} has a channel without its schema: not reindexed")
+        last = contents.chunks[-1] if contents.chunks else None
+        lost_indexes = last is not None and set(last.index_offsets) != set(last.messages)
+        if lost_indexes:
+            end = last.end  # its index records, some cut off: written again, whole
+        file.truncate(end)
+        file.seek(end)
+        if lost_indexes:
+            _write_message_indexes(file, last)
+        _close(file, contents, metadata_text(contents))
+    return size - end, contents
+
+
+def _scan(file: BinaryIO, size: int, path: Path) -> tuple[McapContents, int]:
+    """The data section's contents, and where its last complete record ends."""
+    from rosbags.rosbag2.storage_mcap import Channel, Schema
+
+    contents = McapContents()
+    end = len(MCAP_MAGIC)
+    first = True
+    while end + _RECORD.size <= size:
+        file.seek(end)
+        opcode, length = _RECORD.unpack(file.read(_RECORD.size))
+        if first and opcode != _OP_HEADER:
+            raise BagReadError(f"{path} does not start with an MCAP header record")
+        first = False
+        if opcode in (_OP_DATA_END, _OP_FOOTER) or length > size - end - _RECORD.size:
+            break  # what the writer's end began, or a record the crash cut short
+        if opcode in (_OP_CHUNK, _OP_MESSAGE_INDEX, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
+            body = file.read(length)
+            try:
+                if opcode == _OP_CHUNK:
+                    contents.chunks.append(_read_chunk(body, end, contents, Schema, Channel))
+                elif opcode == _OP_MESSAGE_INDEX:
+                    if contents.chunks:
+                        chunk = contents.chunks[-1]
+                        chunk.index_offsets[_U16.unpack_from(body)[0]] = end
+                        chunk.index_end = end + _RECORD.size + length
+                elif opcode == _OP_MESSAGE:
+                    raise BagReadError(f"{path} holds a message outside a chunk, which this "
+                                       "recorder never writes: not reindexed")
+                else:
+                    _read_definition(opcode, BytesIO(body), contents, Schema, Channel)
+            except (struct.error, UnicodeDecodeError, ValueError) as exc:
+                raise BagReadError(f"{path}: a damaged record at byte {end}: {exc}") from None
+        end += _RECORD.size + length
+    if first:
+        raise BagReadError(f"{path} ends before its MCAP header: nothing to recover")
+    if contents.chunks and contents.chunks[-1].end > end:
+        contents.chunks.pop()  # (never: a chunk is appended once whole)
+    return contents, end
+
+
+def _read_chunk(body: bytes, start: int, contents: McapContents, schema: Any,
+                channel: Any) -> _Chunk:
+    from rosbags.rosbag2.storage_mcap import decompress
+
+    start_time, end_time, uncompressed_size, crc = _CHUNK_TIMES.unpack_from(body)
+    at = _CHUNK_TIMES.size
+    compression, at = _string(body, at)
+    (compressed_size,) = _U64.unpack_from(body, at)
+    at += 8
+    data = decompress(body[at:at + compressed_size], compression, uncompressed_size, crc)
+    messages: dict[int, list[tuple[int, int]]] = defaultdict(list)
+    offset = 0
+    while offset + _RECORD.size <= len(data):
+        opcode, length = _RECORD.unpack_from(data, offset)
+        record = offset + _RECORD.size
+        if opcode == _OP_MESSAGE:
+            channel_id, _, log_time = _MESSAGE_HEAD.unpack_from(data, record)
+            messages[channel_id].append((log_time, offset))
+        elif opcode in (_OP_SCHEMA, _OP_CHANNEL):
+            _read_definition(opcode, BytesIO(data[record:record + length]), contents, schema,
+                             channel)
+        offset = record + length
+    return _Chunk(start, _RECORD.size + len(body), start_time, end_time, compression,
+                  compressed_size, uncompressed_size, dict(messages))
+
+
+def _read_definition(opcode: int, body: BytesIO, contents: McapContents, schema: Any,
+                     channel: Any) -> None:
+    """A schema or channel record, as rosbags' reader keeps it."""
+    from rosbags.rosbag2.storage_mcap import read_bytes, read_string
+
+    (key,) = _U16.unpack(body.read(2))
+    if opcode == _OP_SCHEMA:
+        contents.schemas[key] = schema(key, read_string(body), read_string(body),
+                                       read_string(body))
+        return
+    (schema_id,) = _U16.unpack(body.read(2))
+    known = contents.schemas.get(schema_id)
+    contents.channels[key] = channel(key, known.name if known else "__schemaless__",
+                                     read_string(body), read_string(body), read_bytes(body))
+
+
+def _string(data: bytes, at: int) -> tuple[str, int]:
+    (length,) = _U32.unpack_from(data, at)
+    at += 4
+    return data[at:at + length].decode(), at + length
+
+
+def _write_message_indexes(file: BinaryIO, chunk: _Chunk) -> None:
+    """The message index records of ``chunk``, one per channel, after it (as rosbags writes)."""
+    chunk.index_offsets = {}
+    for channel, entries in chunk.messages.items():
+        chunk.index_offsets[channel] = file.tell()
+        body = _U16.pack(channel) + _U32.pack(16 * len(entries)) + b"".join(
+            struct.pack("<QQ", stamp, offset) for stamp, offset in entries)
+        file.write(_RECORD.pack(_OP_MESSAGE_INDEX, len(body)) + body)
+    chunk.index_end = file.tell()
+
+
+def _close(file: BinaryIO, contents: McapContents, metadata: str) -> None:
+    """Append what rosbags' MCAP writer appends when it closes (its own ``close``, given the
+    schemas, channels, chunk indexes and statistics read from the file)."""
+    from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
+
+    writer = McapWriter.__new__(McapWriter)  # (its __init__ creates a new file)
+    writer.bio = file
+    writer.schemas = list(contents.schemas.values())
+    writer.channels = list(contents.channels.values())
+    writer.chunks = [_chunk_index(chunk) for chunk in contents.chunks]
+    writer.chunk = PendingChunk(2**63 - 1, 0, BytesIO(), defaultdict(list))
+    writer.channel_stats = contents.message_counts()
+    writer.message_start_time, writer.message_end_time = contents.time_span()
+    writer.close(0, metadata)  # (closes the file: the caller's ``with`` then does nothing)
+
+
+def _chunk_index(chunk: _Chunk) -> BytesIO:
+    return chunk_index(chunk.start_time, chunk.end_time, chunk.start, chunk.length,
+                       chunk.index_offsets, max(chunk.index_end - chunk.end, 0),
+                       chunk.compression, chunk.compressed_size, chunk.uncompressed_size)
+
+
+def chunk_index(start_time: int, end_time: int, start: int, length: int,
+                index_offsets: dict[int, int], index_length: int, compression: str,
+                compressed_size: int, uncompressed_size: int) -> BytesIO:
+    """A chunk index record's body, as rosbags' writer keeps it until it writes the summary."""
+    record = BytesIO()
+    offsets = sorted(index_offsets.items())
+    record.write(struct.pack("<QQQQI", start_time, end_time, start, length, 10 * len(offsets)))
+    for channel, offset in offsets:
+        record.write(struct.pack("<HQ", channel, offset))
+    record.write(_U64.pack(index_length))
+    record.write(_U32.pack(len(compression)) + compression.encode())
+    record.write(struct.pack("<QQ", compressed_size, uncompressed_size))
+    return record
