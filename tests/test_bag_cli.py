@@ -636,6 +636,40 @@ def test_reindex_ends_an_mcap_file_as_its_writer_would(tmp_path, domain, cut):
     assert [data for _, data in messages] == payloads[:kept]
 
 
+@pytest.mark.parametrize("damage", ["last chunk", "zeroed tail", "chunk in the middle"])
+def test_reindex_cuts_a_damaged_end_and_refuses_damage_inside(tmp_path, damage):
+    """A power cut can leave the last chunk's bytes wrong, or zeroed pages, at the end: cut off
+    like a record cut short. Damage before intact records is refused, the file untouched."""
+    from warp_buffer_cli.bag.errors import BagReadError
+    from warp_buffer_cli.bag.reindex import reindex
+
+    bag = tmp_path / "bag"
+    payloads = _closed_mcap_bag(bag, 5)
+    mcap = bag / "bag.mcap"
+    chunks = _record_offsets(mcap, 0x06)[1:]
+    indexes = _record_offsets(mcap, 0x07)[-5:]
+    end = {"last chunk": indexes[4], "zeroed tail": _record_offsets(mcap, 0x0F)[0],
+           "chunk in the middle": indexes[4]}[damage]
+    with mcap.open("r+b") as file:
+        file.truncate(end)  # (the last chunk's index lost with the summary)
+        if damage == "zeroed tail":
+            file.seek(end)
+            file.write(bytes(8192))
+        else:  # the chunk's compression name said to run past the chunk
+            file.seek((chunks[4] if damage == "last chunk" else chunks[2]) + 9 + 28)
+            file.write(b"\xff\xff\xff\xff")
+    (bag / "metadata.yaml").unlink()
+    if damage == "chunk in the middle":
+        before = mcap.read_bytes()
+        with pytest.raises(BagReadError, match="damaged record"):
+            reindex(bag)
+        assert mcap.read_bytes() == before
+        return
+    kept = 4 if damage == "last chunk" else 5
+    assert reindex(bag)["messages"] == kept
+    assert [raw for _, raw in read_bag(bag)["/frames"]] == payloads[:kept]
+
+
 def test_a_reindexed_bag_reads_in_time_order_whatever_the_write_order(tmp_path):
     """A recorder writes messages of two topics as their callbacks hand them over, which can
     be out of time order by a little; a closed bag is read in time order through its index, and

@@ -109,6 +109,7 @@ def end_mcap(path: Path, metadata_text: Any) -> tuple[int, McapContents]:
 
 def _scan(file: BinaryIO, size: int, path: Path) -> tuple[McapContents, int]:
     """The data section's contents, and where its last complete record ends."""
+    from rosbags.rosbag2.errors import ReaderError
     from rosbags.rosbag2.storage_mcap import Channel, Schema
 
     contents = McapContents()
@@ -120,10 +121,11 @@ def _scan(file: BinaryIO, size: int, path: Path) -> tuple[McapContents, int]:
         if first and opcode != _OP_HEADER:
             raise BagReadError(f"{path} does not start with an MCAP header record")
         first = False
-        if opcode in (_OP_DATA_END, _OP_FOOTER) or length > size - end - _RECORD.size:
-            break  # what the writer's end began, or a record the crash cut short
+        if opcode in (0, _OP_DATA_END, _OP_FOOTER) or length > size - end - _RECORD.size:
+            break  # what the writer's end began, a record the crash cut short, or zeroed pages
         if opcode in (_OP_CHUNK, _OP_MESSAGE_INDEX, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
             body = file.read(length)
+            last = end + _RECORD.size + length == size
             try:
                 if opcode == _OP_CHUNK:
                     contents.chunks.append(_read_chunk(body, end, contents, Schema, Channel))
@@ -137,8 +139,11 @@ def _scan(file: BinaryIO, size: int, path: Path) -> tuple[McapContents, int]:
                                        "recorder never writes: not reindexed")
                 else:
                     _read_definition(opcode, BytesIO(body), contents, Schema, Channel)
-            except (struct.error, UnicodeDecodeError, ValueError) as exc:
-                raise BagReadError(f"{path}: a damaged record at byte {end}: {exc}") from None
+            except (struct.error, UnicodeDecodeError, ValueError, ReaderError) as exc:
+                if last:
+                    break  # the crash's damage: cut off like a record it cut short
+                raise BagReadError(f"{path}: a damaged record at byte {end} (nothing was "
+                                   f"changed): {exc}") from None
         end += _RECORD.size + length
     if first:
         raise BagReadError(f"{path} ends before its MCAP header: nothing to recover")
