@@ -335,6 +335,11 @@ def test_the_write_cache_refuses_what_does_not_fit_and_drains_after_close():
     big = WriteCache(max_bytes=10)
     assert big.put("huge", 1000)  # alone it fits: a large message is never refused for good
     assert not big.put("next", 1)
+    assert big.get(timeout=0.01) == "huge"
+    with pytest.raises(TimeoutError):  # (the writer then flushes what it wrote)
+        big.get(timeout=0.01)
+    big.close()
+    assert big.get(timeout=0.01) is None
 
 
 # --------------------------------------------------------------------------- bad input, help
