@@ -531,6 +531,8 @@ def test_a_killed_recording_is_made_readable_by_reindex(tmp_path, domain, topic,
     done = run_bag(domain, "reindex", str(bag))
     assert done.returncode == 0 and done.stderr == "", done.stderr
     assert done.stdout.startswith(f"reindexed {bag}: ")
+    suffix = {"mcap": "mcap", "sqlite3": "db3"}[storage]
+    assert sorted(p.name for p in bag.iterdir()) == [f"killed.{suffix}", "metadata.yaml"]
     stored = read_bag(bag)
     frames = stored[topic]
     assert len(frames) > 10  # at 50/s for 3 s, what reached the disk
@@ -641,7 +643,8 @@ def test_reindex_ends_an_mcap_file_as_its_writer_would(tmp_path, domain, cut):
     assert [data for _, data in messages] == payloads[:kept]
 
 
-@pytest.mark.parametrize("damage", ["last chunk", "zeroed tail", "chunk in the middle"])
+@pytest.mark.parametrize("damage", ["last chunk", "zeroed tail", "chunk in the middle",
+                                    "zeroes inside a chunk", "zeroes over a chunk's head"])
 def test_reindex_cuts_a_damaged_end_and_refuses_damage_inside(tmp_path, damage):
     """A power cut can leave the last chunk's bytes wrong, or zeroed pages, at the end: cut off
     like a record cut short. Damage before intact records is refused, the file untouched."""
@@ -653,26 +656,79 @@ def test_reindex_cuts_a_damaged_end_and_refuses_damage_inside(tmp_path, damage):
     mcap = bag / "bag.mcap"
     chunks = _record_offsets(mcap, 0x06)[1:]
     indexes = _record_offsets(mcap, 0x07)[-5:]
-    end = {"last chunk": indexes[4], "zeroed tail": _record_offsets(mcap, 0x0F)[0],
-           "chunk in the middle": indexes[4]}[damage]
+    end = _record_offsets(mcap, 0x0F)[0] if damage == "zeroed tail" else indexes[4]
     with mcap.open("r+b") as file:
         file.truncate(end)  # (the last chunk's index lost with the summary)
         if damage == "zeroed tail":
             file.seek(end)
             file.write(bytes(8192))
+        elif damage == "zeroes inside a chunk":  # over a message record's head, inside
+            file.seek(chunks[2] + 9 + 40)
+            file.write(bytes(200))
+        elif damage == "zeroes over a chunk's head":
+            file.seek(chunks[2])
+            file.write(bytes(200))
         else:  # the chunk's compression name said to run past the chunk
             file.seek((chunks[4] if damage == "last chunk" else chunks[2]) + 9 + 28)
             file.write(b"\xff\xff\xff\xff")
     (bag / "metadata.yaml").unlink()
-    if damage == "chunk in the middle":
+    if damage not in ("last chunk", "zeroed tail"):
         before = mcap.read_bytes()
-        with pytest.raises(BagReadError, match="damaged record"):
+        with pytest.raises(BagReadError, match="damaged record|zeroed bytes"):
             reindex(bag)
         assert mcap.read_bytes() == before
         return
     kept = 4 if damage == "last chunk" else 5
     assert reindex(bag)["messages"] == kept
     assert [raw for _, raw in read_bag(bag)["/frames"]] == payloads[:kept]
+
+
+@pytest.mark.parametrize("kept", [0, 5, 8, 13, 20, 42])
+def test_an_mcap_file_killed_before_its_header_was_whole_becomes_an_empty_bag(tmp_path, kept):
+    """A recorder killed as it started leaves its file empty or its header cut short: nothing
+    was recorded, and the bag says so (as an empty sqlite3 bag does), instead of an error that
+    points back at reindex."""
+    from warp_buffer_cli.bag.reindex import reindex
+
+    bag = tmp_path / "bag"
+    _closed_mcap_bag(bag, 1)
+    mcap = bag / "bag.mcap"
+    assert _record_offsets(mcap, 0x01) == [8]  # (the header: bytes 8-42 and a little more)
+    with mcap.open("r+b") as file:
+        file.truncate(kept)
+    (bag / "metadata.yaml").unlink()
+    report = reindex(bag)
+    assert report["messages"] == 0 and report["topics"] == 0 and report["cut_bytes"] == kept
+    assert read_bag(bag) == {} and metadata(bag)["message_count"] == 0
+    summary, messages = _independent_read(mcap)
+    assert summary.statistics.message_count == 0 and messages == []
+
+
+def test_reindex_leaves_a_bag_its_recorder_closed_as_it_is(tmp_path, domain):
+    bag = tmp_path / "bag"
+    _closed_mcap_bag(bag, 2)
+    before = {p.name: p.read_bytes() for p in bag.iterdir()}
+    done = run_bag(domain, "reindex", str(bag))
+    assert done.returncode == 0 and "left as it is" in done.stdout, done.stdout
+    assert {p.name: p.read_bytes() for p in bag.iterdir()} == before  # the hashes kept
+    file = run_bag(domain, "reindex", str(bag / "bag.mcap"))
+    _one_line_error(file, "BagReadError", "give the bag's directory")
+
+
+def test_info_of_a_bag_being_recorded_says_so_instead_of_pointing_at_reindex(tmp_path, domain):
+    from rosbags.rosbag2 import StoragePlugin
+
+    from warp_buffer_cli.bag.writer import BagWriter
+
+    bag = tmp_path / "bag"
+    writer = BagWriter(bag, version=BagWriter.VERSION_LATEST, storage_plugin=StoragePlugin.MCAP)
+    writer.open()
+    try:
+        busy = run_bag(domain, "info", str(bag))
+    finally:
+        writer.close()
+    _one_line_error(busy, "BagReadError", "being recorded")
+    assert "reindex" not in busy.stderr
 
 
 def test_a_reindexed_bag_reads_in_time_order_whatever_the_write_order(tmp_path):

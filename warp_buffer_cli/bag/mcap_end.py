@@ -89,9 +89,15 @@ def end_mcap(path: Path, metadata_text: Any) -> tuple[int, McapContents]:
     cut off and what the file holds. :class:`BagReadError` when it is no MCAP file."""
     with path.open("r+b") as file:
         size = os.fstat(file.fileno()).st_size
-        if file.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+        if not MCAP_MAGIC.startswith(file.read(len(MCAP_MAGIC))[:size]):
             raise BagReadError(f"{path} is not an MCAP file")
         contents, end = _scan(file, size, path)
+        if end < len(MCAP_MAGIC):  # killed before its header reached the file: nothing recorded
+            file.truncate(0)
+            file.seek(0)
+            file.write(MCAP_MAGIC + _header())
+            _close(file, contents, metadata_text(contents))
+            return size, contents
         named = {schema.name for schema in contents.schemas.values()}
         if any(channel.schema not in named for channel in contents.channels.values()):
             raise BagReadError(f"{path} has a channel without its schema: not reindexed")
@@ -113,6 +119,8 @@ def _scan(file: BinaryIO, size: int, path: Path) -> tuple[McapContents, int]:
     from rosbags.rosbag2.storage_mcap import Channel, Schema
 
     contents = McapContents()
+    if size < len(MCAP_MAGIC):
+        return contents, 0
     end = len(MCAP_MAGIC)
     first = True
     while end + _RECORD.size <= size:
@@ -120,9 +128,12 @@ def _scan(file: BinaryIO, size: int, path: Path) -> tuple[McapContents, int]:
         opcode, length = _RECORD.unpack(file.read(_RECORD.size))
         if first and opcode != _OP_HEADER:
             raise BagReadError(f"{path} does not start with an MCAP header record")
-        first = False
+        if opcode == 0 and not _zeros_to_end(file, end, size):
+            raise BagReadError(f"{path}: zeroed bytes at byte {end} before records that follow "
+                               "(nothing was changed)")
         if opcode in (0, _OP_DATA_END, _OP_FOOTER) or length > size - end - _RECORD.size:
-            break  # what the writer's end began, a record the crash cut short, or zeroed pages
+            break  # what the writer's end began, a record the crash cut short, zeroed pages
+        first = False
         if opcode in (_OP_CHUNK, _OP_MESSAGE_INDEX, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
             body = file.read(length)
             last = end + _RECORD.size + length == size
@@ -145,11 +156,25 @@ def _scan(file: BinaryIO, size: int, path: Path) -> tuple[McapContents, int]:
                 raise BagReadError(f"{path}: a damaged record at byte {end} (nothing was "
                                    f"changed): {exc}") from None
         end += _RECORD.size + length
-    if first:
-        raise BagReadError(f"{path} ends before its MCAP header: nothing to recover")
-    if contents.chunks and contents.chunks[-1].end > end:
-        contents.chunks.pop()  # (never: a chunk is appended once whole)
-    return contents, end
+    return contents, 0 if first else end  # (0: not even the header is whole)
+
+
+def _zeros_to_end(file: BinaryIO, start: int, size: int) -> bool:
+    """Whether everything from ``start`` on is zero (pages a power cut left unwritten)."""
+    file.seek(start)
+    while block := file.read(min(1 << 20, size - file.tell())):
+        if block.count(0) != len(block):
+            return False
+    return True
+
+
+def _header() -> bytes:
+    """The header record rosbags' writer begins a file with."""
+    from importlib.metadata import version
+
+    body = b"".join(_U32.pack(len(text)) + text for text in (
+        b"ros2", f"rosbags-{version('rosbags')}".encode()))
+    return _RECORD.pack(_OP_HEADER, len(body)) + body
 
 
 def _read_chunk(body: bytes, start: int, contents: McapContents, schema: Any,
@@ -164,15 +189,23 @@ def _read_chunk(body: bytes, start: int, contents: McapContents, schema: Any,
     data = decompress(body[at:at + compressed_size], compression, uncompressed_size, crc)
     messages: dict[int, list[tuple[int, int]]] = defaultdict(list)
     offset = 0
-    while offset + _RECORD.size <= len(data):
+    # Without a checksum (rosbags writes none) damage shows only in the structure: the records
+    # a writer puts in a chunk, tiling it exactly, each message inside the chunk's time span.
+    while offset < len(data):
         opcode, length = _RECORD.unpack_from(data, offset)
         record = offset + _RECORD.size
-        if opcode == _OP_MESSAGE:
+        if record + length > len(data):
+            raise ValueError(f"a record runs past the end of the chunk at byte {start}")
+        if opcode == _OP_MESSAGE and length >= _MESSAGE_HEAD.size + 8:
             channel_id, _, log_time = _MESSAGE_HEAD.unpack_from(data, record)
+            if channel_id not in contents.channels or not start_time <= log_time <= end_time:
+                raise ValueError(f"a message the chunk at byte {start} cannot hold")
             messages[channel_id].append((log_time, offset))
         elif opcode in (_OP_SCHEMA, _OP_CHANNEL):
             _read_definition(opcode, BytesIO(data[record:record + length]), contents, schema,
                              channel)
+        else:
+            raise ValueError(f"a record of kind {opcode:#x} inside the chunk at byte {start}")
         offset = record + length
     return _Chunk(start, _RECORD.size + len(body), start_time, end_time, compression,
                   compressed_size, uncompressed_size, dict(messages))

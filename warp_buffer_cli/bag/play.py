@@ -46,15 +46,27 @@ def open_bag(path: str | os.PathLike[str]) -> Any:
                "not a rosbag2 bag")
         raise BagReadError(f"no bag at {path}: {why}") from None
     except Exception as exc:  # rosbags' ReaderError, YAML and storage errors: all unreadable
-        raise BagReadError(f"cannot read the bag at {path}: {exc}") from exc
+        where = Path(path)
+        hint = (f" (a recording that never ended? `warp-buffer bag reindex {where.parent}` "
+                "rebuilds it)" if where.is_file() and not (where.parent / "metadata.yaml")
+                .exists() else "")
+        raise BagReadError(f"cannot read the bag at {path}: {exc}{hint}") from exc
     return reader
 
 
 def _no_metadata(directory: Path) -> str:
-    if any(p.suffix in (".mcap", ".db3") for p in directory.iterdir()):
-        return (f"no metadata.yaml beside its storage file: a recording that never ended? "
-                f"`warp-buffer bag reindex {directory}` rebuilds it")
-    return "no metadata.yaml in it: not a rosbag2 bag"
+    from .lock import BagBusyError, locked_bag
+
+    if not any(p.suffix in (".mcap", ".db3") for p in directory.iterdir()):
+        return "no metadata.yaml in it: not a rosbag2 bag"
+    try:
+        with locked_bag(directory):
+            pass
+    except BagBusyError:
+        return ("it is being recorded (its metadata.yaml is written when the recording "
+                "ends)")
+    return (f"no metadata.yaml beside its storage file: a recording that never ended? "
+            f"`warp-buffer bag reindex {directory}` rebuilds it")
 
 
 def message_class(type_name: str, definition: Any = None) -> Any:
@@ -262,7 +274,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _report(player: Player, elapsed: float) -> None:
     messages, nbytes = player.totals()
-    print(f"played {messages} messages, {mib(nbytes)}, in {elapsed:.2f} s from {player.path} "
+    print(f"played {messages} message{'' if messages == 1 else 's'}, {mib(nbytes)}, in "
+          f"{elapsed:.2f} s from {player.path} "
           f"(bag duration {player.reader.duration / 1e9:.2f} s, rate {player.rate:g})")
     for t in player.topics.values():
         print(f"  {t.topic}  {t.type_name}  {t.messages} messages  {mib(t.nbytes)}")

@@ -37,7 +37,8 @@ def reindex(path: str | os.PathLike[str]) -> dict[str, Any]:
     root = Path(path)
     if not root.is_dir():
         raise BagReadError(f"no bag directory at {path}" + (
-            ": it does not exist" if not root.exists() else ""))
+            ": it does not exist" if not root.exists() else
+            f": it is a file; give the bag's directory ({root.parent})"))
     files = sorted(p for p in root.iterdir() if p.suffix in (".mcap", ".db3"))
     if len(files) != 1:
         raise BagReadError(f"{path} holds {len(files)} .mcap / .db3 files; reindex needs one")
@@ -45,6 +46,10 @@ def reindex(path: str | os.PathLike[str]) -> dict[str, Any]:
     cut = 0
     try:
         with locked_bag(root):  # never a bag its recorder still writes
+            ended = _ended_well(root, storage)
+            if ended is not None:
+                return {"file": storage.name, "messages": ended[0], "topics": ended[1],
+                        "cut_bytes": 0, "unchanged": True}
             if storage.suffix == ".mcap":
                 cut = _end_mcap(storage)
                 info = _mcap_info(storage)  # (read back: the ended file opens)
@@ -54,7 +59,29 @@ def reindex(path: str | os.PathLike[str]) -> dict[str, Any]:
     except BagBusyError as exc:
         raise BagReadError(f"cannot reindex {path}: {exc}") from None
     return {"file": storage.name, "messages": info["message_count"],
-            "topics": len(info["topics"]), "cut_bytes": cut}
+            "topics": len(info["topics"]), "cut_bytes": cut, "unchanged": False}
+
+
+def _ended_well(root: Path, storage: Path) -> tuple[int, int] | None:
+    """Messages and topics of a bag its recorder closed (its ``metadata.yaml`` written, which
+    holds what the storage cannot: the types' hashes), which reindex leaves as it is; None for
+    one that needs reindexing."""
+    from .play import open_bag
+
+    if not (root / METADATA).exists():
+        return None
+    if storage.suffix == ".mcap":
+        with storage.open("rb") as file:
+            if not is_closed(file, os.fstat(file.fileno()).st_size):
+                return None
+    try:
+        reader = open_bag(root)
+    except BagReadError:
+        return None  # a damaged metadata.yaml: rebuilt
+    try:
+        return reader.message_count, len(reader.connections)
+    finally:
+        reader.close()
 
 
 def _end_mcap(path: Path) -> int:
@@ -95,10 +122,11 @@ def _mcap_info(path: Path) -> dict[str, Any]:
 
     reader = McapReader(path)
     try:
-        reader.open()
-        connections, meta = list(reader.connections), reader.metadata  # (close clears them)
+        reader.open()  # (closes itself when it fails)
     except Exception as exc:  # rosbags' ReaderError and the like: the file is damaged inside
         raise BagReadError(f"cannot read {path}: {exc}") from exc
+    try:
+        connections, meta = list(reader.connections), reader.metadata  # (close clears them)
     finally:
         reader.close()
     count = meta.message_count
@@ -126,6 +154,9 @@ def _sqlite_info(path: Path) -> dict[str, Any]:
             connection.close()
     except sqlite3.Error as exc:
         raise BagReadError(f"cannot read {path}: {exc}") from exc
+    # Opening rolled a live journal back and removed it; one still there is stale (its header
+    # zeroed when the killed recorder had committed) and would be listed as a bag file.
+    Path(f"{path}-journal").unlink(missing_ok=True)
     yaml = YAML(typ="safe")
     topics = [{
         "topic_metadata": {
@@ -182,8 +213,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     report = reindex(args.bag)
+    if report["unchanged"]:
+        print(f"{args.bag} ended well (its recorder closed it): left as it is, "
+              f"{_count(report['topics'], 'topic')}, {_count(report['messages'], 'message')}")
+        return 0
     cut = (f"; cut {report['cut_bytes']} bytes of a record the recording did not finish"
            if report["cut_bytes"] else "")
-    print(f"reindexed {args.bag}: {report['file']}, {report['topics']} topic"
-          f"{'s' if report['topics'] != 1 else ''}, {report['messages']} messages{cut}")
+    print(f"reindexed {args.bag}: {report['file']}, {_count(report['topics'], 'topic')}, "
+          f"{_count(report['messages'], 'message')}{cut}")
     return 0
+
+
+def _count(number: int, noun: str) -> str:
+    return f"{number} {noun}{'' if number == 1 else 's'}"
