@@ -234,6 +234,10 @@ def test_the_bag_carries_what_ros2_bag_info_and_play_need(recorded_bag):
         meta = entry["topic_metadata"]
         assert meta["type"] in (TENSOR, STRING) and meta["serialization_format"] == "cdr"
         assert meta["type_description_hash"] == get_type_hash(meta["type"])
+        if bag["storage_identifier"] == "mcap":  # where rosbag2's MCAP storage reads them
+            channel = _mcap_channels(recorded_bag)[meta["name"]]
+            assert channel["topic_type_hash"] == meta["type_description_hash"]
+            assert "offered_qos_profiles" in channel
         # the publisher's own profile, from the graph (the test publishers keep all, depth COUNT)
         (qos,) = meta["offered_qos_profiles"]
         assert (qos["reliability"], qos["durability"], qos["history"], qos["depth"]) == (
@@ -539,6 +543,11 @@ def test_a_killed_recording_is_made_readable_by_reindex(tmp_path, domain, topic,
     indexes = [_frame_index(raw, SIZE) for _, raw in frames]
     assert None not in indexes and indexes == sorted(set(indexes))  # intact, in order, once
     assert metadata(bag)["message_count"] == len(frames) + len(stored.get(topic + "_text", []))
+    hashes = {t["topic_metadata"]["name"]: t["topic_metadata"]["type_description_hash"]
+              for t in metadata(bag)["topics_with_message_count"]}
+    from rosidl_buffer.messages import get_type_hash
+
+    assert hashes[topic] == get_type_hash(TENSOR)  # (MCAP channels carry it)
     info = run_bag(domain, "info", "--json", str(bag))
     assert info.returncode == 0 and json.loads(info.stdout)["messages"] == len(frames) + len(
         stored.get(topic + "_text", []))
@@ -597,6 +606,16 @@ def _record_offsets(path: pathlib.Path, opcode: int) -> list[int]:
             offsets.append(at)
         at += 9 + length
     return offsets
+
+
+def _mcap_channels(bag: pathlib.Path) -> dict[str, dict[str, str]]:
+    """Each channel's metadata by topic, read by the ``mcap`` library."""
+    from mcap.reader import make_reader
+
+    (path,) = bag.glob("*.mcap")
+    with path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    return {c.topic: dict(c.metadata) for c in summary.channels.values()}
 
 
 def _independent_read(path: pathlib.Path) -> tuple[Any, list[tuple[int, bytes]]]:

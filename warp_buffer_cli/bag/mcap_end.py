@@ -69,6 +69,17 @@ class McapContents:
                 counts[channel] = counts.get(channel, 0) + len(entries)
         return counts
 
+    def channel_metadata(self, channel: int) -> dict[str, str]:
+        """A channel's metadata map (``offered_qos_profiles``, ``topic_type_hash``)."""
+        from rosbags.rosbag2.storage_mcap import read_string
+
+        raw = self.channels[channel].metadata
+        body, found = BytesIO(raw), {}
+        while body.tell() < len(raw):
+            key = read_string(body)
+            found[key] = read_string(body)
+        return found
+
     def time_span(self) -> tuple[int, int]:
         """First and last log time (rosbags' empty values when there is no message)."""
         stamps = [t for c in self.chunks for e in c.messages.values() for t, _ in e]

@@ -51,8 +51,7 @@ def reindex(path: str | os.PathLike[str]) -> dict[str, Any]:
                 return {"file": storage.name, "messages": ended[0], "topics": ended[1],
                         "cut_bytes": 0, "unchanged": True}
             if storage.suffix == ".mcap":
-                cut = _end_mcap(storage)
-                info = _mcap_info(storage)  # (read back: the ended file opens)
+                cut, info = _end_mcap(storage)
             else:
                 info = _sqlite_info(storage)
             _write_metadata(root / METADATA, _metadata_text(storage, info))
@@ -84,23 +83,31 @@ def _ended_well(root: Path, storage: Path) -> tuple[int, int] | None:
         reader.close()
 
 
-def _end_mcap(path: Path) -> int:
-    """End the MCAP file ``path`` unless its writer did; the bytes cut off."""
+def _end_mcap(path: Path) -> tuple[int, dict[str, Any]]:
+    """End the MCAP file ``path`` unless its writer did; the bytes cut off, and its metadata."""
     with path.open("rb") as file:
-        if is_closed(file, os.fstat(file.fileno()).st_size):
-            return 0
-    cut, _ = end_mcap(path, lambda contents: _metadata_text(path, _contents_info(contents)))
-    return cut
+        closed = is_closed(file, os.fstat(file.fileno()).st_size)
+    if closed:  # (its metadata.yaml lost: what rosbags reads of the file)
+        return 0, _mcap_info(path)
+    cut, contents = end_mcap(path, lambda contents: _metadata_text(path, _contents_info(
+        contents)))
+    _mcap_info(path)  # the ended file opens
+    return cut, _contents_info(contents)
 
 
 def _contents_info(contents: McapContents) -> dict[str, Any]:
     """The metadata of what an MCAP file's data section holds."""
-    from rosbags.rosbag2.storage_mcap import get_qos
+    from rosbags.rosbag2.metadata import parse_qos
 
     counts = contents.message_counts()
     first, last = contents.time_span()
-    topics = [_topic(c.topic, c.schema, c.message_encoding, get_qos(c.metadata), "",
-                     counts[c.id]) for c in contents.channels.values()]
+    topics = []
+    for c in contents.channels.values():
+        metadata = contents.channel_metadata(c.id)
+        qos = metadata.get("offered_qos_profiles")
+        topics.append(_topic(c.topic, c.schema, c.message_encoding,
+                             parse_qos(qos) if qos else [],
+                             metadata.get("topic_type_hash", ""), counts[c.id]))
     count = sum(counts.values())
     return {"message_count": count, "start": first if count else 0,
             "duration": last - first if count else 0, "topics": topics}

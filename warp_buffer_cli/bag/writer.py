@@ -28,7 +28,13 @@ from io import BytesIO
 from typing import Any
 
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
+from rosbags.rosbag2.storage_mcap import (
+    Channel,
+    McapWriter,
+    PendingChunk,
+    write_channel,
+    write_string,
+)
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Writer
 
 from .lock import lock_directory
@@ -72,6 +78,21 @@ class _DirectMcapWriter(_Flushing, McapWriter):
         self._pending = True
         self._write(connection, timestamp, data)
         self.flush_if_due()
+
+    def add_connection(self, connection: Any, offered_qos_profiles: str) -> None:
+        """rosbags' channel, whose metadata also carries the type's hash under
+        ``topic_type_hash``, as rosbag2's MCAP storage writes and reads it (rosbags keeps it only
+        in ``metadata.yaml``, which a killed recorder never writes)."""
+        metadata = BytesIO()
+        for key, value in (("offered_qos_profiles", offered_qos_profiles),
+                           ("topic_type_hash", connection.digest)):
+            if value:
+                write_string(metadata, key)
+                write_string(metadata, value)
+        self.channels.append(Channel(connection.id, connection.msgtype, connection.topic,
+                                     connection.ext.serialization_format, metadata.getvalue()))
+        self.channel_stats[connection.id] = 0
+        write_channel(self.chunk.bio, self.channels[-1], self.schemas)
 
     def _flush(self) -> None:
         if self.chunk.bio.tell():
