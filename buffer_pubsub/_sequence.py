@@ -106,10 +106,6 @@ class SequenceTracker:
             state.odd_lost = step // state.stride - 1 if step % state.stride == 0 else 0
         return Verdict(lost=lost) if lost else IN_ORDER
 
-    def forget(self, gid: bytes) -> None:
-        """Drop what is known of publisher ``gid`` (it left)."""
-        for key in [key for key in self._channels if key[1] == gid]:
-            del self._channels[key]
 
 
 class Deduplicator:

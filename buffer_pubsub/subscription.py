@@ -480,10 +480,13 @@ class Subscription:
 
     # -- discovery --------------------------------------------------------------------------
     def on_publisher(self, token: wire.EndpointToken, appeared: bool) -> None:
-        """A matching publisher appeared or left (what is known of its streams is dropped)."""
+        """A matching publisher appeared or left. Its streams' numbers are kept (the tracker
+        forgets the oldest by itself): a publisher whose token leaves and comes back is the
+        same one after a reconnect (a gid names one endpoint of one session), for instance
+        when Zenoh closed the link to this process after it stalled a keep-all put for
+        ``wait_before_close``, and what it sent meanwhile is lost, and counted."""
         if not appeared:
             with self._lock:
-                self._sequences.forget(token.gid)
                 self._copies.forget(token.gid)
                 self._rates.pop(token.gid, None)
 

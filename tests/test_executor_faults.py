@@ -167,6 +167,44 @@ def test_a_node_in_a_worker_forked_after_zenoh_started_is_refused_at_once(domain
     assert float(took) < 1.0 and names_the_remedy == "True"
 
 
+def test_messages_lost_while_a_publisher_was_away_are_counted_when_it_returns(domain, topic):
+    """Zenoh closes the link to a process that stalls a keep-all put for 5 s: the publisher's
+    token leaves and comes back with the link, the same gid, its numbers going on. What it
+    sent meanwhile is lost to this subscription and counted, not taken for a new stream."""
+    from rosidl_buffer.messages import serialize_message
+
+    from buffer_pubsub import wire
+    from buffer_pubsub.subscription import ROUTE_BUFFER
+
+    with Node("executor_returning", domain_id=domain, executor="manual") as node:
+        got: list[str] = []
+        sub = node.create_subscription(STRING, topic, lambda m: got.append(m.data), depth=10)
+        token = node._endpoint_token(wire.PUBLISHER_KIND, topic, STRING, 10, wire.KEEP_LAST, {})
+
+        def sample(sequence: int):
+            payload = bytes(serialize_message(sub.msg_type(data=f"m{sequence}")))
+            return (payload, wire.Attachment(sequence, time.time_ns(), token.gid),
+                    ROUTE_BUFFER, time.time_ns(), False)
+
+        def publisher(present: bool) -> None:
+            with node.graph.lock:
+                if present:
+                    node.graph.put(token.key(), token)
+                else:
+                    node.graph.delete(token.key())
+            sub.on_publisher(token, present)
+
+        publisher(True)
+        sub._arrived(sample(1))
+        sub._arrived(sample(2))
+        publisher(False)  # the link closed ...
+        publisher(True)  # ... and came back
+        sub._arrived(sample(7))
+        while node.spin_once(0.2):
+            pass
+        assert got == ["m1", "m2", "m7"] and sub.counters.lost == 4
+
+
 def test_a_sample_of_an_undiscovered_publisher_is_not_overtaken_by_a_later_one(domain, topic):
     """A sample whose publisher's token has not arrived is delivered at once (as rmw_zenoh:
     nothing waits for discovery), so a later sample, which arrives once the token did, comes
