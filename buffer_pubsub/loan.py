@@ -218,6 +218,9 @@ class LoanPool:
         self.msg_type = msg_type
         self.max_loans = max_loans
         self.max_pools = max_pools
+        #: ids of the messages inside an open ``with`` block, which publishes them when it ends
+        #: (a publish() of one inside its block would send it twice).
+        self.in_blocks: set[int] = set()
         self._lock = threading.Lock()
         self._pools: collections.OrderedDict[Hashable, _Pool] = collections.OrderedDict()
         self.created = 0  # pooled messages made by a factory
@@ -337,11 +340,13 @@ class Loan:
         if self._msg is not None:
             raise LoanError("a Loan is entered once; call publisher.loan(...) for the next one")
         self._msg, self._slot = self._pool.take(self._factory, self._max_loans)
+        self._pool.in_blocks.add(id(self._msg))
         return self._msg
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         msg, slot = self._msg, self._slot
         self._msg = self._slot = None
+        self._pool.in_blocks.discard(id(msg))
         try:
             if exc_type is None and msg is not None:
                 self._publish(msg)

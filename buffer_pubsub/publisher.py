@@ -506,6 +506,9 @@ class Publisher:
         Field values are checked first, whoever listens (SerializationError); a payload larger
         than the transport carries raises PayloadTooLargeError before anything is sent.
         """
+        if self._loans.in_blocks and id(msg) in self._loans.in_blocks:
+            raise LoanError("this message is on loan in a `with publisher.loan(...)` block, "
+                            "which publishes it when the block ends: do not publish it inside")
         if type(msg) is self.msg_type:
             self._validate(msg)
         elif isinstance(msg, self.msg_type):  # a user's subclass

@@ -292,6 +292,30 @@ def test_an_exception_in_the_block_publishes_nothing_and_returns_the_loan(
         assert pub.loan_stats()["created"] == 1
 
 
+def test_publishing_a_loan_inside_its_block_is_refused_not_sent_twice(domain, topic, backends):
+    """rclcpp's habit, ``publish(loaned)``, inside the block that publishes when it ends: a
+    typed error, nothing sent, the loan returned (it sent the message twice)."""
+    from buffer_pubsub.errors import LoanError
+
+    received = []
+    with Node("loan_twice", domain_id=domain, backends=backends) as node:
+        _intra(node, topic, lambda m: received.append(
+            float(tc.from_input_tensor_msg(m, clone=False)[0])))
+        pub = node.create_publisher(TENSOR, topic)
+        assert pub.wait_for_subscriptions(1)
+        with pytest.raises(LoanError, match="publishes it when the block ends"):
+            with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+                tc.from_output_tensor_msg(msg).fill_(9.0)
+                pub.publish(msg)
+        del msg
+        time.sleep(0.2)
+        assert received == [] and pub._last_stamp == 0
+        with tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu") as msg:
+            tc.from_output_tensor_msg(msg).fill_(3.0)
+        assert _wait(lambda: received == [3.0])
+        assert not pub._loans.in_blocks  # every block that ended forgot its message
+
+
 _STALE_CHILD = textwrap.dedent("""
     import sys, torch
     from buffer_pubsub import Node
