@@ -47,6 +47,7 @@ from .errors import (
     TransportConfigError,
     TransportError,
     WireFormatError,
+    WrongMessageTypeError,
 )
 from ._waker import Waker
 from .fast_lane import LaneWaker as ThreadWaker  # every executor's waker (there is one kind)
@@ -72,6 +73,7 @@ __all__ = [
     "PayloadTooLargeError",
     "ThreadWaker",
     "TransportError",
+    "WrongMessageTypeError",
     "Waker",
     "MessageInfo",
     "Node",

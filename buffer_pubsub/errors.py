@@ -6,7 +6,8 @@ from rosidl_buffer.errors import RosidlBufferError
 
 __all__ = ["PubSubError", "WireFormatError", "NodeClosedError", "TransportConfigError",
            "InvalidEndpointError", "InvalidNameError", "PayloadTooLargeError", "TransportError",
-           "ExecutorModeError", "InvalidTimeoutError", "ForkedAfterZenohError"]
+           "ExecutorModeError", "InvalidTimeoutError", "ForkedAfterZenohError",
+           "WrongMessageTypeError"]
 
 
 class PubSubError(RosidlBufferError):
@@ -27,6 +28,11 @@ class TransportConfigError(PubSubError, ValueError):
 
 class InvalidEndpointError(PubSubError, ValueError):
     """Bad arguments to create_publisher / create_subscription or publish."""
+
+
+class WrongMessageTypeError(InvalidEndpointError, TypeError):
+    """publish() of something that is not the publisher's message type (a ``TypeError`` as
+    well: ``except TypeError`` catches it as Python's own type mismatches)."""
 
 
 class InvalidNameError(InvalidEndpointError):

@@ -61,6 +61,7 @@ from .errors import (
     NodeClosedError,
     PayloadTooLargeError,
     TransportError,
+    WrongMessageTypeError,
 )
 
 if TYPE_CHECKING:
@@ -514,7 +515,7 @@ class Publisher:
         elif isinstance(msg, self.msg_type):  # a user's subclass
             validate_message(msg)
         else:
-            raise InvalidEndpointError(
+            raise WrongMessageTypeError(
                 f"publisher of {self.msg_type.__msgtype__} got {type(msg).__name__}")
         backends, nbytes, impls = seal_and_list_backends(msg, self._flat_buffers)  # write ends
         # The executors of in-process subscriptions served: woken when publish() ends, also when

@@ -35,6 +35,7 @@ from buffer_pubsub import (  # noqa: E402
     InvalidEndpointError,
     Node,
     NodeClosedError,
+    WrongMessageTypeError,
     fast_lane,
     wire,
 )
@@ -402,8 +403,11 @@ def test_misuse_raises_typed_errors(domain, topic, backends):
         with pytest.raises(InvalidEndpointError):
             node.create_publisher(TENSOR, topic, depth=0)
         pub = node.create_publisher(TENSOR, topic)
-        with pytest.raises(InvalidEndpointError):
-            pub.publish(get_message_type("sensor_msgs/msg/Image")())
+        for wrong in (get_message_type("sensor_msgs/msg/Image")(), None, {}, b"bytes"):
+            with pytest.raises(WrongMessageTypeError, match="publisher of") as caught:
+                pub.publish(wrong)
+            assert isinstance(caught.value, TypeError)  # and an InvalidEndpointError, as before
+            assert isinstance(caught.value, InvalidEndpointError)
     finally:
         node.close()
     with pytest.raises(NodeClosedError):
