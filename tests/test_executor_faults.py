@@ -4,6 +4,7 @@ started. Each case was a fault found by trying the library."""
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import sys
 import threading
@@ -167,25 +168,34 @@ def test_a_node_in_a_worker_forked_after_zenoh_started_is_refused_at_once(domain
     assert float(took) < 1.0 and names_the_remedy == "True"
 
 
-def test_messages_lost_while_a_publisher_was_away_are_counted_when_it_returns(domain, topic):
-    """Zenoh closes the link to a process that stalls a keep-all put for 5 s: the publisher's
-    token leaves and comes back with the link, the same gid, its numbers going on. What it
-    sent meanwhile is lost to this subscription and counted, not taken for a new stream."""
+@contextlib.contextmanager
+def _string_subscription(name: str, domain: int, topic: str):
+    """A manual node's String subscription: ``(node, sub, got, token, sample)``, ``sample(n)``
+    an arrived sample ``m<n>`` of the publisher of ``token`` (not in the graph yet)."""
     from rosidl_buffer.messages import serialize_message
 
     from buffer_pubsub import wire
     from buffer_pubsub.subscription import ROUTE_BUFFER
 
-    with Node("executor_returning", domain_id=domain, executor="manual") as node:
+    with Node(name, domain_id=domain, executor="manual") as node:
         got: list[str] = []
         sub = node.create_subscription(STRING, topic, lambda m: got.append(m.data), depth=10)
         token = node._endpoint_token(wire.PUBLISHER_KIND, topic, STRING, 10, wire.KEEP_LAST, {})
 
-        def sample(sequence: int):
+        def sample(sequence: int) -> tuple:
             payload = bytes(serialize_message(sub.msg_type(data=f"m{sequence}")))
             return (payload, wire.Attachment(sequence, time.time_ns(), token.gid),
                     ROUTE_BUFFER, time.time_ns(), False)
 
+        yield node, sub, got, token, sample
+
+
+def test_messages_lost_while_a_publisher_was_away_are_counted_when_it_returns(domain, topic):
+    """Zenoh closes the link to a process that stalls a keep-all put for 5 s: the publisher's
+    token leaves and comes back with the link, the same gid, its numbers going on. What it
+    sent meanwhile is lost to this subscription and counted, not taken for a new stream."""
+    with _string_subscription("executor_returning", domain, topic) as (
+            node, sub, got, token, sample):
         def publisher(present: bool) -> None:
             with node.graph.lock:
                 if present:
@@ -209,21 +219,8 @@ def test_a_sample_of_an_undiscovered_publisher_is_not_overtaken_by_a_later_one(d
     """A sample whose publisher's token has not arrived is delivered at once (as rmw_zenoh:
     nothing waits for discovery), so a later sample, which arrives once the token did, comes
     after it and neither is refused as late."""
-    from rosidl_buffer.messages import serialize_message
-
-    from buffer_pubsub import wire
-    from buffer_pubsub.subscription import ROUTE_BUFFER
-
-    with Node("executor_parked", domain_id=domain, executor="manual") as node:
-        got: list[str] = []
-        sub = node.create_subscription(STRING, topic, lambda m: got.append(m.data), depth=10)
-        token = node._endpoint_token(wire.PUBLISHER_KIND, topic, STRING, 10, wire.KEEP_LAST, {})
-
-        def sample(sequence: int):
-            payload = bytes(serialize_message(sub.msg_type(data=f"m{sequence}")))
-            return (payload, wire.Attachment(sequence, time.time_ns(), token.gid),
-                    ROUTE_BUFFER, time.time_ns(), False)
-
+    with _string_subscription("executor_parked", domain, topic) as (
+            node, sub, got, token, sample):
         sub._arrived(sample(1))  # the publisher is not discovered yet
         with node.graph.lock:
             node.graph.put(token.key(), token)  # discovery records it (under the lock) ...
