@@ -296,9 +296,12 @@ class PointCloudLoanSpec(_LoanSpec):
 _SPECS: dict[tuple[Any, ...], _LoanSpec] = {}
 
 
-def _loan(publisher: Any, kind: type[_LoanSpec], adapter: Any, *args: Any) -> Any:
-    """``publisher.loan(spec)`` for a spec of ``kind`` with ``args`` (specs memoised by value,
-    so a loan per frame builds no spec)."""
+def _loan(publisher: Any, kind: type[_LoanSpec], adapter: Any, *args: Any,
+          max_loans: int | None = None) -> Any:
+    """``publisher.loan(spec, max_loans=max_loans)`` for a spec of ``kind`` with ``args``
+    (specs memoised by value, so a loan per frame builds no spec). ``max_loans``: the most
+    pooled messages of the spec (:meth:`buffer_pubsub.Publisher.loan`; default 16): a
+    subscriber that keeps frames, and its queue, hold pooled messages."""
     key = (kind, adapter.name, *args)
     try:
         spec = _SPECS.get(key)
@@ -311,11 +314,12 @@ def _loan(publisher: Any, kind: type[_LoanSpec], adapter: Any, *args: Any) -> An
             if len(_SPECS) >= 256:
                 _SPECS.clear()
             _SPECS[key] = spec
-    return publisher.loan(spec)
+    return publisher.loan(spec, max_loans=max_loans)
 
 
 def loan_tensor_msg(adapter: Any, publisher: Any, shape: Sequence[int] | int, dtype: Any,
-                    backend: str = "warp", device: Any = None) -> Any:
+                    backend: str = "warp", device: Any = None, *,
+                    max_loans: int | None = None) -> Any:
     """``publisher.loan(spec)`` for a tensor of ``shape``/``dtype`` (:func:`_loan` inline: the
     memo lookup of a loan per frame)."""
     if shape.__class__ is not tuple and not isinstance(shape, (int, np.integer)):
@@ -329,24 +333,26 @@ def loan_tensor_msg(adapter: Any, publisher: Any, shape: Sequence[int] | int, dt
     except TypeError:  # an unhashable argument: no memo
         spec = None
     if spec is None:
-        return _loan(publisher, TensorLoanSpec, adapter, shape, dtype, backend, device)
-    return publisher.loan(spec)
+        return _loan(publisher, TensorLoanSpec, adapter, shape, dtype, backend, device,
+                     max_loans=max_loans)
+    return publisher.loan(spec, max_loans=max_loans)
 
 
 def loan_image_msg(adapter: Any, publisher: Any, height: int, width: int, encoding: str,
-                   backend: str = "warp", device: Any = None, step: int | None = None) -> Any:
+                   backend: str = "warp", device: Any = None, step: int | None = None, *,
+                   max_loans: int | None = None) -> Any:
     """``publisher.loan(spec)`` for an Image (the arguments of ``allocate_image_msg``)."""
     return _loan(publisher, ImageLoanSpec, adapter, height, width, encoding, backend, device,
-                 step)
+                 step, max_loans=max_loans)
 
 
 def loan_pointcloud_msg(adapter: Any, publisher: Any, width: int, fields: Sequence[str],
                         dtype: Any, height: int = 1, backend: str = "warp",
-                        device: Any = None) -> Any:
+                        device: Any = None, *, max_loans: int | None = None) -> Any:
     """``publisher.loan(spec)`` for a PointCloud2 (the arguments of
     ``allocate_pointcloud_msg``)."""
     if isinstance(fields, str) or not isinstance(fields, Sequence):
         raise InvalidTensorMetadataError(
             f"fields must be a sequence of field names, got {fields!r}")
     return _loan(publisher, PointCloudLoanSpec, adapter, width, tuple(fields), dtype, height,
-                 backend, device)
+                 backend, device, max_loans=max_loans)

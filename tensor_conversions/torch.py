@@ -245,7 +245,8 @@ def from_output_tensor_msg(msg: Any) -> torch.Tensor:
 
 
 def loan_tensor_msg(publisher: Any, shape: Sequence[int] | int, dtype: torch.dtype | str,
-                    backend: str = "warp", device: Any = None) -> Any:
+                    backend: str = "warp", device: Any = None,
+                    *, max_loans: int | None = None) -> Any:
     """``with loan_tensor_msg(pub, shape, dtype) as msg:`` a loaned ExperimentalTensor from
     ``pub``'s pool (warp storage on ``device``), published when the block ends; an exception
     publishes nothing. :func:`from_output_tensor_msg` of it returns the same writable torch.Tensor
@@ -253,7 +254,8 @@ def loan_tensor_msg(publisher: Any, shape: Sequence[int] | int, dtype: torch.dty
     memory is read-only until its next loan (a write through a view kept past publish faults);
     on CUDA such a write is not stopped: don't. See :mod:`tensor_conversions.loan`.
     """
-    return _loan.loan_tensor_msg(_ADAPTER, publisher, shape, dtype, backend, device)
+    return _loan.loan_tensor_msg(_ADAPTER, publisher, shape, dtype, backend, device,
+                                 max_loans=max_loans)
 
 
 def from_input_tensor_msg(msg: Any, clone: bool = True) -> torch.Tensor:
@@ -309,7 +311,8 @@ def to_image_msg(value: torch.Tensor, encoding: str, *, backend: str | None = No
 
 
 def loan_image_msg(publisher: Any, height: int, width: int, encoding: str,
-                   backend: str = "warp", device: Any = None, step: int | None = None) -> Any:
+                   backend: str = "warp", device: Any = None, step: int | None = None,
+                   *, max_loans: int | None = None) -> Any:
     """``with loan_image_msg(pub, height, width, encoding) as msg:`` a loaned
     ``sensor_msgs/msg/Image`` from ``pub``'s pool (the arguments of :func:`allocate_image_msg`,
     warp storage on ``device``), published when the block ends; an exception publishes nothing.
@@ -318,7 +321,7 @@ def loan_image_msg(publisher: Any, height: int, width: int, encoding: str,
     :mod:`tensor_conversions.loan`.
     """
     return _loan.loan_image_msg(_ADAPTER, publisher, height, width, encoding, backend, device,
-                                step)
+                                step, max_loans=max_loans)
 
 
 # ------------------------------------------------------------ sensor_msgs/msg/PointCloud2
@@ -348,7 +351,8 @@ def from_output_pointcloud_msg(msg: Any, fields: Sequence[str] | None = None) ->
 
 
 def loan_pointcloud_msg(publisher: Any, width: int, fields: Sequence[str], dtype: torch.dtype | str,
-                        height: int = 1, backend: str = "warp", device: Any = None) -> Any:
+                        height: int = 1, backend: str = "warp", device: Any = None,
+                        *, max_loans: int | None = None) -> Any:
     """``with loan_pointcloud_msg(pub, width, ("x", "y", "z"), dtype) as msg:`` a loaned
     PointCloud2 from ``pub``'s pool (the arguments of :func:`allocate_pointcloud_msg`, warp
     storage on ``device``), published when the block ends. :func:`from_output_pointcloud_msg`
@@ -356,4 +360,4 @@ def loan_pointcloud_msg(publisher: Any, width: int, fields: Sequence[str], dtype
     publish, as for :func:`loan_tensor_msg`; see :mod:`tensor_conversions.loan`.
     """
     return _loan.loan_pointcloud_msg(_ADAPTER, publisher, width, fields, dtype, height, backend,
-                                     device)
+                                     device, max_loans=max_loans)

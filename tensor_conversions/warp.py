@@ -124,7 +124,8 @@ def from_output_tensor_msg(msg: Any) -> wp.array:
 
 
 def loan_tensor_msg(publisher: Any, shape: Sequence[int] | int, dtype: Any,
-                    backend: str = "warp", device: Any = None) -> Any:
+                    backend: str = "warp", device: Any = None,
+                    *, max_loans: int | None = None) -> Any:
     """``with loan_tensor_msg(pub, shape, dtype) as msg:`` a loaned ExperimentalTensor from
     ``pub``'s pool (warp storage on ``device``), published when the block ends; an exception
     publishes nothing. :func:`from_output_tensor_msg` of it returns the same writable wp.array
@@ -132,7 +133,8 @@ def loan_tensor_msg(publisher: Any, shape: Sequence[int] | int, dtype: Any,
     memory is read-only until its next loan (a write through a view kept past publish faults);
     on CUDA such a write is not stopped: don't. See :mod:`tensor_conversions.loan`.
     """
-    return _loan.loan_tensor_msg(_ADAPTER, publisher, shape, dtype, backend, device)
+    return _loan.loan_tensor_msg(_ADAPTER, publisher, shape, dtype, backend, device,
+                                 max_loans=max_loans)
 
 
 def from_input_tensor_msg(msg: Any, clone: bool = True) -> wp.array:
@@ -185,7 +187,8 @@ def to_image_msg(value: wp.array, encoding: str, *, backend: str | None = None,
 
 
 def loan_image_msg(publisher: Any, height: int, width: int, encoding: str,
-                   backend: str = "warp", device: Any = None, step: int | None = None) -> Any:
+                   backend: str = "warp", device: Any = None, step: int | None = None,
+                   *, max_loans: int | None = None) -> Any:
     """``with loan_image_msg(pub, height, width, encoding) as msg:`` a loaned
     ``sensor_msgs/msg/Image`` from ``pub``'s pool (the arguments of :func:`allocate_image_msg`,
     warp storage on ``device``), published when the block ends; an exception publishes nothing.
@@ -194,7 +197,7 @@ def loan_image_msg(publisher: Any, height: int, width: int, encoding: str,
     :mod:`tensor_conversions.loan`.
     """
     return _loan.loan_image_msg(_ADAPTER, publisher, height, width, encoding, backend, device,
-                                step)
+                                step, max_loans=max_loans)
 
 
 # ------------------------------------------------------------ sensor_msgs/msg/PointCloud2
@@ -224,7 +227,8 @@ def from_output_pointcloud_msg(msg: Any, fields: Sequence[str] | None = None) ->
 
 
 def loan_pointcloud_msg(publisher: Any, width: int, fields: Sequence[str], dtype: Any,
-                        height: int = 1, backend: str = "warp", device: Any = None) -> Any:
+                        height: int = 1, backend: str = "warp", device: Any = None,
+                        *, max_loans: int | None = None) -> Any:
     """``with loan_pointcloud_msg(pub, width, ("x", "y", "z"), dtype) as msg:`` a loaned
     PointCloud2 from ``pub``'s pool (the arguments of :func:`allocate_pointcloud_msg`, warp
     storage on ``device``), published when the block ends. :func:`from_output_pointcloud_msg`
@@ -232,4 +236,4 @@ def loan_pointcloud_msg(publisher: Any, width: int, fields: Sequence[str], dtype
     publish, as for :func:`loan_tensor_msg`; see :mod:`tensor_conversions.loan`.
     """
     return _loan.loan_pointcloud_msg(_ADAPTER, publisher, width, fields, dtype, height, backend,
-                                     device)
+                                     device, max_loans=max_loans)

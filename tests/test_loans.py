@@ -186,6 +186,28 @@ def test_past_max_loans_a_loan_is_a_fresh_unpooled_message(domain, topic, backen
         assert pub.loan_stats() == {"created": 2, "reused": 0, "unpooled": 2, "pooled": 2}
 
 
+@pytest.mark.parametrize("helper", ["tensor", "image", "pointcloud"])
+def test_the_tensor_loan_helpers_take_max_loans(domain, topic, backends, helper):
+    """A subscriber keeping frames holds pooled messages: the helpers bound the pool as
+    ``pub.loan(..., max_loans=)`` does."""
+    msg_type = {"tensor": TENSOR, "image": "sensor_msgs/msg/Image",
+                "pointcloud": "sensor_msgs/msg/PointCloud2"}[helper]
+    loan = {"tensor": lambda: tc.loan_tensor_msg(pub, (N,), torch.float32, device="cpu",
+                                                 max_loans=2),
+            "image": lambda: tc.loan_image_msg(pub, 4, 4, "mono8", device="cpu", max_loans=2),
+            "pointcloud": lambda: tc.loan_pointcloud_msg(pub, 4, ("x", "y", "z"),
+                                                         torch.float32, device="cpu",
+                                                         max_loans=2)}[helper]
+    with Node("loan_helper_max", domain_id=domain, backends=backends) as node:
+        pub = node.create_publisher(msg_type, topic)
+        held = []
+        for _ in range(4):
+            with loan() as msg:
+                held.append(msg.data)  # a kept frame holds its block
+        stats = pub.loan_stats()
+        assert (stats["created"], stats["unpooled"]) == (2, 2), stats
+
+
 # --------------------------------------------------------------------------- warp loans
 def _intra(node, topic, on_msg):
     return node.create_subscription(TENSOR, topic, on_msg, depth=100,
