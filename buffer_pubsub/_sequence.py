@@ -107,7 +107,6 @@ class SequenceTracker:
         return Verdict(lost=lost) if lost else IN_ORDER
 
 
-
 class Deduplicator:
     """Recognizes a second copy of a message by its publisher and source timestamp. Not
     thread-safe: callers hold their lock."""

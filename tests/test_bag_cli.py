@@ -723,6 +723,18 @@ def test_an_mcap_file_killed_before_its_header_was_whole_becomes_an_empty_bag(tm
     assert summary.statistics.message_count == 0 and messages == []
 
 
+def test_reindex_of_a_closed_mcap_file_without_metadata_keeps_the_type_hashes(tmp_path):
+    from rosidl_buffer.messages import get_type_hash
+    from warp_buffer_cli.bag.reindex import reindex
+
+    bag = tmp_path / "bag"
+    _closed_mcap_bag(bag, 1)
+    (bag / "metadata.yaml").unlink()
+    assert reindex(bag)["cut_bytes"] == 0
+    (topic,) = metadata(bag)["topics_with_message_count"]
+    assert topic["topic_metadata"]["type_description_hash"] == get_type_hash(TENSOR)
+
+
 def test_reindex_leaves_a_bag_its_recorder_closed_as_it_is(tmp_path, domain):
     bag = tmp_path / "bag"
     _closed_mcap_bag(bag, 2)

@@ -23,7 +23,8 @@ from typing import Any, BinaryIO
 
 from .errors import BagReadError
 
-__all__ = ["MCAP_MAGIC", "McapContents", "chunk_index", "end_mcap", "is_closed"]
+__all__ = ["MCAP_MAGIC", "McapContents", "channel_metadata", "chunk_index", "end_mcap",
+           "is_closed"]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
@@ -69,21 +70,21 @@ class McapContents:
                 counts[channel] = counts.get(channel, 0) + len(entries)
         return counts
 
-    def channel_metadata(self, channel: int) -> dict[str, str]:
-        """A channel's metadata map (``offered_qos_profiles``, ``topic_type_hash``)."""
-        from rosbags.rosbag2.storage_mcap import read_string
-
-        raw = self.channels[channel].metadata
-        body, found = BytesIO(raw), {}
-        while body.tell() < len(raw):
-            key = read_string(body)
-            found[key] = read_string(body)
-        return found
-
     def time_span(self) -> tuple[int, int]:
         """First and last log time (rosbags' empty values when there is no message)."""
         stamps = [t for c in self.chunks for e in c.messages.values() for t, _ in e]
         return (min(stamps), max(stamps)) if stamps else (2**63 - 1, 0)
+
+
+def channel_metadata(raw: bytes) -> dict[str, str]:
+    """A channel record's metadata map (``offered_qos_profiles``, ``topic_type_hash``)."""
+    from rosbags.rosbag2.storage_mcap import read_string
+
+    body, found = BytesIO(raw), {}
+    while body.tell() < len(raw):
+        key = read_string(body)
+        found[key] = read_string(body)
+    return found
 
 
 def is_closed(file: BinaryIO, size: int) -> bool:

@@ -21,7 +21,7 @@ from typing import Any
 
 from .errors import BagReadError
 from .lock import BagBusyError, locked_bag
-from .mcap_end import McapContents, end_mcap, is_closed
+from .mcap_end import McapContents, channel_metadata, end_mcap, is_closed
 
 __all__ = ["add_arguments", "reindex", "run"]
 
@@ -31,8 +31,9 @@ BAG_VERSION = 9  # what the recorder writes (rosbags' latest)
 
 def reindex(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Rebuild the ``metadata.yaml`` of the bag directory ``path`` from its one storage file
-    (``.mcap`` or ``.db3``); returns what it found: ``file``, ``messages``, ``topics`` and
-    ``cut_bytes`` (the unfinished record cut off an MCAP file). :class:`BagReadError` when
+    (``.mcap`` or ``.db3``); returns what it found: ``file``, ``messages``, ``topics``,
+    ``cut_bytes`` (the unfinished record cut off an MCAP file) and ``unchanged`` (a bag its
+    recorder closed, left as it is). :class:`BagReadError` when
     ``path`` holds no such file or it is not one."""
     root = Path(path)
     if not root.is_dir():
@@ -103,7 +104,7 @@ def _contents_info(contents: McapContents) -> dict[str, Any]:
     first, last = contents.time_span()
     topics = []
     for c in contents.channels.values():
-        metadata = contents.channel_metadata(c.id)
+        metadata = channel_metadata(c.metadata)
         qos = metadata.get("offered_qos_profiles")
         topics.append(_topic(c.topic, c.schema, c.message_encoding,
                              parse_qos(qos) if qos else [],
@@ -132,13 +133,17 @@ def _mcap_info(path: Path) -> dict[str, Any]:
         reader.open()  # (closes itself when it fails)
     except Exception as exc:  # rosbags' ReaderError and the like: the file is damaged inside
         raise BagReadError(f"cannot read {path}: {exc}") from exc
-    try:
-        connections, meta = list(reader.connections), reader.metadata  # (close clears them)
+    try:  # (close clears them)
+        connections, meta = list(reader.connections), reader.metadata
+        hashes = {key: channel_metadata(c.metadata).get("topic_type_hash", "")
+                  for key, c in reader.channels.items()}
     finally:
         reader.close()
     count = meta.message_count
+    # (rosbags reads no hash from a channel; the recorder writes one, as rosbag2 does)
     topics = [_topic(c.topic, c.msgtype, c.ext.serialization_format,
-                     c.ext.offered_qos_profiles, c.digest, c.msgcount) for c in connections]
+                     c.ext.offered_qos_profiles, hashes.get(c.id) or c.digest, c.msgcount)
+              for c in connections]
     # (the reader's end and duration count one past the last stamp)
     return {"message_count": count, "start": meta.start_time if count else 0,
             "duration": max(0, meta.duration - 1) if count else 0, "topics": topics}
