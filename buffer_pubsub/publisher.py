@@ -32,13 +32,14 @@ strictly increasing per publisher (the key of duplicate detection, see :mod:`._s
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import itertools
 import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import zenoh
@@ -74,6 +75,8 @@ _log = logging.getLogger(__name__)
 #: How long destroy() waits for a publish in flight on another thread before leaving the
 #: Zenoh publishers to that publish to undeclare.
 UNDECLARE_WAIT_S = 1.0
+#: Streams of subscriptions that left remembered per publisher (see Publisher._left_streams).
+MAX_LEFT_STREAMS = 1024
 
 def seal_and_list_backends(msg: Message, flat: tuple[str, ...] | None
                            ) -> tuple[frozenset[str], int, tuple[BufferImplBase, ...]]:
@@ -128,8 +131,9 @@ class _Peer:
     # Serializes put and undeclare of the channel: a peer may vanish (discovery thread) while
     # publish() is putting to it, and a zenoh.Publisher must not be used from both at once.
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
-    # The numbers of its own stream (Zenoh channel and lane alike: one stream).
-    sequences: Iterator[int] = field(default_factory=lambda: itertools.count(1), repr=False)
+    # The last number of its own stream (Zenoh channel and lane alike: one stream), advanced
+    # under ``lock``; one that left and came back continues it (see Publisher._left_streams).
+    sequence: int = 0
     # What backends are told when descriptors are made for it: its info, plus the depth of
     # the lane's keep-last queue while the lane carries them (EndpointInfo.delivery_queue_depth).
     route_info: EndpointInfo = field(init=False)
@@ -236,6 +240,13 @@ class Publisher:
         self._cpu_sequences = itertools.count(1)
         self._intra_sequences = itertools.count(1)
         self._last_stamp = 0
+        self._published = 0  # publish() calls, for the streams of subscriptions that came back
+        # The streams of subscriptions that left, by gid: one whose token comes back is the same
+        # subscription after a reconnect (Zenoh closed its link when it stalled, SIGSTOP say),
+        # and continues its numbers: its reader keeps judging them (restarted from 1 they would
+        # all look late), and what was published while it was away counts as lost there.
+        self._left_streams: collections.OrderedDict[bytes, tuple[int, int]] = \
+            collections.OrderedDict()
         self._closed = False
         # As rmw_zenoh: keep-last drops when Zenoh's queue to a peer is full (a frozen
         # subscriber never stalls publish()), keep-all blocks (no loss, publish() waits).
@@ -285,6 +296,7 @@ class Publisher:
                 self._ready.notify_all()
             if peer is not None:
                 peer.close()  # (backends hear of its departure from the node: see there)
+                self._remember_stream(peer)
             return
         info = endpoint_info(token)
         stream = (wire.subscription_channel(token) if self._aware
@@ -318,6 +330,7 @@ class Publisher:
                 with self._lock:
                     keep = not self._closed and gid not in self._peers
                     if keep:
+                        self._continue_stream(peer)
                         self._peers[gid] = peer
                         self._update_remote()
         if not keep:
@@ -330,6 +343,26 @@ class Publisher:
             with self._lock:
                 peer.ready = True
                 self._ready.notify_all()
+
+    def _remember_stream(self, peer: _Peer) -> None:
+        """Keep where ``peer``'s stream stands (see ``_left_streams``; bounded: the oldest
+        goes first). Read after :meth:`_Peer.close`: no put numbers it any more."""
+        if not peer.individual:
+            return
+        with self._lock:
+            left = self._left_streams
+            left[peer.token.gid] = (peer.sequence, self._published)
+            if len(left) > MAX_LEFT_STREAMS:
+                left.popitem(last=False)
+
+    def _continue_stream(self, peer: _Peer) -> None:
+        """Number ``peer``'s stream on from where it stood when it left, skipping one number
+        per message published meanwhile, which it missed (call with ``self._lock`` held). A
+        rate-limited stream skips none: its reader takes every number it is sent."""
+        left = self._left_streams.pop(peer.token.gid, None)
+        if left is not None:
+            sequence, published = left
+            peer.sequence = sequence + (self._published - published if peer.rate is None else 0)
 
     def _open_lane(self, peer: _Peer) -> None:
         """Give a kept peer the same-host lane if it has one (~12 ms, once per match). Opened
@@ -534,6 +567,7 @@ class Publisher:
                 if self._closed:  # destroyed while this publish waited for the lock
                     raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
                 stamp = self._last_stamp = max(time.time_ns(), self._last_stamp + 1)
+                self._published += 1
                 if remote is _NOBODY:
                     self._publish_intra(msg, backends, stamp, wakers)
                     return
@@ -640,7 +674,8 @@ class Publisher:
         with peer.lock:
             if peer.gone:
                 return  # the subscription vanished while we were publishing: nobody to send to
-            attachment = wire.new_attachment((next(peer.sequences), stamp, self.gid)).encode()
+            peer.sequence = number = peer.sequence + 1
+            attachment = wire.new_attachment((number, stamp, self.gid)).encode()
             lane = peer.lane
             if lane is not None and lane.fits(len(attachment) + len(payload)):
                 try:

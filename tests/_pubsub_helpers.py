@@ -192,7 +192,7 @@ def run_sub(args: argparse.Namespace) -> int:
 
         sub = node.create_subscription(TENSOR, args.topic, on_msg, depth=args.depth,
                                        acceptable_buffer_backends=args.accept, with_info=True,
-                                       max_rate=args.max_rate or None)
+                                       max_rate=args.max_rate or None, history=args.history)
         sub.wait_for_publishers(args.publishers, timeout=args.timeout)
         _emit("READY")
         _stdin_stop(args.timeout).wait()
@@ -257,6 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--accept", default="cpu")
     parser.add_argument("--backend", default="cpu")
     parser.add_argument("--depth", type=int, default=100)
+    parser.add_argument("--history", default="keep_last", choices=["keep_last", "keep_all"])
     parser.add_argument("--count", type=int, default=10)
     parser.add_argument("--size", type=int, default=1024)
     parser.add_argument("--pub-id", type=int, default=0)

@@ -7,6 +7,7 @@ Every child is reaped in ``finally`` (a stopped one is killed and continued).
 
 from __future__ import annotations
 
+import copy
 import gc
 import json
 import os
@@ -26,7 +27,8 @@ pytestmark = pytest.mark.multiprocess
 
 use_fake_backend()
 
-from buffer_pubsub.config import DROP_FRAGMENTS_WAIT_US  # noqa: E402
+from buffer_pubsub.config import (  # noqa: E402
+    CONFIG_URI_ENV, DEFAULT_CONFIG, DROP_FRAGMENTS_WAIT_US)
 from buffer_pubsub import (  # noqa: E402
     DEFAULT_CONFIG,
     ExecutorModeError,
@@ -798,3 +800,55 @@ def test_ctrl_c_during_a_bounded_teardown_step_lets_it_finish_then_propagates():
     finally:
         timer.cancel()
     assert finished == [True]  # it was waited for before the interrupt surfaced
+
+
+@pytest.mark.parametrize("history", ["keep_last", "keep_all"])
+def test_a_subscriber_whose_link_closed_while_frozen_resumes_and_counts_what_it_missed(
+        domain, topic, backends, tmp_path, monkeypatch, history):
+    """Frozen past Zenoh's lease, a subscriber loses its link: its token leaves the publisher
+    and comes back when it resumes. Its stream's numbers go on from where they stood, so the
+    fresh messages are delivered (restarted from 1, a keep-last reader refused each as late
+    until the numbers caught up; a keep-all one counted nothing lost) and everything the
+    publisher sent is either received or counted (lost, or dropped by the lane's queue)."""
+    from tests._pubsub_helpers import pick_backend
+
+    backend = pick_backend()
+    config = copy.deepcopy(DEFAULT_CONFIG)
+    config["transport"]["link"]["tx"].update(lease=1000, keep_alive=4)  # link closed in ~1 s
+    path = tmp_path / "short_lease.json5"
+    path.write_text(json.dumps(config))
+    monkeypatch.setenv(CONFIG_URI_ENV, str(path))
+    sub = Child("sub", domain=domain, topic=topic, accept=backend, depth=10, history=history)
+    published = 0
+    try:
+        with Node("lease_pub", domain_id=domain, backends=backends) as node:
+            pub = node.create_publisher(TENSOR, topic, depth=10, history=history)
+            sub.wait_ready()
+            assert pub.wait_for_subscriptions(1, timeout=10)
+
+            def burst(seconds: float) -> None:
+                nonlocal published
+                end = time.monotonic() + seconds
+                while time.monotonic() < end:
+                    pub.publish(make_frame(0, published, 4096, backend))
+                    published += 1
+                    time.sleep(0.01)
+
+            burst(0.3)
+            os.kill(sub.proc.pid, signal.SIGSTOP)
+            burst(3.0)  # the link closes: the subscription leaves the publisher's graph
+            left = not pub._peers
+            os.kill(sub.proc.pid, signal.SIGCONT)
+            assert pub.wait_for_subscriptions(1, timeout=10)
+            burst(1.0)
+            first_after = published
+            burst(0.5)
+            result = sub.stop()
+    finally:
+        sub.close()
+    counters = result["counters"]
+    indices = {r["index"] for r in result["records"]}
+    assert left, "the link did not close: nothing was tested"
+    assert counters["refused"] == {} and counters["errors"] == 0, counters
+    assert set(range(first_after, published)) <= indices, counters
+    assert counters["received"] + counters["lost"] + counters["dropped"] == published, counters
