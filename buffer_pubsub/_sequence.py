@@ -66,16 +66,21 @@ class SequenceTracker:
     def __init__(self) -> None:
         self._channels: dict[tuple[str, bytes], _Channel] = {}
 
-    def track(self, channel: str, gid: bytes, sequence: int, numbered_per_channel: bool
-              ) -> Verdict:
+    def track(self, channel: str, gid: bytes, sequence: int, numbered_per_channel: bool,
+              from_one: bool = False) -> Verdict:
         """Judge ``sequence`` from publisher ``gid`` on ``channel``. ``numbered_per_channel``:
-        the publisher numbers each channel from 1 (one of ours), so every step is exact."""
+        the publisher numbers each channel from 1 (one of ours), so every step is exact.
+        ``from_one``: the channel was started for this reader alone (its own stream), so a
+        first number past 1 follows that many messages it missed (a lane's keep-last queue
+        overwrote them before its first read, say); elsewhere a reader joins at any number."""
         key = (channel, gid)
         state = self._channels.get(key)
         if state is None:
             if len(self._channels) >= MAX_TRACKED:
                 del self._channels[next(iter(self._channels))]
             self._channels[key] = _Channel(sequence)
+            if from_one and numbered_per_channel and 1 < sequence <= LOST_WINDOW:
+                return Verdict(lost=sequence - 1)
             return IN_ORDER
         step = sequence - state.last
         if step <= 0:

@@ -80,19 +80,21 @@ REFUSED_ATTACHMENT = "attachment"
 REFUSED_DUPLICATE = "duplicate"
 REFUSED_LATE = "late"  # older than a message already delivered on its stream (keep-last)
 #: The stream (for sequence numbers) of each route: the lane carries what _buf/<gid> carries.
-_STREAM = {ROUTE_INTRA: "intra", ROUTE_BUFFER: "own", ROUTE_LANE: "own", ROUTE_CPU: "cpu",
+_OWN = "own"  # this subscription's own stream (the _buf/<gid> key and the lane carry it)
+_STREAM = {ROUTE_INTRA: "intra", ROUTE_BUFFER: _OWN, ROUTE_LANE: _OWN, ROUTE_CPU: "cpu",
            ROUTE_BASE: "base"}
 
 
 #: A publisher not looked up yet (None is a publisher not discovered).
 _UNRESOLVED: Any = object()
-#: Streams every publisher numbers on its own (see _numbered_per_stream).
-_EXACT_ROUTES = frozenset({ROUTE_INTRA, ROUTE_BASE})
+#: Streams every publisher numbers on its own (see _numbered_per_stream); only our publishers
+#: write the lane.
+_EXACT_ROUTES = frozenset({ROUTE_INTRA, ROUTE_BASE, ROUTE_LANE})
 
 
 def _numbered_per_stream(route: str, publisher: wire.EndpointToken | None) -> bool:
     """Does the publisher number this stream on its own (every step exact)? Ours do, in process
-    or not; on the base key every publisher does (a buffer-aware one writes it alone when it
+    or not (the lane is ours alone, discovered or not); on the base key every publisher does (a buffer-aware one writes it alone when it
     writes it at all), and so does one that advertises no backends. On the buffer streams,
     rmw_zenoh's publishers and publishers not discovered yet are judged by the stride of their
     steps (see :mod:`._sequence`)."""
@@ -390,8 +392,9 @@ class Subscription:
         """Count what ``attachment`` says of its stream (gaps, jumps; ``exact``: see
         :func:`_numbered_per_stream`); whether the message is late, older than one already
         seen there (call with ``self._lock`` held)."""
-        verdict = self._sequences.track(_STREAM[route], attachment.publisher_gid,
-                                        attachment.sequence_number, exact)
+        stream = _STREAM[route]
+        verdict = self._sequences.track(stream, attachment.publisher_gid,
+                                        attachment.sequence_number, exact, stream == _OWN)
         if verdict is IN_ORDER:
             return False
         if verdict.lost:

@@ -128,6 +128,37 @@ def test_a_slow_subscriber_on_the_lane_counts_its_backlog_as_dropped_not_lost(se
     assert sub.received + sub.counters.dropped == 300
 
 
+def test_a_reader_that_starts_late_counts_what_the_lane_overwrote_before_its_first_read(
+        setting):
+    """Frames the lane's keep-last queue overwrote before the subscription's first read
+    (nobody spun yet) are counted in ``dropped``: everything published is accounted for."""
+    from buffer_pubsub.executors import SingleThreadedExecutor
+
+    domain, topic, backends = setting
+    count = 40
+    executor = SingleThreadedExecutor()
+    with Node("lane_late", domain_id=domain, backends=backends) as node:
+        executor.add_node(node)  # which nobody spins until the publisher is done
+        routes = []
+        sub = node.create_subscription(TENSOR, topic, lambda m, i: routes.append(i.route),
+                                       depth=4, with_info=True, acceptable_buffer_backends="fake")
+        pub = Child("pub", domain=domain, topic=topic, backend="fake", count=count,
+                    interval=0.002, size=256)
+        try:
+            pub.wait_ready()
+            time.sleep(1.0)  # every frame is written meanwhile
+            deadline = time.monotonic() + 10
+            while sub.received + sub.counters.dropped < count and time.monotonic() < deadline:
+                executor.spin_once(0.1)
+            pub.stop()
+        finally:
+            pub.close()
+            executor.shutdown()
+    assert set(routes) == {"lane"}
+    assert sub.counters.lost == 0 and sub.received <= 4 + 1, sub.counters
+    assert sub.received + sub.counters.dropped == count, sub.counters
+
+
 def test_topic_info_says_why_a_deep_subscription_takes_zenoh_and_not_the_lane(setting):
     """A same-host subscription whose queue is deeper than the lane's ring takes its own Zenoh
     stream; ``routes()`` (``topic info -v``) said only "own stream", and a user could not tell
