@@ -7,8 +7,10 @@ values that were never published, or a value another subscriber wrote into it.
 
 :func:`snapshot` makes a new message object per subscription whose fields are the published
 values: nested messages and lists are snapshots of their own, everything immutable (numbers,
-strings) is shared, and so are the payloads: buffers (``uint8[]`` fields, zero-copy, their
-holds counted as ever) and NumPy arrays (a list of numbers is copied). Writing *into* those after publish is seen by
+strings) is shared, and so are the payloads: buffers (``uint8[]`` fields: zero-copy, a
+:func:`~rosidl_buffer.buffer.reader_share` of the published ``Buffer`` each, whose
+``release()`` ends that subscription's hold alone) and NumPy arrays (a list of numbers is
+copied). Writing *into* those after publish is seen by
 in-process subscribers, as a write into a loan's memory would be (see README, "Loans"). The
 copier is compiled once per message type from its schema (a line per field, no per-field
 dispatch), as the CDR codec and the validator are.
@@ -20,6 +22,8 @@ import keyword
 from collections.abc import Callable
 from typing import Any
 
+from rosidl_buffer import Buffer
+from rosidl_buffer.buffer import impl_of, set_impl, set_origin
 from rosidl_buffer.messages import FieldKind, Message, get_schema
 
 __all__ = ["copier", "snapshot"]
@@ -51,7 +55,9 @@ def _slot(cls: type, name: str) -> Any:
 
 
 def _compile(cls: type) -> Callable[[Any], Any]:
-    scope: dict[str, Any] = {"cls": cls, "new": cls.__new__, "snapshot": snapshot}
+    scope: dict[str, Any] = {"cls": cls, "new": cls.__new__, "snapshot": snapshot,
+                             "Buffer": Buffer, "new_buffer": Buffer.__new__, "impl_of": impl_of,
+                             "set_impl": set_impl, "set_origin": set_origin}
     lines = ["def copy(m):", "    n = new(cls)"]
     for i, spec in enumerate(get_schema(cls.__msgtype__).fields):
         name = spec.name
@@ -63,6 +69,10 @@ def _compile(cls: type) -> Callable[[Any], Any]:
                 lines.append(f"    set{i}(n, [snapshot(x) for x in {read}])")
             else:
                 lines.append(f"    set{i}(n, snapshot({read}))")
+        elif spec.is_buffer:  # a reader_share of the Buffer, inline (no call per field)
+            lines += [f"    v = {read}", "    if type(v) is Buffer:",
+                      "        b = new_buffer(Buffer); set_impl(b, impl_of(v)); set_origin(b, v)",
+                      "        v = b", f"    set{i}(n, v)"]
         elif spec.is_collection and spec.kind is FieldKind.STRING:
             lines.append(f"    set{i}(n, list({read}))")
         elif spec.is_collection and not spec.is_buffer:  # a list of numbers is copied too

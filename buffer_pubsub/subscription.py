@@ -477,7 +477,7 @@ class Subscription:
         elif schedule:
             self.node.scheduler.schedule(self)
         # Only an owned message holds anything: serialized bytes hold nothing, an intra-process
-        # message shares the publisher's buffers (not ours to release).
+        # message's shares of the publisher's buffers end when it is collected.
         if evicted is not None and evicted[4]:
             release_buffers(evicted[0])
 

@@ -19,7 +19,7 @@ import numpy.typing as npt
 from .buffer_impl import CPU_BACKEND, BufferImplBase, CpuBufferImpl, exact_array
 from .errors import CpuBackendRequiredError, InvalidBufferDataError
 
-__all__ = ["Buffer", "impl_of", "set_impl"]
+__all__ = ["Buffer", "impl_of", "reader_share", "set_impl"]
 
 T = TypeVar("T", bound=np.generic)
 _new_buffer = object.__new__
@@ -56,7 +56,8 @@ class Buffer(Generic[T]):
     :meth:`numpy`, the buffer protocol) requires CPU storage.
     """
 
-    __slots__ = ("_impl", "__weakref__")
+    # ``_origin``: set on a reader's share only (see :func:`reader_share`), else unset.
+    __slots__ = ("_impl", "_origin", "__weakref__")
 
     def __init__(
         self,
@@ -180,8 +181,17 @@ class Buffer(Generic[T]):
 
     def release(self) -> None:
         """Give back the backend's resources now (a received zero-copy buffer releases its hold
-        on the publisher's memory), as dropping an iceoryx2 sample does. Idempotent."""
-        self._impl.release()
+        on the publisher's memory), as dropping an iceoryx2 sample does. Idempotent.
+
+        A message an in-process subscription receives holds a share of its publisher's buffer
+        (:func:`reader_share`): releasing it ends that share alone. Either way later access to
+        the bytes through this buffer raises :class:`BufferReleasedError` (warp_buffer's
+        ``HandleReleasedError``); views taken before keep their own hold."""
+        if getattr(self, "_origin", None) is not None:
+            self._origin = None  # the publisher's buffer is no longer held through us
+            self._impl = self._impl.released()
+        else:
+            self._impl.release()
 
     def __enter__(self) -> Buffer[T]:
         return self
@@ -341,3 +351,18 @@ impl_of = operator.attrgetter("_impl")
 #: must be a BufferImplBase): for a Buffer made with ``Buffer.__new__(Buffer)``, without the
 #: checks of ``__init__``.
 set_impl = Buffer._impl.__set__  # type: ignore[attr-defined]
+
+
+#: ``set_origin(share, buffer)``: what a reader's share holds (see :func:`reader_share`).
+set_origin = Buffer._origin.__set__  # type: ignore[attr-defined]
+
+
+def reader_share(buffer: Buffer[Any]) -> Buffer[Any]:
+    """A ``Buffer`` over ``buffer``'s storage for one more reader (an in-process subscription's
+    message): a token of its own, which holds ``buffer`` (so a publisher's loan pool sees its
+    storage held) until it is released or collected. Its ``release()`` ends this share alone.
+    (The transport's snapshot copier inlines it.)"""
+    share = _new_buffer(Buffer)
+    share._impl = buffer._impl
+    share._origin = buffer
+    return share

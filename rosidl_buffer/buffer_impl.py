@@ -10,10 +10,12 @@ import abc
 import ctypes
 import threading
 import weakref
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import numpy.typing as npt
+
+from .errors import BufferReleasedError
 
 __all__ = ["BufferImplBase", "CpuBufferImpl", "CPU_BACKEND", "array_at", "exact_array"]
 
@@ -165,6 +167,14 @@ class BufferImplBase(abc.ABC):
         when it is garbage collected. Idempotent; data access afterwards raises a backend error.
         """
 
+    def released(self) -> BufferImplBase:
+        """What a released share of this storage keeps (see ``Buffer.release``): an impl of
+        this backend, size and dtype that holds nothing, whose data access raises
+        :class:`BufferReleasedError` (or the backend's subclass of it). This impl and every
+        other holder of the storage are untouched. A backend whose users reach past the
+        generic API (to attributes of its impl) overrides it with an impl of its own class."""
+        return _ReleasedImpl(self.get_backend_type(), self.size(), self.dtype)
+
     def reclaim(self) -> bool:
         """May this memory be written again for a new message (a publisher's loan)? True when
         no reader holds it any more (no reader's token alive, nothing in flight to a peer); the
@@ -315,6 +325,9 @@ class CpuBufferImpl(BufferImplBase):
             refs.clear()
         return True
 
+    def released(self) -> CpuBufferImpl:
+        return _ReleasedCpuBufferImpl(self._size, self.dtype)
+
     def _ensure_writable(self, capacity: int) -> None:
         if not self._storage.flags.writeable:
             self._reallocate(max(capacity, self._size))
@@ -323,3 +336,49 @@ class CpuBufferImpl(BufferImplBase):
         storage = np.empty(capacity, dtype=self.dtype)
         storage[: self._size] = self._storage[: self._size]
         self._storage = storage
+
+
+_RELEASED = "this buffer was released (release() or its `with` block): it holds no storage"
+
+
+def _refuse(*_args: Any, **_kwargs: Any) -> NoReturn:
+    raise BufferReleasedError(_RELEASED)
+
+
+class _ReleasedImpl(BufferImplBase):
+    """:meth:`BufferImplBase.released` of a backend that has no impl of its own for it."""
+
+    def __init__(self, backend: str, size: int, dtype: np.dtype) -> None:
+        self._backend, self._size, self.dtype = backend, size, dtype
+
+    def get_backend_type(self) -> str:
+        return self._backend
+
+    def size(self) -> int:
+        return self._size
+
+    to_cpu = clone = _refuse
+
+
+class _ReleasedCpuBufferImpl(CpuBufferImpl):
+    """A released share of CPU storage: still a CPU buffer (its size and dtype answer, so
+    ``Buffer``'s CPU operations reach it), every access to the bytes refused."""
+
+    __slots__ = ()
+
+    def __init__(self, size: int, dtype: np.dtype) -> None:
+        self._readers = None
+        self.dtype = dtype
+        self._storage = np.empty(0, dtype)
+        self._size = size
+
+    def seal_for_publish(self) -> tuple[str, int]:
+        _refuse()
+
+    view = writable_view = to_cpu = clone = reserve = resize = _refuse
+
+    def capacity(self) -> int:
+        return self._size
+
+    def reclaim(self) -> bool:
+        return False

@@ -20,6 +20,7 @@ __all__ = [
     "UnknownFieldError",
     "NativeExtensionMissingError",
     "BufferOverwrittenError",
+    "BufferReleasedError",
 ]
 
 
@@ -82,6 +83,12 @@ class UnknownFieldError(RosidlBufferError, AttributeError, TypeError):
 class NativeExtensionMissingError(RosidlBufferError, ImportError):
     """A native extension of the project (its per-message core, compiled from C at install) is
     not built or does not load; the message names it and the remedy. Also an ``ImportError``."""
+
+
+class BufferReleasedError(RosidlBufferError, RuntimeError):
+    """The buffer was released (``buffer.release()``, ``with buffer:``): its storage may no
+    longer be accessed through it. A backend raises a subclass of its own (warp_buffer's
+    ``HandleReleasedError``)."""
 
 
 class BufferOverwrittenError(RosidlBufferError):

@@ -39,7 +39,8 @@ from buffer_pubsub import (  # noqa: E402
     fast_lane,
     wire,
 )
-from rosidl_buffer import registry  # noqa: E402
+from rosidl_buffer import BufferReleasedError, registry  # noqa: E402
+from warp_buffer.errors import HandleReleasedError  # noqa: E402
 from rosidl_buffer.messages import get_message_type, serialize_message  # noqa: E402
 
 BACKEND = pick_backend()
@@ -93,6 +94,33 @@ def _publish(pub, count: int = COUNT, backend: str = BACKEND, pub_id: int = 0) -
 
 
 # --------------------------------------------------------------------------- 1. intra-process
+@pytest.mark.parametrize("backend", [BACKEND, "cpu"])
+def test_an_in_process_subscriber_releasing_its_message_ends_its_own_share_alone(
+        domain, topic, backends, backend):
+    """``msg.data.release()`` in an in-process callback refuses later access through that
+    message, as across processes (the message shared the publisher's Buffer object, and
+    release was a no-op); the publisher's buffer and another subscription's message read on."""
+    got: dict[str, list] = {"a": [], "b": []}
+    with Node("intra_release", domain_id=domain, backends=backends) as node:
+        for name, seen in got.items():
+            node.create_subscription(TENSOR, topic, seen.append, depth=5,
+                                     acceptable_buffer_backends=backend)
+        pub = node.create_publisher(TENSOR, topic)
+        msg = make_frame(0, 7, SIZE, backend)
+        pub.publish(msg)
+        assert wait_until(lambda: got["a"] and got["b"], 10)
+    mine, other = got["a"][0], got["b"][0]
+    before = mine.data.to_numpy()
+    mine.data.release()
+    mine.data.release()  # idempotent
+    refused = HandleReleasedError if backend == "warp" else BufferReleasedError
+    with pytest.raises(refused):
+        mine.data.to_numpy()
+    assert len(mine.data) == SIZE and mine.data.get_backend_type() == backend
+    assert check_frame(other)["ok"] and check_frame(msg)["ok"]
+    assert np.array_equal(before, msg.data.to_numpy())
+
+
 def test_intra_process_shares_the_payload_and_gives_cpu_only_a_copy(domain, topic, backends):
     got_backend, got_cpu = [], []
     with Node("intra_pub", domain_id=domain, backends=backends) as pub_node, \
@@ -114,8 +142,8 @@ def test_intra_process_shares_the_payload_and_gives_cpu_only_a_copy(domain, topi
         time.sleep(0.2)  # a duplicate through Zenoh would arrive in this window
     assert len(got_backend) == COUNT and len(got_cpu) == COUNT
     for msg, (received, info) in zip(sent, got_backend):
-        # no serialization, no payload copy: a snapshot of the message over the same buffer
-        assert received is not msg and received.data is msg.data
+        # no serialization, no payload copy: a snapshot of the message over the same storage
+        assert received is not msg and received.data.get_impl() is msg.data.get_impl()
         assert info.route == "intra"
         assert received.data.get_backend_type() == BACKEND
     for msg, (received, info) in zip(sent, got_cpu):

@@ -299,12 +299,21 @@ class WarpBufferImpl(BufferImplBase):
         ends once no array or view made of it holds the token any more; the buffer is unusable
         afterwards (:class:`HandleReleasedError`). A local buffer holds no token of its own to
         give back early (its memory returns to the pool when it, its arrays and its readers'
-        tokens are gone, and an intra-process message shares it with its publisher): a no-op."""
+        tokens are gone; an in-process subscription's message holds a share of it, whose
+        release is :meth:`released`): a no-op."""
         if self._import is None:
             return
         self._released = True  # a plain store: later accesses check it
         # Our references go; what views of the import keep stays theirs.
         self._hold = self._owner = self._arr = self.host = None
+
+    def released(self) -> WarpBufferImpl:
+        """A released impl of this device and size holding nothing (what a released share
+        keeps): a WarpBufferImpl, so the tensor adapters reach it as one and get
+        :class:`HandleReleasedError` from its accesses."""
+        impl = _new_impl(WarpBufferImpl)
+        impl.wp_device, impl.nbytes, impl._released = self.wp_device, self.nbytes, True
+        return impl
 
     def reader_host(self) -> np.ndarray | None:
         """The bytes as a 1-D uint8 NumPy array over host memory (no copy) that holds a

@@ -37,7 +37,7 @@ and keep running. Errors that also describe a standard condition inherit the mat
 
 from __future__ import annotations
 
-from rosidl_buffer.errors import BufferOverwrittenError, RosidlBufferError
+from rosidl_buffer.errors import BufferOverwrittenError, BufferReleasedError, RosidlBufferError
 
 __all__ = [
     "WarpBufferError",
@@ -108,7 +108,7 @@ class WriteHandleError(HandleError):
     it was published, read, or when it was imported from another process."""
 
 
-class HandleReleasedError(HandleError):
+class HandleReleasedError(HandleError, BufferReleasedError):
     """The handle was released; its storage may no longer be accessed through it."""
 
 
