@@ -804,3 +804,125 @@ def test_reindex_refuses_what_is_no_bag_in_one_line(tmp_path, domain):
     _one_line_error(run_bag(domain, "reindex", str(garbage)), "BagReadError", "not an MCAP file")
     assert (garbage / "garbage.mcap").read_bytes() == b"not an mcap file at all"  # untouched
     _one_line_error(run_bag(domain, "reindex", str(tmp_path / "missing")), "BagReadError")
+
+
+# --------------------------------------------------------------------------- damage, skips, empty
+def _text_bag(path: pathlib.Path, payloads: dict[str, list[bytes]], crc: bool = False) -> None:
+    """A closed MCAP bag of std_msgs/String topics, ``payloads`` as given (CDR or not), one
+    message per 10 ms in turn; ``crc``: each chunk carries its checksum, as rosbag2's own
+    MCAP writer puts there (rosbags writes none)."""
+    import struct
+    import zlib
+
+    from rosbags.rosbag2 import StoragePlugin
+
+    from rosidl_buffer.messages import get_typestore
+    from warp_buffer_cli.bag.writer import BagWriter
+
+    with BagWriter(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connections = {t: writer.add_connection(t, STRING, typestore=get_typestore())
+                       for t in payloads}
+        stamp = 1_000_000_000
+        for index in range(max(len(p) for p in payloads.values())):
+            for name, items in payloads.items():
+                if index < len(items):
+                    writer.write(connections[name], stamp, items[index])
+                    stamp += 10_000_000
+    if crc:
+        mcap = next(path.glob("*.mcap"))
+        data = bytearray(mcap.read_bytes())
+        for at in _record_offsets(mcap, 0x06):
+            size, = struct.unpack_from("<Q", data, at + 9 + 16)
+            (name_length,) = struct.unpack_from("<I", data, at + 9 + 28)
+            content = at + 9 + 32 + name_length + 8
+            struct.pack_into("<I", data, at + 9 + 24, zlib.crc32(data[content:content + size]))
+        mcap.write_bytes(bytes(data))
+
+
+def _texts(count: int, prefix: str = "text") -> list[bytes]:
+    from rosidl_buffer.messages import get_message_type, serialize_message
+
+    return [bytes(serialize_message(get_message_type(STRING)(data=f"{prefix} {i:04d}")))
+            for i in range(count)]
+
+
+def test_a_closed_bag_damaged_mid_file_fails_info_play_and_reindex_in_one_line(tmp_path,
+                                                                              domain):
+    """A user trial: bytes overwritten inside a chunk of a recorded bag. play printed rosbags'
+    OverflowError as a traceback, info said nothing, reindex left it 'as it is'."""
+    bag = tmp_path / "bag"
+    texts = _texts(200)
+    _text_bag(bag, {"/t": texts})
+    mcap = bag / "bag.mcap"
+    data = bytearray(mcap.read_bytes())
+    head = data.index(texts[100]) - 31  # message 100's record: its length overwritten
+    data[head + 1:head + 9] = b"\xff" * 8
+    mcap.write_bytes(bytes(data))
+    for command in (["info"], ["play", "--wait-for-subscribers", "0"], ["reindex"]):
+        _one_line_error(run_bag(domain, *command, str(bag)), "BagDamagedError", str(mcap),
+                        "damaged")
+    assert mcap.read_bytes() == data  # reindex changed nothing
+
+
+def test_play_of_a_bag_whose_checksum_fails_mid_file_fails_in_one_line(tmp_path, domain):
+    """Damage the check at open cannot see (a payload byte; the chunk's checksum catches it as
+    rosbags reads it) ends the playback with the typed error, not rosbags' traceback."""
+    bag = tmp_path / "bag"
+    texts = _texts(20)
+    _text_bag(bag, {"/t": texts}, crc=True)
+    mcap = bag / "bag.mcap"
+    data = bytearray(mcap.read_bytes())
+    data[data.index(texts[10]) + 9] ^= 0x01  # a letter of message 10's text
+    mcap.write_bytes(bytes(data))
+    assert run_bag(domain, "info", str(bag)).returncode == 0  # (no payload is read there)
+    _one_line_error(run_bag(domain, "play", str(bag), "--wait-for-subscribers", "0"),
+                    "BagDamagedError", str(bag), "checksum")
+
+
+def test_play_skips_undecodable_messages_counts_them_and_exits_1(tmp_path, domain):
+    bag = tmp_path / "bag"
+    good = _texts(6)
+    bad = b"\x00\x01\x00\x00\xff\xff\xff\x7fshort"  # a string longer than the message
+    _text_bag(bag, {"/a": [good[0], bad, good[1], bad, good[2]], "/b": good[3:]})
+    done = run_bag(domain, "play", str(bag), "--wait-for-subscribers", "0")
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    assert done.stdout.startswith("played 6 messages"), done.stdout  # the rest went out
+    assert "  /a  std_msgs/msg/String  3 messages" in done.stdout
+    assert "skipped 2 undecodable" in done.stdout
+    (line,) = done.stderr.strip().splitlines()  # one line per topic with skips: /a only
+    # /a's second message: the bag's third stamp (/a and /b take turns, 10 ms apart)
+    for word in ("DeserializationError", "skipped 2 undecodable messages of /a", STRING,
+                 "the first at 1.020000000 s", "truncated"):
+        assert word in line, line
+
+
+def test_record_with_nothing_published_leaves_an_empty_valid_bag(tmp_path, domain):
+    """As ros2 bag record: the reported bag exists (it was reported and never created), and
+    the reported time is the recording's, from its start to the stop."""
+    from rosbags.rosbag2 import Reader
+
+    bag = tmp_path / "bag"
+    done = run_bag(domain, "record", "-a", "-o", str(bag), "--duration", "1")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith(f"recorded 0 messages, 0 B, in 1.0"), done.stdout
+    assert f"to {bag} (mcap)" in done.stdout
+    assert sorted(p.name for p in bag.iterdir()) == ["bag.mcap", "metadata.yaml"]
+    with Reader(bag) as reader:
+        assert reader.message_count == 0 and list(reader.messages()) == []
+    info = run_bag(domain, "info", str(bag))
+    assert info.returncode == 0 and "Messages:          0" in info.stdout, info.stderr
+
+
+def test_the_recording_time_ends_when_the_stop_is_asked_not_after_teardown(tmp_path, domain):
+    from warp_buffer_cli.bag.record import Recorder
+
+    recorder = Recorder(tmp_path / "bag", domain_id=domain, backend="cpu")
+    teardown = recorder.node.close
+    recorder.node.close = lambda: (time.sleep(1.0), teardown())[1]  # a slow Zenoh teardown
+    try:
+        recorder.create()
+        time.sleep(0.3)
+    finally:
+        recorder.close()
+    assert 0.3 <= recorder.duration() < 0.8
+    assert metadata(tmp_path / "bag")["message_count"] == 0

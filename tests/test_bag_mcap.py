@@ -189,3 +189,68 @@ def test_reindex_refuses_a_bag_its_writer_still_holds(tmp_path):
         writer.close()
     assert reindex(path) == {"file": "bag.mcap", "messages": 1, "topics": 1, "cut_bytes": 0,
                              "unchanged": True}  # closed by its writer: left as it is
+
+
+# --------------------------------------------------------------------------- damage, info
+def _text_bag(path: pathlib.Path, count: int, stamps: list[int] | None = None) -> list[bytes]:
+    """A closed MCAP bag of ``count`` small texts on /t (one rosbags chunk); their CDR."""
+    from rosbags.rosbag2 import StoragePlugin
+
+    from rosidl_buffer.messages import get_message_type, get_typestore, serialize_message
+
+    text = get_message_type(STRING)
+    payloads = [bytes(serialize_message(text(data=f"text {i:04d}"))) for i in range(count)]
+    with BagWriter(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection("/t", STRING, typestore=get_typestore())
+        for i, payload in enumerate(payloads):
+            writer.write(connection, stamps[i] if stamps else 1_000_000 + i * 1000, payload)
+    return payloads
+
+
+@pytest.mark.parametrize("field", ["opcode", "length", "channel", "log time"])
+def test_damage_to_any_message_records_head_is_found_when_the_bag_opens(tmp_path, field):
+    """rosbags' reader raises OverflowError or struct.error mid-playback on such damage, or
+    skips the message silently; the check at open names the file instead."""
+    from warp_buffer_cli.bag.errors import BagDamagedError
+    from warp_buffer_cli.bag.play import open_bag
+
+    bag = tmp_path / "bag"
+    payloads = _text_bag(bag, 12)
+    mcap = bag / "bag.mcap"
+    clean = mcap.read_bytes()
+    open_bag(bag).close()  # intact: no complaint
+    at, size = {"opcode": (0, 1), "length": (1, 8), "channel": (9, 2), "log time": (15, 8)}[field]
+    for payload in payloads:
+        head = clean.index(payload) - 31  # opcode, length, channel, sequence, two times
+        damaged = bytearray(clean)
+        damaged[head + at:head + at + size] = b"\xfe" * size
+        mcap.write_bytes(bytes(damaged))
+        with pytest.raises(BagDamagedError, match=f"{mcap}.* damaged at byte"):
+            open_bag(bag)
+
+
+def test_info_shows_metadatas_duration_and_end_and_sizes_in_a_fitting_unit(tmp_path, capsys):
+    """As ros2 bag info: Duration is metadata.yaml's, End = Start + Duration (rosbags' reader
+    counts one past the last stamp), and a small bag's size is no "0.0 MiB"."""
+    import argparse
+
+    from ruamel.yaml import YAML
+
+    from warp_buffer_cli.bag import info
+    from warp_buffer_cli.bag.progress import size_text
+
+    bag = tmp_path / "bag"
+    _text_bag(bag, 3, stamps=[5_000_000_000, 5_000_000_100, 7_000_000_123])
+    meta = YAML(typ="safe").load((bag / "metadata.yaml").read_text())
+    assert meta["rosbag2_bagfile_information"]["duration"]["nanoseconds"] == 2_000_000_123
+    report = info.describe(bag)
+    assert (report["start_ns"], report["duration_ns"], report["end_ns"]) == (
+        5_000_000_000, 2_000_000_123, 7_000_000_123)
+    info.run(argparse.Namespace(bag=str(bag), json=False))
+    lines = capsys.readouterr().out.splitlines()
+    assert "Duration:          2.000000123s" in lines
+    assert any(line.startswith("End:") and line.endswith("(7.000000123)") for line in lines)
+    assert f"Bag size:          {size_text(report['size_bytes'])}" in lines
+    assert "KiB" in size_text(report["size_bytes"])
+    assert [size_text(n) for n in (0, 1023, 1536, 5 << 20, 3 << 30, 5 << 40, 9 << 50)] == [
+        "0 B", "1023 B", "1.5 KiB", "5.0 MiB", "3.0 GiB", "5.0 TiB", "9216.0 TiB"]

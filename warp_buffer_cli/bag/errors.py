@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from rosidl_buffer.errors import RosidlBufferError
 
-__all__ = ["BagError", "BagReadError", "BagWriteError", "UnknownTopicError"]
+__all__ = ["BagDamagedError", "BagError", "BagReadError", "BagWriteError", "UnknownTopicError"]
 
 
 class BagError(RosidlBufferError):
@@ -13,6 +13,11 @@ class BagError(RosidlBufferError):
 
 class BagReadError(BagError, OSError):
     """The path is no readable rosbag2 bag (missing, not a bag, damaged)."""
+
+
+class BagDamagedError(BagReadError):
+    """The bag opens but its storage file is damaged inside (bytes changed after it was
+    closed): its records disagree with its index, or reading them fails."""
 
 
 class BagWriteError(BagError, OSError):

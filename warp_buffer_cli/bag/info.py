@@ -1,6 +1,7 @@
 """Describe a bag as ``ros2 bag info`` does: files, size, storage, duration, start and end,
 message count, and every topic with its type, count and serialization format (--json: the same
-as JSON, QoS profiles and type hashes included)."""
+as JSON, QoS profiles and type hashes included). An MCAP file damaged inside is reported as
+:class:`~.errors.BagDamagedError` (:mod:`.damage`: record heads against the index)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from .play import open_bag
-from .progress import mib
+from .progress import size_text
 
 __all__ = ["add_arguments", "describe", "run"]
 
@@ -25,6 +26,9 @@ def describe(path: str | os.PathLike[str]) -> dict[str, Any]:
         files = sorted(p for p in (root.iterdir() if root.is_dir() else [root])
                        if p.name != "metadata.yaml")
         connections = reader.connections
+        count = reader.message_count
+        duration = max(0, reader.duration - 1) if count else 0
+        start = reader.start_time if count else 0
         return {
             "files": [p.name for p in files],
             "size_bytes": sum(p.stat().st_size for p in files) + (
@@ -32,9 +36,11 @@ def describe(path: str | os.PathLike[str]) -> dict[str, Any]:
                 else 0),
             "storage": files[0].suffix.lstrip(".").replace("db3", "sqlite3") if files else "",
             "ros_distro": reader.ros_distro,
-            "duration_ns": reader.duration,
-            "start_ns": reader.start_time if reader.message_count else 0,
-            "end_ns": reader.end_time if reader.message_count else 0,
+            # metadata.yaml's duration, and end = start + duration, as ros2 bag info shows
+            # them (rosbags' duration and end count one past the last message's stamp)
+            "duration_ns": duration,
+            "start_ns": start,
+            "end_ns": start + duration,
             "messages": reader.message_count,
             "topics": [{
                 "name": c.topic,
@@ -73,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     label = "{:<19}".format
     print(label("Files:") + "\n".ljust(20).join(report["files"]))
-    print(label("Bag size:") + mib(report["size_bytes"]))
+    print(label("Bag size:") + size_text(report["size_bytes"]))
     print(label("Storage id:") + report["storage"])
     print(label("ROS Distro:") + str(report["ros_distro"]))
     print(label("Duration:") + f"{report['duration_ns'] / 1e9:.9f}s")

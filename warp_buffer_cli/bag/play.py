@@ -19,11 +19,12 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from collections.abc import Iterator
 from typing import Any
 
 from .._arguments import absolute_topic_name, number
-from .errors import BagError, BagReadError, UnknownTopicError
-from .progress import Progress, mib
+from .errors import BagDamagedError, BagError, BagReadError, UnknownTopicError
+from .progress import Progress, size_text
 from .qos import publisher_history
 
 __all__ = ["PlayTopic", "Player", "add_arguments", "open_bag", "run"]
@@ -51,7 +52,24 @@ def open_bag(path: str | os.PathLike[str]) -> Any:
                 "rebuilds it)" if where.is_file() and not (where.parent / "metadata.yaml")
                 .exists() else "")
         raise BagReadError(f"cannot read the bag at {path}: {exc}{hint}") from exc
+    try:
+        _check_storages(reader)
+    except BaseException:
+        reader.close()
+        raise
     return reader
+
+
+def _check_storages(reader: Any) -> None:
+    """:class:`BagDamagedError` when an MCAP file of the open ``reader`` is damaged inside
+    (:mod:`.damage`: its record heads against its index, no payload read)."""
+    from rosbags.rosbag2.storage_mcap import McapReader
+
+    from .damage import check_mcap
+
+    for storage in getattr(reader.storage, "storages", []):  # (a directory's files)
+        if isinstance(storage, McapReader):
+            check_mcap(storage)
 
 
 def _no_metadata(directory: Path) -> str:
@@ -99,6 +117,8 @@ class PlayTopic:
     type_name: str
     messages: int = 0
     nbytes: int = 0
+    skipped: int = 0  # undecodable: counted and not published
+    first_skip: tuple[int, str] | None = None  # the first one's bag timestamp (ns) and why
 
 
 class Player:
@@ -175,16 +195,23 @@ class Player:
                 return
 
     def _play_once(self, stop: threading.Event, progress: Progress | None) -> None:
+        from rosidl_buffer.errors import DeserializationError
         from rosidl_buffer.messages import deserialize_message
 
         started = time.monotonic()
         first: int | None = None
-        for connection, timestamp, data in self.reader.messages(connections=self.connections):
+        for connection, timestamp, data in self._messages():
             first = timestamp if first is None else first
             due = started + (timestamp - first) / 1e9 / self.rate
             if stop.wait(max(0.0, due - time.monotonic())):
                 return
-            msg = deserialize_message(data, self._classes[connection.id])  # buffers alias data
+            try:
+                msg = deserialize_message(data, self._classes[connection.id])  # buffers alias
+            except DeserializationError as exc:  # one bad message must not end the playback
+                skipped = self.topics[connection.id]
+                skipped.skipped += 1
+                skipped.first_skip = skipped.first_skip or (timestamp, str(exc))
+                continue
             if self.backend == "warp":
                 _buffers_to_warp(msg, self.device)
             self._publishers[connection.id].publish(msg)
@@ -193,6 +220,28 @@ class Player:
             played.nbytes += len(data)
             if progress is not None:
                 progress.update(*self.totals())
+
+    def _messages(self) -> Iterator[tuple[Any, int, Any]]:
+        """The bag's messages; what rosbags (or its storage) raises while reading them, past
+        the check at open (a checksum, a sqlite3 page, a compressed chunk), is
+        :class:`BagDamagedError` naming the file and how far it was read."""
+        messages = self.reader.messages(connections=self.connections)
+        read = 0
+        while True:
+            try:
+                item = next(messages)
+            except StopIteration:
+                return
+            except Exception as exc:  # any reader's or storage's class: the file is damaged
+                raise BagDamagedError(
+                    f"the bag {self.path} is damaged: reading it failed after {read} "
+                    f"message{'' if read == 1 else 's'}: {type(exc).__name__}: {exc}") from exc
+            read += 1
+            yield item
+
+    def skipped(self) -> list[PlayTopic]:
+        """The topics with undecodable messages (skipped, not published)."""
+        return [t for t in self.topics.values() if t.skipped]
 
     def totals(self) -> tuple[int, int]:
         """Messages and bytes published so far."""
@@ -269,14 +318,27 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    return 0
+    return _report_skipped(player, getattr(args, "command_name", "warp-buffer bag play"))
 
 
 def _report(player: Player, elapsed: float) -> None:
     messages, nbytes = player.totals()
-    print(f"played {messages} message{'' if messages == 1 else 's'}, {mib(nbytes)}, in "
+    print(f"played {messages} message{'' if messages == 1 else 's'}, {size_text(nbytes)}, in "
           f"{elapsed:.2f} s from {player.path} "
           f"(bag duration {player.reader.duration / 1e9:.2f} s, rate {player.rate:g})")
     for t in player.topics.values():
-        print(f"  {t.topic}  {t.type_name}  {t.messages} messages  {mib(t.nbytes)}")
+        skipped = f"  skipped {t.skipped} undecodable" if t.skipped else ""
+        print(f"  {t.topic}  {t.type_name}  {t.messages} messages  {size_text(t.nbytes)}"
+              f"{skipped}")
     sys.stdout.flush()
+
+
+def _report_skipped(player: Player, name: str) -> int:
+    """One line on stderr per topic with undecodable messages; the exit status (1 if any)."""
+    for t in player.skipped():
+        stamp, why = t.first_skip or (0, "")
+        print(f"{name}: DeserializationError: skipped {t.skipped} undecodable message"
+              f"{'' if t.skipped == 1 else 's'} of {t.topic} ({t.type_name}), the first at "
+              f"{stamp // 10**9}.{stamp % 10**9:09d} s: {' '.join(why.split())}",
+              file=sys.stderr)
+    return 1 if player.skipped() else 0

@@ -16,6 +16,17 @@ def mib(nbytes: float) -> str:
     return f"{nbytes / MIB:.1f} MiB"
 
 
+def size_text(nbytes: float) -> str:
+    """``nbytes`` in the largest binary unit it reaches, as ``ros2 bag info`` prints a size:
+    whole bytes below 1 KiB, else one decimal (``512 B``, ``1.5 KiB``, ``23.1 MiB``)."""
+    units = ("B", "KiB", "MiB", "GiB", "TiB")
+    unit = 0
+    while nbytes >= 1024 and unit < len(units) - 1:
+        nbytes /= 1024
+        unit += 1
+    return f"{nbytes:.{0 if unit == 0 else 1}f} {units[unit]}"
+
+
 class Progress:
     """Counts of a running recording or playback, printed at most every ``interval_s``."""
 

@@ -26,7 +26,7 @@ from typing import Any
 
 from .._arguments import absolute_topic_name, number
 from .errors import BagWriteError, UnknownTopicError
-from .progress import Progress, mib
+from .progress import Progress, size_text
 from .qos import offered_profiles
 
 __all__ = ["DEFAULT_MAX_CACHE_BYTES", "Recorder", "TopicRecord", "add_arguments", "run"]
@@ -59,8 +59,8 @@ class Recorder:
 
     ``backend`` is what the subscriptions accept for buffer fields: ``"warp"`` (a same-host
     publisher's warp buffer arrives zero-copy and is copied to the host once, here) or
-    ``"cpu"`` (the publisher serializes CDR bytes for us). The bag is created by the first
-    :meth:`add`; :meth:`close` stops the subscriptions, writes what the cache holds and
+    ``"cpu"`` (the publisher serializes CDR bytes for us). The bag is created by
+    :meth:`create` or the first :meth:`add`; :meth:`close` stops the subscriptions, writes what the cache holds and
     finalizes the bag (also after an error).
     """
 
@@ -81,7 +81,8 @@ class Recorder:
         self.backend = backend
         self.records: dict[tuple[str, str], TopicRecord] = {}
         self.write_error: BaseException | None = None
-        self.started: float | None = None  # when the first topic was subscribed
+        self.started: float | None = None  # when the bag was created: the recording began
+        self.stopped: float | None = None  # when close was asked (its teardown not counted)
         self.cache = WriteCache(max_cache_bytes)
         self._writer: Any = None
         self._thread: threading.Thread | None = None
@@ -132,8 +133,7 @@ class Recorder:
         if key in self.records:
             return self.records[key]
         cls = get_message_type(type_name)
-        if self._writer is None:
-            self._writer = self._in_writer_thread(self._create_writer)
+        self.create()
 
         def add_connection() -> Any:
             try:
@@ -146,12 +146,24 @@ class Recorder:
 
         connection = self._in_writer_thread(add_connection)
         record = self.records[key] = TopicRecord(topic, cls.__msgtype__)
-        if self.started is None:
-            self.started = time.monotonic()
         self._subscriptions[key] = self.node.create_subscription(
             cls, topic, self._callback(connection, record), depth=SUBSCRIPTION_DEPTH,
             acceptable_buffer_backends=self.backend, with_info=True)
         return record
+
+    def create(self) -> None:
+        """Create the bag now (idempotent; :meth:`add` does it too): a recording that gets no
+        topic or no message still ends as a valid empty bag, as ``ros2 bag record``'s does.
+        The recording's time counts from here."""
+        if self._writer is None:
+            self._writer = self._in_writer_thread(self._create_writer)
+            self.started = time.monotonic()
+
+    def duration(self) -> float:
+        """Seconds from the bag's creation to the stop (to now while it records); 0 before."""
+        if self.started is None:
+            return 0.0
+        return (self.stopped or time.monotonic()) - self.started
 
     def _in_writer_thread(self, call: Callable[[], Any]) -> Any:
         """``call()`` run by the writer thread, after the messages queued before it: rosbags'
@@ -265,6 +277,7 @@ class Recorder:
         if self._closed:
             return
         self._closed = True
+        self.stopped = time.monotonic()  # (the node's teardown below is no recording time)
         self.node.close()  # no callback runs after this
         self._count_lost()
         try:
@@ -349,6 +362,7 @@ def _record(args: argparse.Namespace, stop: threading.Event) -> int:
                 print(f"{args.command_name}: interrupted", file=sys.stderr)
                 return 130
         else:
+            recorder.create()  # -a: the bag exists from the start, if empty
             _add_new_topics(recorder, skipped=set())
         _run_until_stopped(recorder, args, stop)
     except BaseException:
@@ -420,17 +434,18 @@ def _close_quietly(recorder: Recorder) -> None:
 
 def _report(recorder: Recorder) -> None:
     """The summary on stdout: totals, then one line per topic."""
-    elapsed = time.monotonic() - (recorder.started or time.monotonic())
+    elapsed = recorder.duration()
     messages, nbytes, _ = recorder.totals()
     records = list(recorder.records.values())
     dropped = sum(r.dropped for r in records)
     lost = sum(r.lost for r in records)
-    print(f"recorded {messages} messages, {mib(nbytes)}, in {elapsed:.2f} s "
+    print(f"recorded {messages} messages, {size_text(nbytes)}, in {elapsed:.2f} s "
           f"({nbytes / (1 << 20) / max(elapsed, 1e-9):.1f} MiB/s) to {recorder.path} "
           f"({recorder.storage})")
     for r in records:
-        print(f"  {r.topic}  {r.type_name}  {r.messages} messages  {mib(r.nbytes)}  "
+        print(f"  {r.topic}  {r.type_name}  {r.messages} messages  {size_text(r.nbytes)}  "
               f"dropped {r.dropped}  lost {r.lost}")
     print(f"dropped {dropped + lost}: {dropped} because the disk could not keep up (cache of "
-          f"{mib(recorder.cache.max_bytes)} full, peak {mib(recorder.cache.peak_bytes)}), "
+          f"{size_text(recorder.cache.max_bytes)} full, peak "
+          f"{size_text(recorder.cache.peak_bytes)}), "
           f"{lost} lost before the recorder (transport, keep-last queue)")

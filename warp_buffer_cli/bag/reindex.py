@@ -7,7 +7,8 @@ MCAP file as its writer would have (:mod:`.mcap_end`: cut after its last complet
 the summary and the footer; a message the crash cut short is lost) and writes ``metadata.yaml``
 from the storage file. A sqlite3 bag keeps what its recorder committed (each second). A bag
 that ended well is left as it is; a bag still being recorded (its recorder holds the directory)
-is refused.
+is refused, and so is a closed MCAP file damaged inside (:class:`BagDamagedError`: a new index
+would not mend it).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ from io import StringIO
 from pathlib import Path
 from typing import Any
 
-from .errors import BagReadError
+from .damage import check_mcap
+from .errors import BagDamagedError, BagReadError
 from .lock import BagBusyError, locked_bag
 from .mcap_end import McapContents, channel_metadata, end_mcap, is_closed
 
@@ -76,6 +78,9 @@ def _ended_well(root: Path, storage: Path) -> tuple[int, int] | None:
                 return None
     try:
         reader = open_bag(root)
+    except BagDamagedError as exc:  # closed, then changed: nothing a new index would mend
+        raise BagDamagedError(f"cannot reindex {root}: {exc} (reindex ends a recording that "
+                              "never ended; it does not repair a closed file)") from None
     except BagReadError:
         return None  # a damaged metadata.yaml: rebuilt
     try:
@@ -134,6 +139,7 @@ def _mcap_info(path: Path) -> dict[str, Any]:
     except Exception as exc:  # rosbags' ReaderError and the like: the file is damaged inside
         raise BagReadError(f"cannot read {path}: {exc}") from exc
     try:  # (close clears them)
+        check_mcap(reader)  # a closed file damaged inside: refused, not indexed as it is
         connections, meta = list(reader.connections), reader.metadata
         hashes = {key: channel_metadata(c.metadata).get("topic_type_hash", "")
                   for key, c in reader.channels.items()}
