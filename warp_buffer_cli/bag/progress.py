@@ -8,14 +8,6 @@ import sys
 import time
 from typing import TextIO
 
-MIB = float(1 << 20)
-
-
-def mib(nbytes: float) -> str:
-    """``nbytes`` in MiB, one decimal."""
-    return f"{nbytes / MIB:.1f} MiB"
-
-
 def size_text(nbytes: float) -> str:
     """``nbytes`` in the largest binary unit it reaches, as ``ros2 bag info`` prints a size:
     whole bytes below 1 KiB, else one decimal (``512 B``, ``1.5 KiB``, ``23.1 MiB``)."""
@@ -41,14 +33,14 @@ class Progress:
 
     def update(self, messages: int, nbytes: int, dropped: int | None = None,
                force: bool = False) -> None:
-        """Show the counts so far (messages, MiB, rates, and drops when counted)."""
+        """Show the counts so far (messages, size, rates, and drops when counted)."""
         now = time.monotonic()
         if not self.enabled or (not force and now - self._last < self.interval_s):
             return
         self._last = now
         elapsed = max(now - self.started, 1e-9)
-        line = (f"{self.verb} {messages} messages, {mib(nbytes)}, {messages / elapsed:.1f} msg/s,"
-                f" {nbytes / MIB / elapsed:.1f} MiB/s")
+        line = (f"{self.verb} {messages} messages, {size_text(nbytes)}, "
+                f"{messages / elapsed:.1f} msg/s, {size_text(nbytes / elapsed)}/s")
         if dropped is not None:
             line += f", dropped {dropped}"
         self.stream.write("\r" + line.ljust(self._width))
