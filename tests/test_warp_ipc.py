@@ -728,3 +728,12 @@ def test_out_of_file_descriptors_at_connect_is_a_typed_export_error(monkeypatch)
     monkeypatch.setattr(handoff.socket, "socket", no_socket)
     with pytest.raises(ExportError, match="no socket"):
         handoff._connect(os.getpid(), 1, "session 1 of this process")
+
+
+def test_a_session_a_live_process_does_not_serve_is_not_called_its_exit():
+    """A descriptor naming a live pid and a session it never served (forged, or ended) was
+    refused as "the publisher exited": the refusal now says the process runs."""
+    from warp_buffer import handoff
+
+    with pytest.raises(StaleBufferError, match=f"process {os.getpid()} runs but serves no such"):
+        handoff.fetch_arena(os.getpid(), 0x5EED_0000_0000_0001)

@@ -270,6 +270,18 @@ class Server:
             conn.close()
 
 
+def _why_gone(owner_pid: int) -> str:
+    """Why a session's socket refused us, as far as its pid tells."""
+    try:
+        os.kill(owner_pid, 0)
+    except ProcessLookupError:
+        return "the publisher exited before this process attached to its memory"
+    except PermissionError:
+        pass  # alive, another user's
+    return (f"process {owner_pid} runs but serves no such session: the session ended, or the "
+            "descriptor names one that never was")
+
+
 def _connect(owner_pid: int, session: int, where: str) -> socket.socket:
     """A connection to session ``(owner_pid, session)``'s socket, its server's credentials
     checked. A refused connection means the session is gone: :data:`session_gone_hooks` run."""
@@ -283,8 +295,7 @@ def _connect(owner_pid: int, session: int, where: str) -> socket.socket:
             sock.connect(socket_name(os.getuid(), owner_pid, session))
         except (ConnectionRefusedError, FileNotFoundError):
             session_gone((owner_pid, session))
-            raise StaleBufferError(f"{where} is gone (the publisher exited before this process "
-                                   "attached to its memory)") from None
+            raise StaleBufferError(f"{where} is gone ({_why_gone(owner_pid)})") from None
         except OSError as exc:
             raise ExportError(f"cannot reach {where}: {exc}") from None
         pid, uid = _peer_cred(sock)
