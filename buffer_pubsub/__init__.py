@@ -27,7 +27,8 @@ reused once no reader holds it) are described in :mod:`buffer_pubsub.loan`.
 Callbacks run on the node's executor thread, or on your own thread with
 ``Node(..., executor="manual")`` and ``node.spin()`` / ``node.spin_once(timeout)``, one at a time;
 to run them in parallel, add nodes to a ``MultiThreadedExecutor`` (:mod:`buffer_pubsub.executors`)
-and choose callback groups (:mod:`buffer_pubsub.callback_groups`), as in rclpy.
+and choose callback groups (:mod:`buffer_pubsub.callback_groups`), as in rclpy. Timers
+(``node.create_timer(period, callback)``, :mod:`buffer_pubsub.timer`) run on the same executor.
 
 buffer_pubsub knows backends only through :class:`rosidl_buffer.BufferBackend` and
 :mod:`rosidl_buffer.registry`; it imports no backend.
@@ -56,6 +57,7 @@ from .loan import Loan
 from .node import Node
 from .publisher import Publisher, RouteInfo
 from .subscription import MessageInfo, Subscription, SubscriptionCounters
+from .timer import Timer, TimerCounters
 
 __all__ = [
     "DEFAULT_CONFIG",
@@ -82,6 +84,8 @@ __all__ = [
     "Publisher",
     "Subscription",
     "SubscriptionCounters",
+    "Timer",
+    "TimerCounters",
     "TransportConfigError",
     "WireFormatError",
     "make_config",

@@ -1,11 +1,13 @@
-"""The executor of a node: a set of ready subscriptions and one waker.
+"""The executor of a node: a set of ready subscriptions and timers, and one waker.
 
 A subscription with messages waiting is in the ready deque exactly once (it re-enters itself
 after each message while more wait, so subscriptions take turns); the keep-last queue of each
-subscription is the only buffer, and nothing grows with the arrival rate. The loop runs on the
-node's thread (:meth:`NodeExecutor.run`) or inside the user's :meth:`spin_once`; a waker that
-delivers messages on the waiting thread (the fast lane's) may run a callback inside its wait when
-nothing else is ready (:meth:`has_ready`, :meth:`ran_inline`).
+subscription is the only buffer, and nothing grows with the arrival rate. A due timer
+(:mod:`buffer_pubsub.timer`) is made ready the same way, by the loop, whose waits end at the
+nearest timer deadline (:class:`Deadlines`): timers need no thread and no polling. The loop
+runs on the node's thread (:meth:`NodeExecutor.run`) or inside the user's :meth:`spin_once`; a
+waker that delivers messages on the waiting thread (the fast lane's) may run a callback inside
+its wait when nothing else is ready (:meth:`has_ready`, :meth:`ran_inline`).
 
 A node added to a user's executor (:mod:`buffer_pubsub.executors`) *delegates*: what becomes
 ready goes to that executor's threads instead (:meth:`NodeExecutor.delegate`), and the node's
@@ -22,7 +24,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Protocol
 
 from ._waker import Waker
@@ -32,8 +34,8 @@ if TYPE_CHECKING:
     from .callback_groups import CallbackGroup
     from .node import Node
 
-__all__ = ["InFlight", "NodeExecutor", "Runnable", "Target", "spinning_here", "user_spin",
-           "wait_seconds"]
+__all__ = ["Deadlines", "InFlight", "NodeExecutor", "Runnable", "Target", "spinning_here",
+           "user_spin", "wait_seconds"]
 
 _log = logging.getLogger(__name__)
 
@@ -42,8 +44,18 @@ class Runnable(Protocol):
     callback_group: CallbackGroup
 
     def run_one(self) -> bool:
-        """Deliver the next waiting message (re-schedules itself while more wait); whether a
-        callback ran."""
+        """Deliver the next waiting message (re-schedules itself while more wait), or fire a
+        due timer; whether a callback ran."""
+
+
+class Deadlines(Protocol):
+    """A node's timers as its loop sees them (:class:`buffer_pubsub.timer.TimerSet`)."""
+
+    def next_deadline_ns(self) -> int | None:
+        """The nearest ``time.monotonic_ns()`` at which a timer becomes due (None: none)."""
+
+    def take_due(self, now_ns: int) -> Sequence[Runnable]:
+        """The timers due at ``now_ns`` that are not ready yet, marked ready."""
 
 
 class Target(Protocol):
@@ -138,7 +150,8 @@ class InFlight:
 
 
 class NodeExecutor:
-    """Ready subscriptions, run one message at a time, woken by ``waker``."""
+    """Ready subscriptions and timers, run one callback at a time, woken by ``waker`` or by the
+    nearest deadline of ``timers``."""
 
     #: Longest sleep between housekeeping rounds.
     TICK_S = 0.2
@@ -146,8 +159,9 @@ class NodeExecutor:
     GATE_POLL_S = 0.05
 
     def __init__(self, waker: Waker, housekeeping: Callable[[], None],
-                 gate: threading.Lock | None = None) -> None:
+                 gate: threading.Lock | None = None, timers: Deadlines | None = None) -> None:
         self.waker = waker
+        self._timers = timers
         self.in_flight = InFlight()
         # Held while a callback runs, when callbacks may also run on arrival threads (see
         # Subscription._enqueue): one callback of the node at a time.
@@ -251,7 +265,10 @@ class NodeExecutor:
         """One wait (if nothing is ready) and what is ready after it."""
         inline = self._inline
         if not self._ready and not self._stopped:
-            self.waker.wait(timeout)
+            self.waker.wait(self._until_next_timer(timeout))
+        if self._timers is not None and not self._stopped:
+            for timer in self._timers.take_due(time.monotonic_ns()):
+                self.make_ready(timer)  # (this loop runs it, or the user's executor, woken)
         ran = self._inline - inline
         ready = self._ready
         for _ in range(len(ready)):  # only what is ready now: re-scheduled items wait a turn
@@ -286,6 +303,15 @@ class NodeExecutor:
             except Exception:
                 _log.exception("executor housekeeping failed")
         return ran
+
+    def _until_next_timer(self, timeout: float | None) -> float | None:
+        """``timeout``, cut short at the nearest timer deadline: the wait ends when a timer is
+        due, and lasts as long as nothing else wakes it (no fixed-rate polling)."""
+        deadline = None if self._timers is None else self._timers.next_deadline_ns()
+        if deadline is None:
+            return timeout
+        left = max(0.0, (deadline - time.monotonic_ns()) / 1e9)
+        return left if timeout is None or left < timeout else timeout
 
     def run(self) -> None:
         """The executor thread's loop, until :meth:`stop`."""

@@ -1,9 +1,9 @@
 """Callback groups, as rclpy's: which callbacks a multi-threaded executor may run together.
 
-Every subscription belongs to one group: the one passed as
-``node.create_subscription(..., callback_group=group)``, else the node's
-``default_callback_group`` (mutually exclusive, so a node's callbacks run one at a time unless
-you say otherwise).
+Every subscription and timer belongs to one group: the one passed as
+``node.create_subscription(..., callback_group=group)`` or ``node.create_timer(...,
+callback_group=group)``, else the node's ``default_callback_group`` (mutually exclusive, so a
+node's callbacks run one at a time unless you say otherwise).
 
 - :class:`MutuallyExclusiveCallbackGroup`: at most one callback of the group runs at a time.
   Give a slow callback a group of its own and it no longer holds up the others.
@@ -28,7 +28,7 @@ __all__ = ["CallbackGroup", "MutuallyExclusiveCallbackGroup", "ReentrantCallback
 
 
 class CallbackGroup:
-    """Base class: decides whether a ready subscription may start its callback now."""
+    """Base class: decides whether a ready subscription or timer may start its callback now."""
 
     def enter(self, item: Runnable) -> bool:
         """Whether ``item`` may run now; if not, the group keeps it and hands it back from

@@ -1,11 +1,12 @@
 """``Node``: a Zenoh session, its discovery graph and its executor.
 
-Shaped after ``rclpy.node.Node``. Callbacks of every subscription of a node run one at a time:
-on the node's own executor thread (``Node(executor="thread")``, the default), or on the user's
-thread inside :meth:`Node.spin` / :meth:`Node.spin_once` (``Node(executor="manual")``, as rclpy's
-``rclpy.spin(node)``), so an application busy in Python pays no GIL hand-off to a library thread.
-Either way the executor waits on one waker (:mod:`._waker`) and runs each ready subscription's
-next message; a subscription is queued at most once, whatever the number of messages in its
+Shaped after ``rclpy.node.Node``. Callbacks of every subscription and timer of a node run one
+at a time: on the node's own executor thread (``Node(executor="thread")``, the default), or on
+the user's thread inside :meth:`Node.spin` / :meth:`Node.spin_once` (``Node(executor="manual")``,
+as rclpy's ``rclpy.spin(node)``), so an application busy in Python pays no GIL hand-off to a
+library thread. Either way the executor waits on one waker (:mod:`._waker`), no longer than
+the nearest timer deadline (:mod:`.timer`), and runs each ready subscription's next message and
+each due timer; a subscription is queued at most once, whatever the number of messages in its
 keep-last queue. A node added to a user's executor (:mod:`buffer_pubsub.executors`) has its
 callbacks run there instead, in parallel as their callback groups allow
 (:mod:`buffer_pubsub.callback_groups`).
@@ -50,6 +51,7 @@ from .errors import (
 from .names import expand_topic_name, validate_namespace, validate_node_name
 from .publisher import Publisher
 from .subscription import Subscription
+from .timer import Timer, TimerSet, period_ns
 
 if TYPE_CHECKING:
     from .executors import Executor
@@ -128,9 +130,10 @@ class Node:
         self._spin_lock = threading.Lock()  # executor="manual": the one thread that spins
         #: Zenoh arrivals may run short callbacks on their own thread (see the class doc).
         self.inline_callbacks = executor == "thread" and bool(inline_callbacks)
-        self.scheduler = NodeExecutor(waker, _nothing_periodic, self._gate)
+        self._timers = TimerSet(waker.notify)  # due timers are made ready by the node's loop
+        self.scheduler = NodeExecutor(waker, _nothing_periodic, self._gate, self._timers)
         self._owner: Executor | None = None  # the user's executor the node was added to
-        #: The group of subscriptions created without ``callback_group`` (as rclpy's).
+        #: The group of subscriptions and timers created without ``callback_group`` (rclpy's).
         self.default_callback_group: CallbackGroup = MutuallyExclusiveCallbackGroup()
         self._thread: threading.Thread | None = None
 
@@ -195,6 +198,8 @@ class Node:
             endpoints: list[Publisher | Subscription] = [*self._publishers, *self._subscriptions]
             self._publishers.clear()
             self._subscriptions.clear()
+        for timer in self._timers.close():  # none starts from here (a running one is waited for)
+            timer.forget()
         self.graph.close()
         self.scheduler.stop()
         deadline = time.monotonic() + CLOSE_TIMEOUT_S
@@ -420,11 +425,7 @@ class Node:
         self._check_open()
         if not callable(callback):
             raise InvalidEndpointError(f"callback must be callable, got {callback!r}")
-        if callback_group is None:
-            callback_group = self.default_callback_group
-        elif not isinstance(callback_group, CallbackGroup):
-            raise InvalidEndpointError(
-                f"callback_group must be a CallbackGroup, got {callback_group!r}")
+        callback_group = self._callback_group(callback_group)
         cls = self._resolve_type(msg_type)
         depth, history = self._check_qos(depth, history)
         fq_topic = self._topic(topic)
@@ -457,6 +458,50 @@ class Node:
             subscription.destroy()
             self._check_open()
         return subscription
+
+    def _callback_group(self, group: CallbackGroup | None) -> CallbackGroup:
+        if group is None:
+            return self.default_callback_group
+        if not isinstance(group, CallbackGroup):
+            raise InvalidEndpointError(f"callback_group must be a CallbackGroup, got {group!r}")
+        return group
+
+    # -- timers --------------------------------------------------------------------------------
+    def create_timer(self, timer_period_sec: float, callback: Callable[[], Any],
+                     callback_group: CallbackGroup | None = None, *,
+                     autostart: bool = True) -> Timer:
+        """A timer calling ``callback()`` every ``timer_period_sec`` seconds (steady clock) on
+        this node's executor, where its subscription callbacks run, as rclpy's.
+
+        ``callback_group``: which callbacks may run beside it on a multi-threaded executor;
+        default ``default_callback_group``. ``autostart=False`` creates it cancelled, for
+        :meth:`Timer.reset` to start. A late timer skips the ticks it missed rather than
+        running them in a burst. Raises InvalidEndpointError for a period that is not a
+        positive, finite number of seconds, a callback that is not callable or a bad group;
+        NodeClosedError on a closed node.
+        """
+        self._check_open()
+        period = period_ns(timer_period_sec)
+        if not callable(callback):
+            raise InvalidEndpointError(f"callback must be callable, got {callback!r}")
+        timer = Timer(self, self._timers, callback, period,
+                      self._callback_group(callback_group), autostart=bool(autostart))
+        self._timers.add(timer)  # NodeClosedError if close() ran meanwhile
+        return timer
+
+    def destroy_timer(self, timer: Timer) -> bool:
+        """Cancel ``timer`` for good and drop it (a callback running now finishes); whether it
+        was a timer of this node (as rclpy's)."""
+        if not isinstance(timer, Timer) or timer.node is not self:
+            return False
+        known = self._timers.remove(timer)
+        timer.forget()
+        return known
+
+    @property
+    def timers(self) -> list[Timer]:
+        """The node's timers (not destroyed), as rclpy's ``Node.timers``."""
+        return self._timers.timers()
 
     def _forget(self, endpoint: Publisher | Subscription) -> None:
         with self._lock:
