@@ -25,10 +25,10 @@ import math
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from ._waker import Waker
-from .errors import InvalidTimeoutError
+from .errors import InvalidTimeoutError, NodeClosedError
 
 if TYPE_CHECKING:
     from .callback_groups import CallbackGroup
@@ -317,3 +317,14 @@ class NodeExecutor:
         """The executor thread's loop, until :meth:`stop`."""
         while not self._stopped:
             self._spin_pass(self.TICK_S)
+
+
+def log_callback_error(log: logging.Logger, owner: Any, exc: BaseException) -> None:
+    """Log what a user callback of ``owner`` (a subscription, a timer) raised. One that ran
+    past its node's close and published on the closed node is the end of the program (Ctrl-C),
+    not an error to show: debug level only."""
+    if isinstance(exc, NodeClosedError) and owner.node.closed:
+        log.debug("%r: callback ran past its node's close: %s", owner, exc)
+        return
+    log.error("%r: callback raised %s", owner, type(exc).__name__,
+              exc_info=(type(exc), exc, exc.__traceback__))

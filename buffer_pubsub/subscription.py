@@ -50,13 +50,13 @@ from rosidl_buffer.messages import (
 
 from . import _lane_routes, _process, fast_lane, wire
 from ._info import endpoint_gone, endpoint_info, unknown_publisher_info
-from ._executor import spinning_here
+from ._executor import log_callback_error, spinning_here
 from .graph import matching_wait
 from ._inline import InlinePolicy
 from ._rate import RateLimit
 from ._sequence import IN_ORDER, Deduplicator, SequenceTracker
 from ._zenoh import undeclare_quietly
-from .errors import NodeClosedError, PubSubError
+from .errors import PubSubError
 
 if TYPE_CHECKING:
     from ._waker import Waker
@@ -555,13 +555,7 @@ class Subscription:
         with self._lock:
             self.counters.callback_errors += 1
         self.last_error = exc
-        if isinstance(exc, NodeClosedError) and self.node.closed:
-            # A callback that outlived close()'s wait published on its closed node: the end of
-            # the program (Ctrl-C), not an error to show.
-            _log.debug("%r: callback ran past its node's close: %s", self, exc)
-            return
-        _log.error("%r: callback raised %s", self, type(exc).__name__,
-                   exc_info=(type(exc), exc, exc.__traceback__))
+        log_callback_error(_log, self, exc)
 
     def _deserialize(self, payload: bytes, attachment: wire.Attachment, route: str,
                      publisher: Any = _UNRESOLVED) -> Message:

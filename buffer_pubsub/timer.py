@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from time import monotonic_ns  # the steady clock (tests may replace this name)
 from typing import TYPE_CHECKING, Any
 
-from ._executor import spinning_here
+from ._executor import log_callback_error, spinning_here
 from .errors import InvalidEndpointError, NodeClosedError
 
 if TYPE_CHECKING:
@@ -279,8 +279,4 @@ class Timer:
     def _callback_failed(self, exc: BaseException) -> None:
         self.counters.callback_errors += 1  # (only this timer's run_one writes it: no overlap)
         self.last_error = exc
-        if isinstance(exc, NodeClosedError) and self.node.closed:
-            _log.debug("%r: callback ran past its node's close: %s", self, exc)
-            return
-        _log.error("%r: callback raised %s", self, type(exc).__name__,
-                   exc_info=(type(exc), exc, exc.__traceback__))
+        log_callback_error(_log, self, exc)
