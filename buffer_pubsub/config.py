@@ -15,7 +15,15 @@ Choices, first match wins:
 3. env ``ZENOH_SESSION_CONFIG_URI`` (as rmw_zenoh): the path of a Zenoh JSON5 configuration file.
 4. The embedded default: peer mode, multicast scouting only on the loopback interface ``lo``,
    listening on ``tcp/127.0.0.1:0``. Processes of one host find each other in about 0.1 s with no
-   router and no set-up, and no traffic leaves the host.
+   router and no set-up, and no traffic leaves the host. Like rmw_zenoh's default session, it
+   also connects to a router on this host (``tcp/localhost:7447``: ``rmw_zenohd``, or ``warp-buffer
+   router``) when one runs, retrying in the background when none does: a node joins the ROS 2
+   graph of its host with nothing set.
+
+Then env ``ZENOH_CONFIG_OVERRIDE`` (as rmw_zenoh: ``key=value`` pairs separated by ``;``, each
+key a ``/`` path into the configuration, each value JSON5, e.g.
+``'mode="client";connect/endpoints=["tcp/192.168.1.3:7447"]'``) changes any of 2.-4. and the
+router's configuration; an invalid pair raises :class:`TransportConfigError` naming it.
 
 Configuration files (``config=``, ``ZENOH_SESSION_CONFIG_URI``) are read here, and an error names
 the file. :data:`ROUTER_DEFAULTS` is the configuration of ``warp-buffer router``: the defaults of
@@ -38,11 +46,15 @@ import zenoh
 from .errors import TransportConfigError
 
 __all__ = ["CONFIG_URI_ENV", "CONNECT_TIMEOUT_ENV", "DEFAULT_CONFIG", "DROP_FRAGMENTS_WAIT_US",
-           "NO_SHARED_MEMORY", "ROUTER_DEFAULTS", "ROUTER_ENV", "connect_timeout_s", "make_config",
+           "LOCAL_ROUTER", "NO_SHARED_MEMORY", "OVERRIDE_ENV", "ROUTER_DEFAULTS", "ROUTER_ENV",
+           "apply_overrides", "connect_timeout_s", "make_config",
            "make_router_config", "resolve_domain_id", "zenoh_error_text"]
 
 ROUTER_ENV = "WARP_BUFFER_ZENOH_ROUTER"
 CONFIG_URI_ENV = "ZENOH_SESSION_CONFIG_URI"
+OVERRIDE_ENV = "ZENOH_CONFIG_OVERRIDE"
+#: Where rmw_zenoh's sessions look for their router (its DEFAULT_RMW_ZENOH_SESSION_CONFIG).
+LOCAL_ROUTER = "tcp/localhost:7447"
 CONNECT_TIMEOUT_ENV = "WARP_BUFFER_ZENOH_CONNECT_TIMEOUT_S"
 DOMAIN_ENV = "ROS_DOMAIN_ID"
 DEFAULT_CONNECT_TIMEOUT_S = 10.0
@@ -62,6 +74,13 @@ NO_SHARED_MEMORY: dict[str, Any] = {"enabled": False}
 DEFAULT_CONFIG: dict[str, Any] = {
     "mode": "peer",
     "listen": {"endpoints": ["tcp/127.0.0.1:0"]},
+    # rmw_zenoh's: a router of this host when there is one; a peer never fails for its absence
+    # and retries in the background (1 s, doubling to 4 s).
+    "connect": {"endpoints": [LOCAL_ROUTER], "timeout_ms": {"router": -1, "peer": -1,
+                                                            "client": 0},
+                "exit_on_failure": {"router": False, "peer": False, "client": True},
+                "retry": {"period_init_ms": 1000, "period_max_ms": 4000,
+                          "period_increase_factor": 2}},
     "scouting": {"multicast": {"enabled": True, "interface": "lo"}, "gossip": {"enabled": True}},
     "transport": {
         "shared_memory": NO_SHARED_MEMORY,
@@ -160,11 +179,33 @@ def make_config(config: zenoh.Config | str | os.PathLike[str] | None = None,
         return _from_file(os.fspath(config), "Node(config=...)")
     router = router or os.environ.get(ROUTER_ENV)
     if router:
-        return _from_json(_client_config(router), f"router {router!r}")
+        return apply_overrides(_from_json(_client_config(router), f"router {router!r}"))
     uri = os.environ.get(CONFIG_URI_ENV)
     if uri:
-        return _from_file(uri, f"env {CONFIG_URI_ENV}")
-    return _from_json(DEFAULT_CONFIG, "embedded default")
+        return apply_overrides(_from_file(uri, f"env {CONFIG_URI_ENV}"))
+    return apply_overrides(_from_json(DEFAULT_CONFIG, "embedded default"))
+
+
+def apply_overrides(config: zenoh.Config) -> zenoh.Config:
+    """``config`` with env ``ZENOH_CONFIG_OVERRIDE``'s pairs inserted (see the module doc),
+    split as rmw_zenoh splits them: at each ``;``, then at a pair's first ``=``.
+
+    Raises:
+        TransportConfigError: a pair without ``=``, or one Zenoh refuses (named).
+    """
+    for pair in os.environ.get(OVERRIDE_ENV, "").split(";"):
+        if not pair.strip():
+            continue
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise TransportConfigError(f"{OVERRIDE_ENV}: {pair!r} is not key=value (pairs are "
+                                       "separated by ';', e.g. mode=\"client\")")
+        try:
+            config.insert_json5(key.strip(), value)
+        except zenoh.ZError as exc:
+            raise TransportConfigError(
+                f"{OVERRIDE_ENV}: {pair!r}: {zenoh_error_text(exc)}") from exc
+    return config
 
 
 def make_router_config(listen: list[str] | None = None, connect: list[str] | None = None,
@@ -175,6 +216,7 @@ def make_router_config(listen: list[str] | None = None, connect: list[str] | Non
         result = _from_file(os.fspath(config), "warp-buffer router --config")
     else:
         result = _from_json(ROUTER_DEFAULTS, "router defaults")
+    apply_overrides(result)  # (the endpoints given on the command line win)
     for key, endpoints in (("listen/endpoints", listen), ("connect/endpoints", connect)):
         if endpoints:
             try:

@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 import zenoh
 
-from .config import make_config, zenoh_error_text
+from .config import LOCAL_ROUTER, make_config, zenoh_error_text
 from .errors import ForkedAfterZenohError, TransportConfigError
 
 __all__ = ["WARN_AFTER_S", "open_session", "out_of_fds_hint"]
@@ -90,6 +90,9 @@ def open_session(config: zenoh.Config | str | os.PathLike[str] | None = None,
         raise TransportConfigError(f"cannot connect to {where}: {text} ({hint})") from exc
     finally:
         opened.set()
+    if not client and _get(zconfig, "scouting/multicast/enabled") is True:
+        # A peer that scouts needs no router: this host's (rmw_zenoh's default) when one runs.
+        endpoints = [e for e in endpoints if e != LOCAL_ROUTER]
     if endpoints and not client:
         _after(WARN_AFTER_S, threading.Event(), lambda: _warn_if_alone(session, endpoints))
     return session

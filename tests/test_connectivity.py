@@ -170,3 +170,30 @@ def test_a_nodes_data_queue_holds_more_than_one_demo_frame() -> None:
         batches = json.loads(made.get_json("transport/link/tx/queue/size"))["data"]
         batch = json.loads(made.get_json("transport/link/tx/batch_size"))
         assert batches * batch >= 1.5 * frame, (batches, batch)
+
+
+def test_zenoh_config_override_changes_every_configuration_as_rmw_zenohs_does(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(config.OVERRIDE_ENV,
+                       'mode="client";connect/endpoints=["tcp/10.0.0.9:7447"];;')
+    made = config.make_config()
+    assert made.get_json("mode") == '"client"'
+    assert made.get_json("connect/endpoints") == '["tcp/10.0.0.9:7447"]'
+    router = config.make_router_config(listen=["tcp/127.0.0.1:7500"])
+    assert router.get_json("connect/endpoints") == '["tcp/10.0.0.9:7447"]'
+    assert router.get_json("listen/endpoints") == '["tcp/127.0.0.1:7500"]'  # the flag wins
+    for bad, named in (("multicast", "'multicast' is not key=value"),
+                       ("scouting/nope=1", "scouting/nope=1")):
+        monkeypatch.setenv(config.OVERRIDE_ENV, bad)
+        with pytest.raises(TransportConfigError, match=named):
+            config.make_config()
+
+
+def test_a_lone_node_on_the_default_configuration_warns_of_no_missing_router(
+        fast_warning: None, caplog: pytest.LogCaptureFixture) -> None:
+    """The default connects to this host's router when one runs (rmw_zenoh's), but needs none:
+    a node alone, with no router, logs nothing about it."""
+    caplog.set_level(logging.WARNING, logger="buffer_pubsub")
+    with Node("lone", domain_id=231):
+        time.sleep(connectivity.WARN_AFTER_S + 0.5)
+    assert not [r for r in caplog.records if "7447" in r.getMessage()], caplog.records

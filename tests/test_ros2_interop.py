@@ -308,3 +308,50 @@ def test_the_graph_shows_rmw_zenoh_endpoints_as_rclpy_does(domain, topic, procs)
     assert not gpu.is_ours and not old.is_ours
     assert gpu.endpoint_gid.hex() == got["cuda"]["gid"]
     assert old.endpoint_gid.hex() == got["legacy"]["gid"]
+
+
+# --------------------------------------------------------------------------- rmw_zenoh's topology
+def _rmw_zenoh_session_config(path, router: str) -> str:
+    """rmw_zenoh's DEFAULT_RMW_ZENOH_SESSION_CONFIG.json5 in what decides discovery: a peer
+    that scouts nothing and connects to the router of its host; gossip from the router tells
+    it of the other peers (Zenoh's shared memory off, as in every model process)."""
+    path.write_text(json.dumps({
+        "mode": "peer",
+        "connect": {"endpoints": [router]},
+        "listen": {"endpoints": ["tcp/localhost:0"]},
+        "scouting": {"multicast": {"enabled": False},
+                     "gossip": {"enabled": True, "multihop": False,
+                                "target": {"router": ["router", "peer"], "peer": ["router"]},
+                                "autoconnect": {"router": [], "peer": ["router", "peer"]}}},
+        "transport": {"shared_memory": {"enabled": False}},
+    }))
+    return str(path)
+
+
+def test_a_node_on_the_default_configuration_joins_rmw_zenohs_graph_through_its_router(
+        domain, topic, procs, tmp_path, monkeypatch):
+    """rmw_zenoh's nodes scout nothing: they find each other through the router of their host
+    (``rmw_zenohd`` at tcp/localhost:7447). Our embedded default connects there too, so a node
+    with nothing set receives an rmw_zenoh publisher's messages (here the router listens on a
+    port of the test's, which ZENOH_CONFIG_OVERRIDE gives our node, as it gives rmw_zenoh's)."""
+    from benchmarks.processes import free_tcp_port
+    from buffer_pubsub.config import DEFAULT_CONFIG, LOCAL_ROUTER
+
+    assert DEFAULT_CONFIG["connect"]["endpoints"] == [LOCAL_ROUTER] == ["tcp/localhost:7447"]
+    router_at = f"tcp/localhost:{free_tcp_port()}"
+    router = procs.start("warp_buffer_cli.main", "router", "--listen",
+                         router_at.replace("localhost", "127.0.0.1"))
+    assert router.stdout.readline().startswith("warp-buffer router ")
+    monkeypatch.setenv("ZENOH_CONFIG_OVERRIDE", f'connect/endpoints=["{router_at}"]')
+    got = []
+    with Node("default_config_rx", domain_id=domain) as node:
+        node.create_subscription(IMAGE, topic, lambda m: got.append(m.header.frame_id),
+                                 depth=COUNT)
+        pub = procs.model("pub", domain, topic, IMAGE, "--wait-subs", "1", "--count",
+                          str(COUNT), "--rate", "50", "--size", "64", "--no-stdin",
+                          "--zenoh-config", _rmw_zenoh_session_config(tmp_path / "s.json5",
+                                                                      router_at))
+        sent = result(pub)
+        assert sent["error"] is None, sent
+        assert wait_until(lambda: len(got) >= COUNT)
+    assert got == [f"model/{i}" for i in range(COUNT)]
