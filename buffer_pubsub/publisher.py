@@ -272,6 +272,13 @@ class Publisher:
         self._base = self._declare_channel(self.base_key)
         self._cpu = (self._declare_channel(wire.cpu_channel_key(self.base_key)) if self._aware
                      else None)
+        # A type without buffer fields is put on the base key whenever Zenoh routes that key to
+        # a subscriber in another session, as rmw_zenoh's publishers put it always: a ROS 2
+        # subscription declares its Zenoh subscriber before its token, and what is published
+        # in between reaches it (and a plain Zenoh listener, which has no token, gets it).
+        self._base_matched = False
+        self._base_matching = (None if self._aware else
+                               self._base.declare_matching_listener(self._on_base_matching))
         _process.add_publisher(self.gid)
         self._liveliness = node.session.liveliness().declare_token(token.key())
 
@@ -312,7 +319,8 @@ class Publisher:
         with self._lock:
             if self._closed or gid in self._peers:
                 return
-            existing = [p.info for p in self._peers.values()]
+            # the publisher first, then its peers (as rmw_zenoh passes existing_endpoints)
+            existing = [self.info, *(p.info for p in self._peers.values())]
         if peer.individual:  # as rmw_zenoh: backends negotiate with subscriptions of own streams
             for name, backend in self.node.backends.items():
                 accepted, _groups = backend.on_discovering_endpoint(
@@ -384,16 +392,22 @@ class Publisher:
         if writer is not None:  # it vanished meanwhile
             writer.close()
 
+    def _on_base_matching(self, status: zenoh.MatchingStatus) -> None:
+        with self._lock:
+            if not self._closed:
+                self._base_matched = status.matching
+                self._update_remote()
+
     def _update_remote(self) -> None:
         """Rebuild the routes publish() takes through Zenoh (see the module doc); call with
         ``self._lock`` held. Subscriptions of this process are served in-process (they register
         there before their token is declared, so discovery already knows them as local)."""
         peers = [peer for gid, peer in self._peers.items()
                  if not _process.is_local_subscription(gid)]
-        if not peers:
+        if not self._aware:
+            self._remote = _Routing((), False, True) if peers or self._base_matched else _NOBODY
+        elif not peers:
             self._remote = _NOBODY
-        elif not self._aware:
-            self._remote = _Routing((), False, True)
         elif any(peer.stream == wire.SubscriptionChannel.BASE for peer in peers):
             # Base key for everyone; our own subscriptions a backend serves keep their stream
             # (for descriptors, see publish) and drop the base copy.
@@ -717,7 +731,7 @@ class Publisher:
             self._ready.notify_all()
         _process.remove_publisher(self.gid)
         self._loans.clear()
-        undeclare_quietly(self._liveliness)
+        undeclare_quietly(self._liveliness, self._base_matching)
         for peer in peers:  # their routes; not their state in the backends: they live on, and
             peer.close()  # may import frames of ours still in flight (a lane's queue)
         # After a publish in flight on another thread: zenoh-python cannot undeclare a publisher

@@ -355,3 +355,35 @@ def test_a_node_on_the_default_configuration_joins_rmw_zenohs_graph_through_its_
         assert sent["error"] is None, sent
         assert wait_until(lambda: len(got) >= COUNT)
     assert got == [f"model/{i}" for i in range(COUNT)]
+
+
+def test_a_type_without_buffers_is_put_for_a_zenoh_subscriber_with_no_token_yet(domain, topic):
+    """rmw_zenoh puts a message of a type without buffer fields on its key whoever listens
+    (rmw_publisher_data.cpp), and a ROS 2 subscription declares its Zenoh subscriber before its
+    liveliness token: what is published in between reaches it. A Zenoh subscriber with no
+    token at all stands for that window here; it gets every message, and none once it left."""
+    import zenoh
+
+    from buffer_pubsub.config import make_config
+
+    got = []
+    listener = zenoh.open(make_config())
+    try:
+        with Node("tokenless_pub", domain_id=domain) as node:
+            pub = node.create_publisher("std_msgs/msg/String", topic)
+            sub = listener.declare_subscriber(pub.base_key,
+                                              lambda s: got.append(s.payload.to_bytes()))
+            msg = get_message_type("std_msgs/msg/String")()
+            assert wait_until(lambda: pub._base_matched, 10)
+            for index in range(COUNT):
+                msg.data = f"hello {index}"
+                pub.publish(msg)
+            assert wait_until(lambda: len(got) >= COUNT, 10)
+            sub.undeclare()
+            assert wait_until(lambda: not pub._base_matched, 10)
+            pub.publish(msg)  # nobody: nothing is serialized, nothing put
+    finally:
+        listener.close()
+    store = model_messages.make_typestore()
+    decoded = [store.deserialize_cdr(payload, "std_msgs/msg/String").data for payload in got]
+    assert decoded == [f"hello {i}" for i in range(COUNT)]
