@@ -180,18 +180,18 @@ class Buffer(Generic[T]):
         self._impl.seal()
 
     def release(self) -> None:
-        """Give back the backend's resources now (a received zero-copy buffer releases its hold
-        on the publisher's memory), as dropping an iceoryx2 sample does. Idempotent.
+        """End this buffer's access to its storage now, as dropping an iceoryx2 sample does:
+        later access to the bytes through it raises :class:`BufferReleasedError` (warp_buffer's
+        ``HandleReleasedError``); its size and backend still answer. Idempotent.
 
-        A message an in-process subscription receives holds a share of its publisher's buffer
-        (:func:`reader_share`): releasing it ends that share alone. Either way later access to
-        the bytes through this buffer raises :class:`BufferReleasedError` (warp_buffer's
-        ``HandleReleasedError``); views taken before keep their own hold."""
-        if getattr(self, "_origin", None) is not None:
-            self._origin = None  # the publisher's buffer is no longer held through us
-            self._impl = self._impl.released()
-        else:
-            self._impl.release()
+        What it held goes back: a received zero-copy buffer's hold on the publisher's memory,
+        an in-process subscription's share of its publisher's buffer (:func:`reader_share`).
+        Storage other holders share (views taken before, another ``Buffer`` over it, the
+        publisher's own) stays theirs and readable."""
+        impl = self._impl
+        impl.release()
+        self._origin = None  # (a reader's share: the publisher's buffer no longer held by us)
+        self._impl = impl.as_released()
 
     def __enter__(self) -> Buffer[T]:
         return self

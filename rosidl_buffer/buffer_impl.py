@@ -167,7 +167,7 @@ class BufferImplBase(abc.ABC):
         when it is garbage collected. Idempotent; data access afterwards raises a backend error.
         """
 
-    def released(self) -> BufferImplBase:
+    def as_released(self) -> BufferImplBase:
         """What a released share of this storage keeps (see ``Buffer.release``): an impl of
         this backend, size and dtype that holds nothing, whose data access raises
         :class:`BufferReleasedError` (or the backend's subclass of it). This impl and every
@@ -325,7 +325,7 @@ class CpuBufferImpl(BufferImplBase):
             refs.clear()
         return True
 
-    def released(self) -> CpuBufferImpl:
+    def as_released(self) -> CpuBufferImpl:
         return _ReleasedCpuBufferImpl(self._size, self.dtype)
 
     def _ensure_writable(self, capacity: int) -> None:
@@ -346,7 +346,7 @@ def _refuse(*_args: Any, **_kwargs: Any) -> NoReturn:
 
 
 class _ReleasedImpl(BufferImplBase):
-    """:meth:`BufferImplBase.released` of a backend that has no impl of its own for it."""
+    """:meth:`BufferImplBase.as_released` of a backend that has no impl of its own for it."""
 
     def __init__(self, backend: str, size: int, dtype: np.dtype) -> None:
         self._backend, self._size, self.dtype = backend, size, dtype

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from plugins.fake_backend import FakeBufferImpl
 
-from rosidl_buffer.errors import InvalidBufferDataError
+from rosidl_buffer.errors import BufferReleasedError, InvalidBufferDataError
 from rosidl_buffer import Buffer, BufferImplBase, CpuBackendRequiredError, CpuBufferImpl
 from rosidl_buffer.messages import deserialize_message, get_message_type, serialize_message
 
@@ -390,11 +390,22 @@ def test_seal_and_release_reach_the_impl_and_the_context_manager_releases():
     assert (impl.sealed, impl.released) == (1, 1)
 
 
-def test_cpu_impl_seal_and_release_are_harmless():
+def test_release_ends_this_buffers_access_alone():
+    """A released Buffer refuses its bytes (whatever backend: here CPU storage, which has no
+    hold to give back) and still answers its size; another Buffer over the same storage (a
+    share, a view taken before) reads on."""
     buf = Buffer(b"xyz")
+    other = buf.share()
+    view = buf.numpy(writable=False)
     buf.seal()
     buf.release()
-    assert buf.tobytes() == b"xyz"
+    buf.release()  # idempotent
+    with pytest.raises(BufferReleasedError):
+        buf.tobytes()
+    with pytest.raises(BufferReleasedError):
+        buf.numpy()
+    assert len(buf) == 3 and buf.get_backend_type() == "cpu"
+    assert other.tobytes() == b"xyz" and view.tobytes() == b"xyz"
 
 
 def test_message_buffer_walk_reaches_nested_and_sequence_fields():

@@ -221,3 +221,19 @@ def test_cuda_to_tensor_msg_defaults_and_host_sources():
     tc.write_metadata(misaligned, tc.TensorLayout(tc.dtype_from_name("float32"), (2,), (1,), 2))
     with pytest.raises(tc.InvalidTensorMetadataError, match="misaligned"):
         MODULES["torch"].from_input_tensor_msg(misaligned, clone=False)
+
+
+def test_a_message_of_ones_own_released_refuses_its_tensor_and_a_view_taken_before_reads_on():
+    """``msg.data.release()`` on a message this process allocated ends access through that
+    message, as on a received one (it was a no-op: the tensor still came back)."""
+    from warp_buffer.errors import HandleReleasedError
+
+    module = MODULES["numpy"]
+    msg = module.allocate_tensor_msg((4,), np.float32, backend="warp", device=DEVICE)
+    module.to_tensor_msg(msg, np.arange(4, dtype=np.float32))
+    before = module.from_input_tensor_msg(msg, clone=False)
+    msg.data.release()
+    for clone in (False, True):
+        with pytest.raises(HandleReleasedError):
+            module.from_input_tensor_msg(msg, clone=clone)
+    np.testing.assert_array_equal(before, np.arange(4, dtype=np.float32))

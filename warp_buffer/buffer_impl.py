@@ -299,15 +299,15 @@ class WarpBufferImpl(BufferImplBase):
         ends once no array or view made of it holds the token any more; the buffer is unusable
         afterwards (:class:`HandleReleasedError`). A local buffer holds no token of its own to
         give back early (its memory returns to the pool when it, its arrays and its readers'
-        tokens are gone; an in-process subscription's message holds a share of it, whose
-        release is :meth:`released`): a no-op."""
+        tokens are gone): a no-op. ``Buffer.release`` then leaves the Buffer an
+        :meth:`as_released` impl either way."""
         if self._import is None:
             return
         self._released = True  # a plain store: later accesses check it
         # Our references go; what views of the import keep stays theirs.
         self._hold = self._owner = self._arr = self.host = None
 
-    def released(self) -> WarpBufferImpl:
+    def as_released(self) -> WarpBufferImpl:
         """A released impl of this device and size holding nothing (what a released share
         keeps): a WarpBufferImpl, so the tensor adapters reach it as one and get
         :class:`HandleReleasedError` from its accesses."""
