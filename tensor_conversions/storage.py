@@ -28,7 +28,7 @@ import numpy as np
 
 from rosidl_buffer import Buffer, CpuBufferImpl
 
-from .errors import StorageNotWritableError, UnsupportedBackendError
+from .errors import InvalidTensorMetadataError, StorageNotWritableError, UnsupportedBackendError
 
 __all__ = [
     "BACKENDS",
@@ -74,7 +74,11 @@ def allocate_data(nbytes: int, backend: str = "cpu", device: Any = None) -> Buff
             raise UnsupportedBackendError(
                 f"backend 'cpu' stores host memory; device {device!r} cannot be served "
                 "(use backend='warp' for device memory)")
-        return Buffer(_aligned_zeros(nbytes))
+        try:
+            return Buffer(_aligned_zeros(nbytes))
+        except (ValueError, OverflowError) as exc:  # past what NumPy can index
+            raise InvalidTensorMetadataError(
+                f"a tensor of {nbytes} bytes cannot be held in host memory: {exc}") from None
     if backend == "warp":
         resolved = resolve_warp_device(device)
         if nbytes <= 0:

@@ -115,3 +115,11 @@ def test_warp_dimensions_past_int32_are_a_typed_error():
                  data=np.zeros(1, np.uint8))
     with pytest.raises(tc.InvalidTensorMetadataError, match="at most 2147483647"):
         tw.from_input_tensor_msg(msg, clone=False)
+
+
+def test_a_cpu_tensor_too_large_to_index_is_a_typed_error():
+    """NumPy's own ValueError ("Maximum allowed dimension exceeded") came out untyped."""
+    import tensor_conversions.numpy as tn
+
+    with pytest.raises(tc.InvalidTensorMetadataError, match="cannot be held in host memory"):
+        tn.allocate_tensor_msg((2**40, 2**30), np.float32, backend="cpu")
