@@ -96,6 +96,11 @@ class SequenceTracker:
             return Verdict(lost=step - 1) if step > 1 else IN_ORDER
         return self._judge_stride(state, step)
 
+    def last(self, channel: str, gid: bytes) -> int | None:
+        """The last number seen from ``gid`` on ``channel`` (None: nothing yet)."""
+        state = self._channels.get((channel, gid))
+        return None if state is None else state.last
+
     @staticmethod
     def _judge_stride(state: _Channel, step: int) -> Verdict:
         lost = 0

@@ -49,7 +49,7 @@ from .errors import (
     NodeClosedError,
 )
 from .names import expand_topic_name, validate_namespace, validate_node_name
-from .publisher import Publisher
+from .publisher import Publisher, replay_history
 from .subscription import Subscription
 from .timer import Timer, TimerSet, period_ns
 
@@ -335,12 +335,14 @@ class Node:
         raise InvalidEndpointError(f"msg_type must be a message class or name, got {msg_type!r}")
 
     def _endpoint_token(self, kind: str, topic: str, type_name: str, depth: int, history: str,
-                        backends: dict[str, str] | None) -> wire.EndpointToken:
+                        backends: dict[str, str] | None, durability: str = wire.VOLATILE
+                        ) -> wire.EndpointToken:
         return wire.EndpointToken(
             domain_id=self.domain_id, zid=self.zid, node_id=self.node_id,
             entity_id=_process.next_id(), kind=kind, namespace=self.namespace,
             node_name=self.name, topic=topic, type_name=type_name,
-            type_hash=get_type_hash(type_name), qos=wire.QoSProfile.of(depth, history),
+            type_hash=get_type_hash(type_name),
+            qos=wire.QoSProfile.of(depth, history, durability),
             backends=backends, locality=self.locality)
 
     def _installed_metadata(self, names: Sequence[str]) -> dict[str, str]:
@@ -355,27 +357,41 @@ class Node:
             raise InvalidEndpointError(f"depth must be an int in 1..{MAX_DEPTH}, got {depth!r}")
         return depth, history
 
+    @staticmethod
+    def _check_durability(durability: str) -> bool:
+        """Whether ``durability`` is transient-local (else volatile; anything else refused)."""
+        if durability not in (wire.VOLATILE, wire.TRANSIENT_LOCAL):
+            raise InvalidEndpointError(f"durability must be {wire.VOLATILE!r} or "
+                                       f"{wire.TRANSIENT_LOCAL!r}, got {durability!r}")
+        return durability == wire.TRANSIENT_LOCAL
+
     def _topic(self, topic: str) -> str:
         return expand_topic_name(topic, self.name, self.namespace)
 
     def create_publisher(self, msg_type: type[Message] | str, topic: str, depth: int = 10, *,
-                         history: str = wire.KEEP_LAST) -> Publisher:
+                         history: str = wire.KEEP_LAST,
+                         durability: str = wire.VOLATILE) -> Publisher:
         """A publisher of ``msg_type`` on ``topic`` (relative names resolve in the namespace).
 
         ``history="keep_last"`` (default) publishes with Zenoh congestion control DROP, so a
         frozen or slow subscriber never stalls ``publish()``; ``"keep_all"`` uses BLOCK (no loss
         in Zenoh's queues, ``publish()`` waits for room), as rmw_zenoh does.
+        ``durability="transient_local"`` keeps the last ``depth`` messages for subscriptions
+        that come later (latched: ``/tf_static``, a map), as rmw_zenoh's: a Zenoh advanced
+        publisher's cache. Its messages travel as CPU bytes (rmw_zenoh routes no buffers for
+        transient-local endpoints).
         """
         self._check_open()
         cls = self._resolve_type(msg_type)
         depth, history = self._check_qos(depth, history)
+        transient = self._check_durability(durability)
         fq_topic = self._topic(topic)
         # As rmw_zenoh's buffer-aware publishers: cpu plus every installed backend's metadata
-        # (a type without a top-level uint8[] advertises nothing).
+        # (a type without a top-level uint8[], or a transient-local one, advertises nothing).
         advertised = ({"cpu": "", **self._installed_metadata(list(self.backends))}
-                      if buffer_fields(cls) else None)
+                      if buffer_fields(cls) and not transient else None)
         token = self._endpoint_token(wire.PUBLISHER_KIND, fq_topic, cls.__msgtype__, depth,
-                                     history, advertised)
+                                     history, advertised, durability)
         with typed_zenoh_errors(f"cannot declare a publisher on {fq_topic}"):
             publisher = Publisher(self, cls, token, depth, history, on_destroy=self._forget)
         with self._lock:
@@ -400,6 +416,7 @@ class Node:
         *,
         with_info: bool = False,
         history: str = wire.KEEP_LAST,
+        durability: str = wire.VOLATILE,
         raw: bool = False,
         max_rate: float | None = None,
         callback_group: CallbackGroup | None = None,
@@ -412,6 +429,9 @@ class Node:
         discovery.
         ``history="keep_last"`` keeps the newest ``depth`` messages waiting for the callback
         (older ones are dropped and counted); ``"keep_all"`` keeps every one (as rmw_zenoh).
+        ``durability="transient_local"`` also receives, first, what transient-local publishers
+        published before it came (up to ``depth`` each), as rmw_zenoh's; it takes CPU bytes
+        only.
         ``raw=True`` (CPU-only subscriptions) passes the serialized CDR bytes instead of a
         message, decoding nothing (rclpy's ``raw``): for tools that measure or record.
         ``max_rate``: at most this many messages a second from each publisher, the first after
@@ -428,6 +448,7 @@ class Node:
         callback_group = self._callback_group(callback_group)
         cls = self._resolve_type(msg_type)
         depth, history = self._check_qos(depth, history)
+        transient = self._check_durability(durability)
         fq_topic = self._topic(topic)
         from rosidl_buffer import parse_acceptable_backends
 
@@ -437,15 +458,20 @@ class Node:
         except ValueError as exc:
             raise InvalidEndpointError(str(exc)) from None
         rate = _max_rate(max_rate)
+        if transient and accepted != ["cpu"]:
+            raise InvalidEndpointError(
+                "a transient-local subscription takes CPU bytes only (rmw_zenoh serves those "
+                "endpoints on the base key, with no buffer routing): acceptable_buffer_backends="
+                f"{acceptable_buffer_backends!r}")
         if raw and accepted != ["cpu"]:
             raise InvalidEndpointError(
                 "raw=True takes CPU bytes only: a backend's descriptor means nothing serialized "
                 f"(acceptable_buffer_backends={acceptable_buffer_backends!r})")
         advertised = (_subscription_advertisement(acceptable_buffer_backends, accepted, self)
-                      if buffer_fields(cls) else None)
+                      if buffer_fields(cls) and not transient else None)
         token = dataclasses.replace(self._endpoint_token(
-            wire.SUBSCRIPTION_KIND, fq_topic, cls.__msgtype__, depth, history, advertised),
-            max_rate_hz=rate)
+            wire.SUBSCRIPTION_KIND, fq_topic, cls.__msgtype__, depth, history, advertised,
+            durability), max_rate_hz=rate)
         with typed_zenoh_errors(f"cannot declare a subscription on {fq_topic}"):
             subscription = Subscription(self, cls, token, callback, depth, accepted, with_info,
                                         history, callback_group, raw=raw,
@@ -457,6 +483,8 @@ class Node:
         if closed:
             subscription.destroy()
             self._check_open()
+        if transient:
+            replay_history(subscription)  # this process's transient-local publishers' messages
         return subscription
 
     def _callback_group(self, group: CallbackGroup | None) -> CallbackGroup:

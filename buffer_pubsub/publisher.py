@@ -42,7 +42,10 @@ from dataclasses import dataclass, field
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+import weakref
+
 import zenoh
+import zenoh.ext
 
 from rosidl_buffer import Buffer, BufferImplBase, EndpointInfo
 from rosidl_buffer.buffer import impl_of
@@ -69,7 +72,7 @@ if TYPE_CHECKING:
     from ._waker import Waker
     from .node import Node
 
-__all__ = ["Publisher", "RouteInfo", "seal_and_list_backends"]
+__all__ = ["Publisher", "RouteInfo", "replay_history", "seal_and_list_backends"]
 
 _log = logging.getLogger(__name__)
 #: How long destroy() waits for a publish in flight on another thread before leaving the
@@ -77,6 +80,13 @@ _log = logging.getLogger(__name__)
 UNDECLARE_WAIT_S = 1.0
 #: Streams of subscriptions that left remembered per publisher (see Publisher._left_streams).
 MAX_LEFT_STREAMS = 1024
+#: Heartbeat period (s) of a transient-local publisher, for subscribers to detect a missed last
+#: sample and fetch it from the cache (rmw_zenoh's SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD).
+MISS_DETECTION_HEARTBEAT_S = 0.5
+#: Transient-local publishers of this process by base key: a new transient-local subscription
+#: here gets their history in-process (see replay_history).
+_TRANSIENT: dict[str, weakref.WeakSet[Publisher]] = {}
+_transient_lock = threading.Lock()
 
 def seal_and_list_backends(msg: Message, flat: tuple[str, ...] | None
                            ) -> tuple[frozenset[str], int, tuple[BufferImplBase, ...]]:
@@ -269,16 +279,28 @@ class Publisher:
         self._backends = tuple(node.backends.values())
         for backend in self._backends:
             backend.on_creating_endpoint(self.info)
-        self._base = self._declare_channel(self.base_key)
+        # Transient-local, as rmw_zenoh's: an advanced publisher whose cache keeps the last
+        # ``depth`` samples for late subscribers, detectable, with sample-miss heartbeats; it
+        # advertises no backends, so everything goes on the base key. In-process late joiners
+        # get the same from _history (see replay_history).
+        self._transient = token.qos.transient_local
+        self._history: collections.deque[tuple[Message, wire.Attachment, frozenset[str]]] | \
+            None = collections.deque(maxlen=depth) if self._transient else None
+        self._base = (self._declare_transient(self.base_key, depth) if self._transient
+                      else self._declare_channel(self.base_key))
         self._cpu = (self._declare_channel(wire.cpu_channel_key(self.base_key)) if self._aware
                      else None)
         # A type without buffer fields is put on the base key whenever Zenoh routes that key to
         # a subscriber in another session, as rmw_zenoh's publishers put it always: a ROS 2
         # subscription declares its Zenoh subscriber before its token, and what is published
         # in between reaches it (and a plain Zenoh listener, which has no token, gets it).
-        self._base_matched = False
-        self._base_matching = (None if self._aware else
+        self._base_matched = self._transient  # (its cache takes every message)
+        self._base_matching = (None if self._aware or self._transient else
                                self._base.declare_matching_listener(self._on_base_matching))
+        if self._transient:
+            self._remote = _Routing((), False, True)  # from the first publish, into its cache
+            with _transient_lock:
+                _TRANSIENT.setdefault(self._intra_key, weakref.WeakSet()).add(self)
         _process.add_publisher(self.gid)
         self._liveliness = node.session.liveliness().declare_token(token.key())
 
@@ -404,7 +426,7 @@ class Publisher:
         there before their token is declared, so discovery already knows them as local)."""
         peers = [peer for gid, peer in self._peers.items()
                  if not _process.is_local_subscription(gid)]
-        if not self._aware:
+        if not self._aware:  # (a transient-local publisher is never aware, always matched)
             self._remote = _Routing((), False, True) if peers or self._base_matched else _NOBODY
         elif not peers:
             self._remote = _NOBODY
@@ -582,11 +604,12 @@ class Publisher:
                     raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
                 stamp = self._last_stamp = max(time.time_ns(), self._last_stamp + 1)
                 self._published += 1
+                intra = None if self._history is None else self._remember(msg, stamp, backends)
                 if remote is _NOBODY:
-                    self._publish_intra(msg, backends, stamp, wakers)
+                    self._publish_intra(msg, backends, stamp, wakers, intra)
                     return
                 try:
-                    self._publish_remote(msg, backends, nbytes, stamp, remote, wakers)
+                    self._publish_remote(msg, backends, nbytes, stamp, remote, wakers, intra)
                 finally:
                     if self._undeclare_after_send:  # destroyed during this publish (see there)
                         undeclare_quietly(self._base, self._cpu)
@@ -597,8 +620,9 @@ class Publisher:
                 waker.notify()
 
     def _publish_remote(self, msg: Message, backends: frozenset[str], nbytes: int, stamp: int,
-                        routing: _Routing, wakers: list[Waker]) -> None:
-        """Send to every route (``wakers``: see :meth:`_publish_intra`)."""
+                        routing: _Routing, wakers: list[Waker],
+                        intra: wire.Attachment | None = None) -> None:
+        """Send to every route (``wakers``, ``intra``: see :meth:`_publish_intra`)."""
         # Everything is serialized (and size-checked) before anything leaves, so a message too
         # large for the transport reaches nobody rather than some.
         need_base = routing.base
@@ -620,7 +644,7 @@ class Publisher:
                 self._checked(None, nbytes)  # hopeless: raise before copying a huge payload
             cpu_payload = self._out = self._checked(serialize_message(msg, out=self._out))
         if self._intra_key in _process.SUBSCRIPTIONS:
-            self._publish_intra(msg, backends, stamp, wakers)
+            self._publish_intra(msg, backends, stamp, wakers, intra)
         gid = self.gid
         try:
             for peer, payload in individual:
@@ -648,13 +672,15 @@ class Publisher:
         return payload
 
     def _publish_intra(self, msg: Message, backends: frozenset[str], stamp: int,
-                       wakers: list[Waker]) -> None:
+                       wakers: list[Waker], attachment: wire.Attachment | None = None) -> None:
         """Queue a snapshot of ``msg`` for each subscription of this process; adds the wakers
-        of their executors to ``wakers`` (once each), which publish() notifies last."""
+        of their executors to ``wakers`` (once each), which publish() notifies last.
+        ``attachment``: the one its history keeps (a transient-local publisher's), else new."""
         subscriptions = _process.SUBSCRIPTIONS.get(self._intra_key)
         if not subscriptions:
             return
-        attachment = wire.new_attachment((next(self._intra_sequences), stamp, self.gid))
+        if attachment is None:
+            attachment = wire.new_attachment((next(self._intra_sequences), stamp, self.gid))
         copy: Message | None = None
         domain_id = self.node.domain_id
         make_snapshot = self._snapshot if type(msg) is self.msg_type else snapshot
@@ -670,6 +696,13 @@ class Publisher:
                 waker = subscription.deliver_intra(snapshot(copy), attachment)
             if waker is not None and waker not in wakers:
                 wakers.append(waker)
+
+    def _remember(self, msg: Message, stamp: int, backends: frozenset[str]) -> wire.Attachment:
+        """Keep ``msg`` (a snapshot) in a transient-local publisher's history; its in-process
+        attachment, numbered for every publish (call with ``_out_lock`` held)."""
+        attachment = wire.new_attachment((next(self._intra_sequences), stamp, self.gid))
+        self._history.append((snapshot(msg), attachment, backends))  # type: ignore[union-attr]
+        return attachment
 
     def _serialize_for(self, peer: _Peer, msg: Message) -> bytearray:
         backends = self.node.backends
@@ -709,6 +742,13 @@ class Publisher:
             if peer.gone:  # closed while this put was blocked (see _Peer.close)
                 _close_route(*peer.take_route())
 
+    def _declare_transient(self, key: str, depth: int) -> Any:
+        return zenoh.ext.declare_advanced_publisher(
+            self.node.session, key, allowed_destination=zenoh.Locality.REMOTE,
+            congestion_control=self._congestion, cache=zenoh.ext.CacheConfig(max_samples=depth),
+            publisher_detection=True, sample_miss_detection=zenoh.ext.MissDetectionConfig(
+                sporadic_heartbeat=MISS_DETECTION_HEARTBEAT_S))
+
     def _declare_channel(self, key: str) -> zenoh.Publisher:
         # Zenoh's same-session delivery is skipped: local subscriptions are served in-process.
         return self.node.session.declare_publisher(
@@ -730,6 +770,10 @@ class Publisher:
             self._remote = _NOBODY
             self._ready.notify_all()
         _process.remove_publisher(self.gid)
+        if self._transient:
+            with _transient_lock:
+                _TRANSIENT.get(self._intra_key, weakref.WeakSet()).discard(self)
+            self._history.clear()  # type: ignore[union-attr]
         self._loans.clear()
         undeclare_quietly(self._liveliness, self._base_matching)
         for peer in peers:  # their routes; not their state in the backends: they live on, and
@@ -744,3 +788,30 @@ class Publisher:
             finally:
                 self._out_lock.release()
         endpoint_gone(self._backends, self.info)
+
+
+def replay_history(subscription: Any) -> None:
+    """Deliver to ``subscription``, a new transient-local one, what this process's
+    transient-local publishers on its key keep (their last ``depth`` messages, oldest first),
+    in-process as any of their messages (Zenoh serves other processes from the publishers'
+    caches). A message published since the subscription registered reached it already, as do
+    those before it in that publisher's history: they are skipped, never delivered twice."""
+    with _transient_lock:
+        publishers = list(_TRANSIENT.get(subscription.base_key, ()))
+    for publisher in publishers:
+        wakers = []
+        with publisher._out_lock:  # no publish of it interleaves
+            history = publisher._history
+            if publisher._closed or not history:
+                continue
+            seen = subscription.last_sequence("intra", publisher.gid)
+            for msg, attachment, backends in history:
+                if seen is not None and attachment.sequence_number <= seen:
+                    continue
+                copy = snapshot(msg if not backends or backends.issubset(subscription.accepted)
+                                else cpu_copy(msg))
+                waker = subscription.deliver_intra(copy, attachment)
+                if waker is not None and waker not in wakers:
+                    wakers.append(waker)
+        for waker in wakers:
+            waker.notify()

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import zenoh
+import zenoh.ext
 
 from rosidl_buffer import BufferOverwrittenError, RosidlBufferError
 from rosidl_buffer.messages import (
@@ -181,14 +182,21 @@ class Subscription:
             backend.on_creating_endpoint(self.info)
         session = node.session
         remote = zenoh.Locality.REMOTE
-        self._subscribers = [session.declare_subscriber(
-            self.base_key, lambda s: self._on_sample(s, ROUTE_BASE), allowed_origin=remote)]
+        on_base = lambda s: self._on_sample(s, ROUTE_BASE)  # noqa: E731
+        if token.qos.transient_local:  # rmw_zenoh's: history from publishers' caches first
+            self._subscribers = [zenoh.ext.declare_advanced_subscriber(
+                session, self.base_key, on_base, allowed_origin=remote,
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=depth),
+                recovery=zenoh.ext.RecoveryConfig(heartbeat=True), subscriber_detection=True)]
+        else:
+            self._subscribers = [session.declare_subscriber(self.base_key, on_base,
+                                                            allowed_origin=remote)]
         # A buffer-aware subscription (its type has a top-level uint8[]) listens on one more key:
         # the shared CPU stream when it advertises exactly cpu, else its own.
         # A rate-limited CPU-only one listens on its own stream too: our publishers serve it
         # there, at its rate (see max_rate below).
         own_stream = False
-        if buffer_fields(msg_type):
+        if buffer_fields(msg_type) and token.backends is not None:  # (transient-local: none)
             cpu_only = wire.subscription_channel(token) == wire.SubscriptionChannel.CPU
             if cpu_only:
                 self._subscribers.append(session.declare_subscriber(
@@ -332,17 +340,20 @@ class Subscription:
                      publisher: wire.EndpointToken | None = None) -> None:
         """Count a message that failed to deserialize (``arrived_on``: its route, when it failed
         on arrival, before the queue saw its number: an error, not also a gap). One whose
-        backend memory its publisher reused, the reader having fallen more than its queue
-        behind, is what keep-last drops: counted in ``dropped``, not an error."""
-        overwritten = (isinstance(exc, BufferOverwrittenError)
-                       and self.history == wire.KEEP_LAST)
+        backend memory its publisher reused before the import is no fault of its bytes: under
+        keep-last the reader fell more than its queue behind, what keep-last drops (counted in
+        ``dropped``); under keep-all the publisher judged this subscription gone (Zenoh closed
+        its link while it was stalled) and took its memory back: lost in transit (``lost``)."""
+        overwritten = isinstance(exc, BufferOverwrittenError)
         with self._lock:
             if arrived_on is not None:
                 self._judge(attachment, arrived_on, _numbered_per_stream(arrived_on, publisher))
-            if overwritten:
+            if not overwritten:
+                self.counters.errors += 1
+            elif self.history == wire.KEEP_LAST:
                 self.counters.dropped += 1
             else:
-                self.counters.errors += 1
+                self.counters.lost += 1
         if overwritten:
             _log.debug("%r: dropped a message from %s, overwritten before its import: %s",
                        self, attachment.publisher_gid.hex(), exc)
@@ -480,6 +491,11 @@ class Subscription:
         # message's shares of the publisher's buffers end when it is collected.
         if evicted is not None and evicted[4]:
             release_buffers(evicted[0])
+
+    def last_sequence(self, stream: str, gid: bytes) -> int | None:
+        """The last number judged on ``stream`` from publisher ``gid`` (None: none yet)."""
+        with self._lock:
+            return self._sequences.last(stream, gid)
 
     # -- discovery --------------------------------------------------------------------------
     def on_publisher(self, token: wire.EndpointToken, appeared: bool) -> None:

@@ -218,6 +218,8 @@ _UINT64_MAX = 2**64 - 1
 
 KEEP_LAST = "keep_last"
 KEEP_ALL = "keep_all"
+VOLATILE = "volatile"
+TRANSIENT_LOCAL = "transient_local"
 
 
 @dataclass(frozen=True)
@@ -238,10 +240,12 @@ class QoSProfile:
     liveliness_lease: tuple[int, int] = INFINITE
 
     @classmethod
-    def of(cls, depth: int, history: str = KEEP_LAST) -> QoSProfile:
-        """What our endpoints offer: reliable, volatile, ``history`` of ``depth``."""
+    def of(cls, depth: int, history: str = KEEP_LAST, durability: str = VOLATILE
+           ) -> QoSProfile:
+        """What our endpoints offer: reliable, ``durability``, ``history`` of ``depth``."""
         return cls(history=HISTORY_KEEP_ALL if history == KEEP_ALL else HISTORY_KEEP_LAST,
-                   depth=depth)
+                   depth=depth, durability=DURABILITY_TRANSIENT_LOCAL
+                   if durability == TRANSIENT_LOCAL else DURABILITY_VOLATILE)
 
     @property
     def keep_all(self) -> bool:

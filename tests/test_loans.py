@@ -429,7 +429,7 @@ def test_a_publish_failing_after_its_in_process_delivery_still_wakes_the_executo
         node.create_subscription(TENSOR, topic, received.append)
         pub = node.create_publisher(TENSOR, topic)
 
-        def failing(msg, backends, nbytes, stamp, routing, wakers):
+        def failing(msg, backends, nbytes, stamp, routing, wakers, intra=None):
             pub._publish_intra(msg, backends, stamp, wakers)  # delivered in process, then
             raise TransportError("a remote route failed")  # a Zenoh put fails
 

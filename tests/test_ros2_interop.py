@@ -21,7 +21,7 @@ import pytest
 
 from buffer_pubsub import Node
 from rosidl_buffer import Buffer
-from rosidl_buffer.messages import get_message_type
+from rosidl_buffer.messages import get_message_type, serialize_message
 from tests._pubsub_helpers import ROOT, TENSOR, child_env, make_frame
 from tests._reliability_helpers import wait_until
 from tests.upstream_model import messages as model_messages
@@ -387,3 +387,54 @@ def test_a_type_without_buffers_is_put_for_a_zenoh_subscriber_with_no_token_yet(
     store = model_messages.make_typestore()
     decoded = [store.deserialize_cdr(payload, "std_msgs/msg/String").data for payload in got]
     assert decoded == [f"hello {i}" for i in range(COUNT)]
+
+
+# --------------------------------------------------------------------------- transient local
+def test_a_late_transient_local_subscription_gets_an_rmw_zenoh_publishers_history(
+        domain, topic, procs):
+    """rmw_zenoh's transient-local publisher (latched: /tf_static, a map) keeps its last
+    ``depth`` samples in a Zenoh advanced publisher's cache; ours, created after it published,
+    queries that history first, then takes what follows: CPU bytes on the base key."""
+    pub = procs.model("pub", domain, topic, IMAGE, "--durability", "transient_local",
+                      "--depth", "3", "--count", "5", "--rate", "100", "--size", "64", "--hold",
+                      "--linger", "0.2")
+    wait_ready(pub)
+    time.sleep(0.5)  # all 5 are published, and only the last 3 kept
+    got = []
+    with Node("latched_rx", domain_id=domain) as node:
+        sub = node.create_subscription(IMAGE, topic, lambda m, i: got.append(
+            (m.header.frame_id, i.route)), depth=10, with_info=True,
+            durability="transient_local")
+        assert wait_until(lambda: len(got) >= 3, 10)
+        time.sleep(0.3)  # nothing more may come
+        counters = sub.counters
+    sent = result(pub)
+    assert sent["error"] is None
+    assert got == [(f"model/{i}", "base") for i in (2, 3, 4)]
+    assert counters.errors == 0 and counters.refused == {}
+
+
+def test_an_rmw_zenoh_transient_local_subscription_gets_our_publishers_history(
+        domain, topic, procs):
+    got_here = []
+    with Node("latched_tx", domain_id=domain) as node:
+        pub = node.create_publisher(IMAGE, topic, depth=3, durability="transient_local")
+        for index in range(5):
+            pub.publish(image(index))
+        assert pub._token.backends is None and pub._token.qos.transient_local
+        sub = procs.model("sub", domain, topic, IMAGE, "--durability", "transient_local",
+                          "--depth", "10", "--count", "3", "--no-stdin")
+        wait_ready(sub)
+        received = result(sub, timeout=30)
+        # and an in-process late joiner gets the same history, once
+        node.create_subscription(IMAGE, topic, lambda m: got_here.append(m.header.frame_id),
+                                 durability="transient_local")
+        assert wait_until(lambda: len(got_here) >= 3, 10)
+        time.sleep(0.3)
+    samples = received["samples"]
+    assert [s["decoded"]["fields"]["header.frame_id"] for s in samples] == \
+        [f"ours/{i}" for i in (2, 3, 4)], samples
+    assert {s["route"] for s in samples} == {"base"}
+    assert [s["sha256"] for s in samples] == [
+        sha(serialize_message(image(i))) for i in (2, 3, 4)]
+    assert got_here == [f"ours/{i}" for i in (2, 3, 4)]

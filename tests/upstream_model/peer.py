@@ -25,6 +25,7 @@ import time
 from typing import Any
 
 import zenoh
+import zenoh.ext
 
 from tests.upstream_model import attachment, cdr
 from tests.upstream_model import qos as qos_model
@@ -198,11 +199,20 @@ class Publisher:
         """``create_publisher_endpoint``: DROP, BLOCK only for reliable keep-all."""
         reliable = self.qos.reliability == qos_model.Reliability.RELIABLE
         block = reliable and self.qos.history == qos_model.History.KEEP_ALL
-        pub = self.participant.session.declare_publisher(
-            key, congestion_control=(zenoh.CongestionControl.BLOCK if block
-                                     else zenoh.CongestionControl.DROP),
-            reliability=(zenoh.Reliability.RELIABLE if reliable
-                         else zenoh.Reliability.BEST_EFFORT))
+        options = dict(congestion_control=(zenoh.CongestionControl.BLOCK if block
+                                           else zenoh.CongestionControl.DROP),
+                       reliability=(zenoh.Reliability.RELIABLE if reliable
+                                    else zenoh.Reliability.BEST_EFFORT))
+        if self.qos.durability == qos_model.Durability.TRANSIENT_LOCAL:
+            # rmw_publisher_data.cpp: an AdvancedPublisher, detectable, caching `depth` samples,
+            # with sporadic sample-miss heartbeats (500 ms) when reliable
+            pub = zenoh.ext.declare_advanced_publisher(
+                self.participant.session, key, **options, publisher_detection=True,
+                cache=zenoh.ext.CacheConfig(max_samples=self.qos.depth),
+                sample_miss_detection=(zenoh.ext.MissDetectionConfig(sporadic_heartbeat=0.5)
+                                       if reliable else None))
+        else:
+            pub = self.participant.session.declare_publisher(key, **options)
         return _PublisherEndpoint(key=key, pub=pub)
 
     def _on_subscriber_discovered(self, entity: Entity) -> None:
@@ -350,8 +360,18 @@ class Subscription:
         # init(): the base key always; a buffer-aware one also _buf_cpu (CPU only) or its own
         # _buf/<gid>; then the token.
         session = p.session
-        self._subs = [session.declare_subscriber(
-            self.base_key, lambda s: self._on_sample(s, accelerated=False))]
+        on_base = lambda s: self._on_sample(s, accelerated=False)  # noqa: E731
+        if self.qos.durability == qos_model.Durability.TRANSIENT_LOCAL:
+            # rmw_subscription_data.cpp: an AdvancedSubscriber, detectable, with history from
+            # late-detected publishers (depth samples) and, when reliable, heartbeat recovery
+            reliable = self.qos.reliability == qos_model.Reliability.RELIABLE
+            self._subs = [zenoh.ext.declare_advanced_subscriber(
+                session, self.base_key, on_base, subscriber_detection=True,
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True,
+                                                max_samples=self.qos.depth),
+                recovery=zenoh.ext.RecoveryConfig(heartbeat=True) if reliable else None)]
+        else:
+            self._subs = [session.declare_subscriber(self.base_key, on_base)]
         self.keys = [self.base_key]
         if self.buffer_aware:
             key = (self.base_key + CPU_GROUP_SUFFIX if self.cpu_only
