@@ -852,3 +852,22 @@ def test_a_subscriber_whose_link_closed_while_frozen_resumes_and_counts_what_it_
     assert counters["refused"] == {} and counters["errors"] == 0, counters
     assert set(range(first_after, published)) <= indices, counters
     assert counters["received"] + counters["lost"] + counters["dropped"] == published, counters
+
+
+def test_durability_is_volatile_or_transient_local_and_a_latched_subscription_takes_cpu(
+        domain, topic, backends):
+    with Node("durability", domain_id=domain, backends=backends) as node:
+        for bad in ("latched", None, 1):
+            with pytest.raises(InvalidEndpointError, match="durability"):
+                node.create_publisher(TENSOR, topic, durability=bad)
+            with pytest.raises(InvalidEndpointError, match="durability"):
+                node.create_subscription(TENSOR, topic, lambda m: None, durability=bad)
+        with pytest.raises(InvalidEndpointError, match="CPU bytes only"):
+            node.create_subscription(TENSOR, topic, lambda m: None, durability="transient_local",
+                                     acceptable_buffer_backends="any")
+        pub = node.create_publisher(TENSOR, topic, durability="transient_local")
+        sub = node.create_subscription(TENSOR, topic, lambda m: None,
+                                       durability="transient_local")
+        for token in (pub._token, sub._token):
+            assert token.qos.transient_local and token.backends is None
+            assert token.qos.to_keyexpr().split(":")[1] == "1"  # rmw's TRANSIENT_LOCAL
