@@ -441,11 +441,15 @@ class Subscription:
         attachment = item[1]
         if route == ROUTE_INTRA:
             publisher = None
-        elif publisher is _UNRESOLVED:
-            publisher = self.node.graph.publisher(attachment.publisher_gid)
-        # Only our publishers in other processes may send a message twice (see _sequence), and
-        # only their stamps are known to be unique: another implementation may stamp alike.
-        ours = publisher is not None and publisher.locality is not None
+            ours = False
+        else:
+            if publisher is _UNRESOLVED:
+                publisher = self.node.graph.publisher(attachment.publisher_gid)
+            # Only our publishers in other processes may send a message twice (see _sequence),
+            # and only their stamps are known to be unique: another implementation may stamp
+            # alike. One not discovered yet may be ours (its first messages can come before
+            # its token): its copies are recognized too, trusting its stamps meanwhile.
+            ours = publisher is None or publisher.locality is not None
         exact = _numbered_per_stream(route, publisher)
         with self._lock:
             if self._closed:

@@ -73,3 +73,25 @@ def test_stage_table_lists_every_stage_per_size() -> None:
                         "16777216": {"publish: x": 900.0, "sum": 900.0}}}
     text = format_stages(stages)
     assert "4 KiB" in text and "16 MiB" in text and "900.0" in text and "publish: x" in text
+
+
+def test_two_copies_from_a_publisher_not_discovered_yet_deliver_once() -> None:
+    """Our publisher may send a subscription of ours a message twice (its own stream and the
+    base key, while a ROS 2 subscription needs the base key); the second copy is recognized by
+    the gid and stamp. The first messages can come before the publisher's token: a copy of one
+    of them was delivered twice (an interop test saw frame 0 twice)."""
+    from buffer_pubsub import Node, wire
+    from buffer_pubsub.subscription import ROUTE_BASE, ROUTE_CPU
+
+    got = []
+    string = get_message_type("std_msgs/msg/String")
+    with Node("copies", domain_id=232, executor="manual") as node:
+        sub = node.create_subscription(string, "/copies", got.append)
+        payload = bytes(serialize_message(string(data="once")))
+        attachment = wire.new_attachment((1, 123_456_789, b"\x07" * 16))  # nobody's token
+        for route in (ROUTE_CPU, ROUTE_BASE):
+            sub._enqueue((payload, attachment, route, 0, False), publisher=None)
+        while node.spin_once(0.0):
+            pass
+    assert [m.data for m in got] == ["once"]
+    assert sub.counters.refused == {"duplicate": 1}
