@@ -926,3 +926,40 @@ def test_the_recording_time_ends_when_the_stop_is_asked_not_after_teardown(tmp_p
         recorder.close()
     assert 0.3 <= recorder.duration() < 0.8
     assert metadata(tmp_path / "bag")["message_count"] == 0
+
+
+def test_a_latched_topic_is_recorded_with_its_history_and_played_latched(tmp_path, domain, topic):
+    """As rosbag2: when every publisher of a topic is transient-local, the recorder subscribes
+    transient-local (a map published before the recording started is in the bag) and the
+    player publishes it so (a subscriber that comes after the playback still gets it)."""
+    from buffer_pubsub import Node
+    from rosidl_buffer.messages import deserialize_message, get_message_type
+
+    from warp_buffer_cli.bag.play import Player
+    from warp_buffer_cli.bag.qos import latched
+    from warp_buffer_cli.bag.record import Recorder
+    from tests._reliability_helpers import wait_until
+
+    string = get_message_type(STRING)
+    bag = tmp_path / "bag"
+    with Node("latched_source", domain_id=domain) as node:
+        pub = node.create_publisher(STRING, topic, depth=1, durability="transient_local")
+        pub.publish(string(data="the map"))
+        recorder = Recorder(bag, domain_id=domain, backend="cpu")
+        try:
+            assert wait_until(lambda: recorder.node.count_publishers(topic) == 1, 10)
+            record = recorder.add(topic, STRING)
+            assert wait_until(lambda: record.messages == 1, 10)
+        finally:
+            recorder.close()
+    assert [deserialize_message(raw, STRING).data for _, raw in read_bag(bag)[topic]] == \
+        ["the map"]
+    got = []
+    with Player(bag, domain_id=domain) as player:
+        assert all(latched(c.ext.offered_qos_profiles) for c in player.connections)
+        player.play()
+        with Node("late_reader", domain_id=domain) as node:
+            node.create_subscription(STRING, topic, lambda m: got.append(m.data),
+                                     durability="transient_local")
+            assert wait_until(lambda: got, 10)
+    assert got == ["the map"]

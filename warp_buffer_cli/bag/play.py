@@ -25,7 +25,7 @@ from typing import Any
 from .._arguments import absolute_topic_name, number
 from .errors import BagDamagedError, BagError, BagReadError, UnknownTopicError
 from .progress import Progress, size_text
-from .qos import publisher_history
+from .qos import latched, publisher_history
 
 __all__ = ["PlayTopic", "Player", "add_arguments", "open_bag", "run"]
 
@@ -153,9 +153,11 @@ class Player:
         self.topics = {c.id: PlayTopic(c.topic, c.msgtype) for c in self.connections}
         self._publishers: dict[int, Any] = {}
         for c in self.connections:
-            history, depth = publisher_history(getattr(c.ext, "offered_qos_profiles", []))
+            profiles = getattr(c.ext, "offered_qos_profiles", [])
+            history, depth = publisher_history(profiles)
             self._publishers[c.id] = self.node.create_publisher(
-                self._classes[c.id], c.topic, depth=depth, history=history)
+                self._classes[c.id], c.topic, depth=depth, history=history,
+                durability="transient_local" if latched(profiles) else "volatile")
 
     def _select(self, topics: list[str] | None) -> list[Any]:
         connections = list(self.reader.connections)

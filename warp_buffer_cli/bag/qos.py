@@ -52,6 +52,14 @@ def offered_profiles(publishers: Sequence[Any]) -> list[Qos]:
     return profiles or [offered_profile()]
 
 
+def latched(profiles: Sequence[Qos]) -> bool:
+    """Whether every profile offers transient-local durability: rosbag2 then records the topic
+    transient-local (a latched message published before the recording starts is in the bag)
+    and plays it so (a subscriber that comes later still gets it)."""
+    return bool(profiles) and all(p.durability == QosDurability.TRANSIENT_LOCAL
+                                  for p in profiles)
+
+
 def publisher_history(profiles: Sequence[Qos]) -> tuple[str, int]:
     """History and depth for a player's publisher from a topic's recorded profiles: keep-all if
     any recorded publisher kept all (nothing it sent may be dropped), else keep-last of the

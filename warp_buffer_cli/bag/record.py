@@ -27,7 +27,7 @@ from typing import Any
 from .._arguments import absolute_topic_name, number
 from .errors import BagWriteError, UnknownTopicError
 from .progress import Progress, size_text
-from .qos import offered_profiles
+from .qos import latched, offered_profiles
 
 __all__ = ["DEFAULT_MAX_CACHE_BYTES", "Recorder", "TopicRecord", "add_arguments", "run"]
 
@@ -134,21 +134,23 @@ class Recorder:
             return self.records[key]
         cls = get_message_type(type_name)
         self.create()
+        profiles = offered_profiles(self.node.get_publishers_info_by_topic(topic))
 
         def add_connection() -> Any:
             try:
                 return self._writer.add_connection(
                     topic, cls.__msgtype__, typestore=get_typestore(),
-                    offered_qos_profiles=offered_profiles(
-                        self.node.get_publishers_info_by_topic(topic)))
+                    offered_qos_profiles=profiles)
             except Exception as exc:  # rosbags' own errors: one line for the user
                 raise BagWriteError(f"cannot add {topic} to {self.path}: {exc}") from exc
 
         connection = self._in_writer_thread(add_connection)
         record = self.records[key] = TopicRecord(topic, cls.__msgtype__)
+        latching = latched(profiles)  # then what its publishers kept is recorded too (CPU bytes)
         self._subscriptions[key] = self.node.create_subscription(
             cls, topic, self._callback(connection, record), depth=SUBSCRIPTION_DEPTH,
-            acceptable_buffer_backends=self.backend, with_info=True)
+            acceptable_buffer_backends="cpu" if latching else self.backend, with_info=True,
+            durability="transient_local" if latching else "volatile")
         return record
 
     def create(self) -> None:
