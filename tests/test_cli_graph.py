@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import re
 import subprocess
+import time
 import sys
 
 import pytest
@@ -221,3 +222,20 @@ def test_a_buffer_preview_honours_a_shorter_truncate_length():
     assert to_plain(buffer, 0)["first_bytes"] == list(range(BUFFER_PREVIEW))
     assert to_plain(buffer, 128) == {"backend": "cpu", "size": 40,
                                      "first_bytes": list(range(BUFFER_PREVIEW))}
+
+
+def test_echo_of_a_latched_topic_shows_what_was_published_before_it_started(domain, topic):
+    """As ``ros2 topic echo``: when every publisher of the topic is transient-local (an
+    rmw_zenoh node latching /tf_static, a map), echo subscribes transient-local and prints the
+    message published before it started (a volatile echo waited for a next one forever)."""
+    procs = Procs()
+    try:
+        pub = procs.model("pub", domain, topic, "std_msgs/msg/String", "--durability",
+                          "transient_local", "--depth", "1", "--count", "1", "--hold")
+        wait_ready(pub)
+        time.sleep(0.3)  # published, and kept
+        done = cli("topic", "echo", topic, "--once", "--field", "data", "--domain", str(domain),
+                   timeout=30)
+    finally:
+        procs.close()
+    assert done.returncode == 0 and done.stdout.endswith("---\n"), (done.stdout, done.stderr)

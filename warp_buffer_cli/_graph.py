@@ -19,7 +19,8 @@ from typing import Any
 from rosidl_buffer.errors import RosidlBufferError
 
 __all__ = ["GraphCommandError", "UnknownTopicError", "add_graph_options", "graph_node",
-           "hidden", "resolve_topic", "routes_by_publisher", "wait_for_topic"]
+           "hidden", "latched_durability", "resolve_topic", "routes_by_publisher",
+           "wait_for_topic"]
 
 #: How long a command watches the graph before it reports (peers answer in ~0.1-0.5 s here).
 DEFAULT_SPIN_TIME = 1.0
@@ -95,6 +96,15 @@ def wait_for_topic(node: Any, topic: str) -> tuple[str, str]:
                       flush=True)
                 warned = True
             time.sleep(0.1)
+
+
+def latched_durability(node: Any, topic: str) -> str:
+    """The durability a monitor of ``topic`` subscribes with, as ``ros2 topic echo`` chooses
+    it: transient-local when every publisher seen is (a latched topic: what they published
+    before the monitor started is shown too), else volatile."""
+    publishers = node.get_publishers_info_by_topic(topic)
+    latched = bool(publishers) and all(p.qos_profile.transient_local for p in publishers)
+    return "transient_local" if latched else "volatile"
 
 
 def routes_by_publisher(node: Any, timeout: float = 2.0) -> dict[str, list[dict[str, Any]]]:

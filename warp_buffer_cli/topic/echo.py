@@ -10,7 +10,8 @@ import queue
 import sys
 
 from .._arguments import absolute_topic_name
-from .._graph import GraphCommandError, add_graph_options, graph_node, wait_for_topic
+from .._graph import (GraphCommandError, add_graph_options, graph_node, latched_durability,
+                      wait_for_topic)
 from ._fields import csv_line, pick, to_plain, yaml_lines
 
 
@@ -36,9 +37,11 @@ def run(args: argparse.Namespace) -> int:
     inbox: queue.SimpleQueue = queue.SimpleQueue()
     with graph_node(args) as node:
         topic, type_name = wait_for_topic(node, args.topic_name)
+        durability = latched_durability(node, topic)
         node.create_subscription(
             type_name, topic, lambda msg: inbox.put(to_plain(msg, args.truncate_length)),
-            depth=100, acceptable_buffer_backends=args.backend)
+            depth=100, durability=durability, acceptable_buffer_backends=(
+                "cpu" if durability == "transient_local" else args.backend))
         printed = 0
         while not wanted or printed < wanted:
             try:
