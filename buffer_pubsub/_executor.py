@@ -320,11 +320,18 @@ class NodeExecutor:
 
 
 def log_callback_error(log: logging.Logger, owner: Any, exc: BaseException) -> None:
-    """Log what a user callback of ``owner`` (a subscription, a timer) raised. One that ran
-    past its node's close and published on the closed node is the end of the program (Ctrl-C),
-    not an error to show: debug level only."""
+    """Log what a user callback of ``owner`` (a subscription, a timer; its
+    ``counters.callback_errors`` counted it already) raised: the first with its traceback, the
+    next ones in a line each (a timer raising at 100 Hz would fill the log with the same
+    traceback; ``owner.last_error`` keeps the latest). One that ran past its node's close and
+    published on the closed node is the end of the program (Ctrl-C): debug level only."""
     if isinstance(exc, NodeClosedError) and owner.node.closed:
         log.debug("%r: callback ran past its node's close: %s", owner, exc)
         return
-    log.error("%r: callback raised %s", owner, type(exc).__name__,
-              exc_info=(type(exc), exc, exc.__traceback__))
+    count = owner.counters.callback_errors
+    if count <= 1:
+        log.error("%r: callback raised %s", owner, type(exc).__name__,
+                  exc_info=(type(exc), exc, exc.__traceback__))
+    else:
+        log.error("%r: callback raised %s: %s (%d so far; the first one's traceback was logged)",
+                  owner, type(exc).__name__, exc, count)

@@ -289,6 +289,22 @@ def test_a_failing_callback_is_counted_and_the_timer_goes_on(kind, domain, caplo
     assert sum("callback raised ValueError" in r.getMessage() for r in caplog.records) == 1
 
 
+def test_a_timer_that_keeps_raising_logs_one_traceback(domain, caplog):
+    """A 100 Hz timer raising every tick logged its traceback every tick; the first error keeps
+    it, the next ones are a line each with the count."""
+    def callback() -> None:
+        raise ValueError("bad tick")
+
+    with caplog.at_level(logging.ERROR, logger="buffer_pubsub.timer"), \
+            _node("thread", domain, "timer_noisy") as node, running("thread", node):
+        timer = node.create_timer(0.01, callback)
+        assert wait_until(lambda: timer.counters.callback_errors >= 5, timeout=10)
+    records = [r for r in caplog.records if "callback raised ValueError" in r.getMessage()]
+    assert len(records) >= 5
+    assert [r.exc_info is not None for r in records[:3]] == [True, False, False]
+    assert "so far" in records[1].getMessage()
+
+
 def test_system_exit_in_a_timer_reaches_the_users_spinning_thread(domain):
     with Node("timer_exit_spin", domain_id=domain, executor="manual") as node:
         timer = node.create_timer(0.01, lambda: sys.exit(3))
