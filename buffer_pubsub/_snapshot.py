@@ -8,12 +8,12 @@ values that were never published, or a value another subscriber wrote into it.
 :func:`snapshot` makes a new message object per subscription whose fields are the published
 values: nested messages and lists are snapshots of their own, everything immutable (numbers,
 strings) is shared, and so are the payloads: buffers (``uint8[]`` fields: zero-copy, a
-:func:`~rosidl_buffer.buffer.reader_share` of the published ``Buffer`` each, whose
-``release()`` ends that subscription's hold alone) and NumPy arrays (a list of numbers is
-copied). Writing *into* those after publish is seen by
-in-process subscribers, as a write into a loan's memory would be (see README, "Loans"). The
-copier is compiled once per message type from its schema (a line per field, no per-field
-dispatch), as the CDR codec and the validator are.
+reader's share of the published ``Buffer`` each, see :data:`rosidl_buffer.buffer.set_origin`,
+whose ``release()`` ends that subscription's hold alone) and NumPy arrays (a list of numbers
+is copied). Writing *into* those after publish is seen by in-process subscribers, as a write
+into a loan's memory would be (see README, "Loans"). The copier is compiled once per message
+type from its schema (a line per field, no per-field dispatch), as the CDR codec and the
+validator are.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def _compile(cls: type) -> Callable[[Any], Any]:
                 lines.append(f"    set{i}(n, [snapshot(x) for x in {read}])")
             else:
                 lines.append(f"    set{i}(n, snapshot({read}))")
-        elif spec.is_buffer:  # a reader_share of the Buffer, inline (no call per field)
+        elif spec.is_buffer:  # a reader's share of the Buffer (set_origin), no call per field
             lines += [f"    v = {read}", "    if type(v) is Buffer:",
                       "        b = new_buffer(Buffer); set_impl(b, impl_of(v)); set_origin(b, v)",
                       "        v = b", f"    set{i}(n, v)"]

@@ -38,11 +38,10 @@ import itertools
 import logging
 import threading
 import time
+import weakref
 from dataclasses import dataclass, field
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, NamedTuple
-
-import weakref
 
 import zenoh
 import zenoh.ext
@@ -71,6 +70,7 @@ from .errors import (
 if TYPE_CHECKING:
     from ._waker import Waker
     from .node import Node
+    from .subscription import Subscription
 
 __all__ = ["Publisher", "RouteInfo", "replay_history", "seal_and_list_backends"]
 
@@ -87,6 +87,7 @@ MISS_DETECTION_HEARTBEAT_S = 0.5
 #: here gets their history in-process (see replay_history).
 _TRANSIENT: dict[str, weakref.WeakSet[Publisher]] = {}
 _transient_lock = threading.Lock()
+
 
 def seal_and_list_backends(msg: Message, flat: tuple[str, ...] | None
                            ) -> tuple[frozenset[str], int, tuple[BufferImplBase, ...]]:
@@ -704,6 +705,23 @@ class Publisher:
         self._history.append((snapshot(msg), attachment, backends))  # type: ignore[union-attr]
         return attachment
 
+    def _replay(self, subscription: Subscription) -> None:
+        """Deliver this transient-local publisher's history to ``subscription`` in process
+        (see :func:`replay_history`), as :meth:`_publish_intra` delivers a message."""
+        wakers: list[Waker] = []
+        with self._out_lock:  # no publish interleaves
+            seen = subscription.last_sequence("intra", self.gid)
+            for msg, attachment, backends in tuple(self._history or ()):  # (destroy clears it)
+                if seen is not None and attachment.sequence_number <= seen:
+                    continue  # it reached the subscription live already
+                copy = snapshot(msg if not backends or backends.issubset(subscription.accepted)
+                                else cpu_copy(msg))
+                waker = subscription.deliver_intra(copy, attachment)
+                if waker is not None and waker not in wakers:
+                    wakers.append(waker)
+        for waker in wakers:
+            waker.notify()
+
     def _serialize_for(self, peer: _Peer, msg: Message) -> bytearray:
         backends = self.node.backends
 
@@ -772,7 +790,11 @@ class Publisher:
         _process.remove_publisher(self.gid)
         if self._transient:
             with _transient_lock:
-                _TRANSIENT.get(self._intra_key, weakref.WeakSet()).discard(self)
+                others = _TRANSIENT.get(self._intra_key)
+                if others is not None:
+                    others.discard(self)
+                    if not others:
+                        del _TRANSIENT[self._intra_key]
             self._history.clear()  # type: ignore[union-attr]
         self._loans.clear()
         undeclare_quietly(self._liveliness, self._base_matching)
@@ -790,7 +812,7 @@ class Publisher:
         endpoint_gone(self._backends, self.info)
 
 
-def replay_history(subscription: Any) -> None:
+def replay_history(subscription: Subscription) -> None:
     """Deliver to ``subscription``, a new transient-local one, what this process's
     transient-local publishers on its key keep (their last ``depth`` messages, oldest first),
     in-process as any of their messages (Zenoh serves other processes from the publishers'
@@ -799,19 +821,4 @@ def replay_history(subscription: Any) -> None:
     with _transient_lock:
         publishers = list(_TRANSIENT.get(subscription.base_key, ()))
     for publisher in publishers:
-        wakers = []
-        with publisher._out_lock:  # no publish of it interleaves
-            history = publisher._history
-            if publisher._closed or not history:
-                continue
-            seen = subscription.last_sequence("intra", publisher.gid)
-            for msg, attachment, backends in history:
-                if seen is not None and attachment.sequence_number <= seen:
-                    continue
-                copy = snapshot(msg if not backends or backends.issubset(subscription.accepted)
-                                else cpu_copy(msg))
-                waker = subscription.deliver_intra(copy, attachment)
-                if waker is not None and waker not in wakers:
-                    wakers.append(waker)
-        for waker in wakers:
-            waker.notify()
+        publisher._replay(subscription)

@@ -95,8 +95,9 @@ _EXACT_ROUTES = frozenset({ROUTE_INTRA, ROUTE_BASE, ROUTE_LANE})
 
 def _numbered_per_stream(route: str, publisher: wire.EndpointToken | None) -> bool:
     """Does the publisher number this stream on its own (every step exact)? Ours do, in process
-    or not (the lane is ours alone, discovered or not); on the base key every publisher does (a buffer-aware one writes it alone when it
-    writes it at all), and so does one that advertises no backends. On the buffer streams,
+    or not (the lane is ours alone, discovered or not); on the base key every publisher does (a
+    buffer-aware one writes it alone when it writes it at all), and so does one that advertises
+    no backends. On the buffer streams,
     rmw_zenoh's publishers and publishers not discovered yet are judged by the stride of their
     steps (see :mod:`._sequence`)."""
     return route in _EXACT_ROUTES or publisher is not None and (

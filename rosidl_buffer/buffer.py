@@ -19,7 +19,7 @@ import numpy.typing as npt
 from .buffer_impl import CPU_BACKEND, BufferImplBase, CpuBufferImpl, exact_array
 from .errors import CpuBackendRequiredError, InvalidBufferDataError
 
-__all__ = ["Buffer", "impl_of", "reader_share", "set_impl"]
+__all__ = ["Buffer", "impl_of", "set_impl", "set_origin"]
 
 T = TypeVar("T", bound=np.generic)
 _new_buffer = object.__new__
@@ -56,7 +56,7 @@ class Buffer(Generic[T]):
     :meth:`numpy`, the buffer protocol) requires CPU storage.
     """
 
-    # ``_origin``: set on a reader's share only (see :func:`reader_share`), else unset.
+    # ``_origin``: set on a reader's share only (see :data:`set_origin`), else unset.
     __slots__ = ("_impl", "_origin", "__weakref__")
 
     def __init__(
@@ -185,7 +185,7 @@ class Buffer(Generic[T]):
         ``HandleReleasedError``); its size and backend still answer. Idempotent.
 
         What it held goes back: a received zero-copy buffer's hold on the publisher's memory,
-        an in-process subscription's share of its publisher's buffer (:func:`reader_share`).
+        an in-process subscription's share of its publisher's buffer (:data:`set_origin`).
         Storage other holders share (views taken before, another ``Buffer`` over it, the
         publisher's own) stays theirs and readable."""
         impl = self._impl
@@ -351,18 +351,9 @@ impl_of = operator.attrgetter("_impl")
 #: must be a BufferImplBase): for a Buffer made with ``Buffer.__new__(Buffer)``, without the
 #: checks of ``__init__``.
 set_impl = Buffer._impl.__set__  # type: ignore[attr-defined]
-
-
-#: ``set_origin(share, buffer)``: what a reader's share holds (see :func:`reader_share`).
+#: ``set_origin(share, buffer)``: makes ``share`` (a Buffer over ``buffer``'s storage, see
+#: ``set_impl``) a *reader's share*: a token of one more reader (an in-process subscription's
+#: message) that holds ``buffer`` until it is released or collected, so a publisher's loan
+#: pool, which watches ``buffer``, sees the storage held. Unlike :meth:`Buffer.share` (a loan's
+#: token, independent of the Buffer it came from). The transport's snapshot copier makes them.
 set_origin = Buffer._origin.__set__  # type: ignore[attr-defined]
-
-
-def reader_share(buffer: Buffer[Any]) -> Buffer[Any]:
-    """A ``Buffer`` over ``buffer``'s storage for one more reader (an in-process subscription's
-    message): a token of its own, which holds ``buffer`` (so a publisher's loan pool sees its
-    storage held) until it is released or collected. Its ``release()`` ends this share alone.
-    (The transport's snapshot copier inlines it.)"""
-    share = _new_buffer(Buffer)
-    share._impl = buffer._impl
-    share._origin = buffer
-    return share

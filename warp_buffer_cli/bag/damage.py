@@ -19,13 +19,12 @@ from collections import Counter
 from typing import Any, BinaryIO
 
 from .errors import BagDamagedError
+from .mcap_records import (MESSAGE_HEAD, OP_CHANNEL, OP_CHUNK, OP_MESSAGE, OP_MESSAGE_INDEX,
+                           OP_SCHEMA, RECORD)
 
 __all__ = ["check_mcap"]
 
-_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_MESSAGE_INDEX = 0x03, 0x04, 0x05, 0x06, 0x07
-_RECORD = struct.Struct("<BQ")  # opcode, length of the content that follows
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, CRC, compression length
-_MESSAGE_HEAD = struct.Struct("<HIQ")  # channel, sequence, log time
 _INDEX_HEAD = struct.Struct("<HI")  # channel, bytes of (log time, offset) entries
 _ENTRY = struct.Struct("<QQ")
 
@@ -65,13 +64,13 @@ def _chunk_problem(file: BinaryIO, chunk: Any, channels: set[int],
                    counts: Counter[int]) -> str | None:
     """What is wrong with one chunk and its message indexes (None: nothing seen)."""
     start = chunk.chunk_start_offset
-    opcode, length = _RECORD.unpack(_read(file, start, _RECORD.size))
-    if opcode != _OP_CHUNK or _RECORD.size + length != chunk.chunk_length:
+    opcode, length = RECORD.unpack(_read(file, start, RECORD.size))
+    if opcode != OP_CHUNK or RECORD.size + length != chunk.chunk_length:
         return "no chunk record where the index puts one"
-    head = _read(file, start + _RECORD.size, _CHUNK_HEAD.size)
+    head = _read(file, start + RECORD.size, _CHUNK_HEAD.size)
     first, last, uncompressed, _, name_length = _CHUNK_HEAD.unpack(head)
     compression = chunk.compression.encode()
-    at = start + _RECORD.size + _CHUNK_HEAD.size
+    at = start + RECORD.size + _CHUNK_HEAD.size
     if ((first, last, uncompressed, name_length) != (chunk.message_start_time,
                                                      chunk.message_end_time,
                                                      chunk.uncompressed_size, len(compression))
@@ -103,8 +102,8 @@ def _message_indexes(file: BinaryIO, chunk: Any) -> dict[int, list[tuple[int, in
     """Each channel's (log time, offset) entries from the chunk's message index records."""
     found: dict[int, list[tuple[int, int]]] = {}
     for channel, at in chunk.message_index_offsets.items():
-        opcode, length = _RECORD.unpack(_read(file, at, _RECORD.size))
-        body = _read(file, at + _RECORD.size, length) if opcode == _OP_MESSAGE_INDEX else b""
+        opcode, length = RECORD.unpack(_read(file, at, RECORD.size))
+        body = _read(file, at + RECORD.size, length) if opcode == OP_MESSAGE_INDEX else b""
         if len(body) < _INDEX_HEAD.size:
             return None
         channel_id, size = _INDEX_HEAD.unpack_from(body)
@@ -121,17 +120,17 @@ def _message_heads(file: BinaryIO, data_start: int,
     found = set()
     offset = 0
     while offset < size:
-        if offset + _RECORD.size > size:
+        if offset + RECORD.size > size:
             return None
-        opcode, length = _RECORD.unpack(_read(file, data_start + offset, _RECORD.size))
-        end = offset + _RECORD.size + length
-        if end > size or opcode not in (_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
+        opcode, length = RECORD.unpack(_read(file, data_start + offset, RECORD.size))
+        end = offset + RECORD.size + length
+        if end > size or opcode not in (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
             return None
-        if opcode == _OP_MESSAGE:
-            if length < _MESSAGE_HEAD.size + 8:
+        if opcode == OP_MESSAGE:
+            if length < MESSAGE_HEAD.size + 8:
                 return None
-            channel, _, stamp = _MESSAGE_HEAD.unpack(
-                _read(file, data_start + offset + _RECORD.size, _MESSAGE_HEAD.size))
+            channel, _, stamp = MESSAGE_HEAD.unpack(
+                _read(file, data_start + offset + RECORD.size, MESSAGE_HEAD.size))
             found.add((channel, stamp, offset))
         offset = end
     return found

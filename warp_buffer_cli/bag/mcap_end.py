@@ -22,18 +22,16 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from .errors import BagReadError
+from .mcap_records import (MESSAGE_HEAD, OP_CHANNEL, OP_CHUNK, OP_DATA_END, OP_FOOTER,
+                           OP_HEADER, OP_MESSAGE, OP_MESSAGE_INDEX, OP_SCHEMA, RECORD)
 
 __all__ = ["MCAP_MAGIC", "McapContents", "channel_metadata", "chunk_index", "end_mcap",
            "is_closed"]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-_OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
-_OP_CHUNK, _OP_MESSAGE_INDEX, _OP_DATA_END = 0x06, 0x07, 0x0F
-_RECORD = struct.Struct("<BQ")  # opcode, length of the content that follows
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 _CHUNK_TIMES = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed CRC
-_MESSAGE_HEAD = struct.Struct("<HIQ")  # channel, sequence, log time
-_FOOTER_SIZE = _RECORD.size + 20
+_FOOTER_SIZE = RECORD.size + 20
 
 
 @dataclass
@@ -135,29 +133,29 @@ def _scan(file: BinaryIO, size: int, path: Path) -> tuple[McapContents, int]:
         return contents, 0
     end = len(MCAP_MAGIC)
     first = True
-    while end + _RECORD.size <= size:
+    while end + RECORD.size <= size:
         file.seek(end)
-        opcode, length = _RECORD.unpack(file.read(_RECORD.size))
-        if first and opcode != _OP_HEADER:
+        opcode, length = RECORD.unpack(file.read(RECORD.size))
+        if first and opcode != OP_HEADER:
             raise BagReadError(f"{path} does not start with an MCAP header record")
         if opcode == 0 and not _zeros_to_end(file, end, size):
             raise BagReadError(f"{path}: zeroed bytes at byte {end} before records that follow "
                                "(nothing was changed)")
-        if opcode in (0, _OP_DATA_END, _OP_FOOTER) or length > size - end - _RECORD.size:
+        if opcode in (0, OP_DATA_END, OP_FOOTER) or length > size - end - RECORD.size:
             break  # what the writer's end began, a record the crash cut short, zeroed pages
         first = False
-        if opcode in (_OP_CHUNK, _OP_MESSAGE_INDEX, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
+        if opcode in (OP_CHUNK, OP_MESSAGE_INDEX, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE):
             body = file.read(length)
-            last = end + _RECORD.size + length == size
+            last = end + RECORD.size + length == size
             try:
-                if opcode == _OP_CHUNK:
+                if opcode == OP_CHUNK:
                     contents.chunks.append(_read_chunk(body, end, contents, Schema, Channel))
-                elif opcode == _OP_MESSAGE_INDEX:
+                elif opcode == OP_MESSAGE_INDEX:
                     if contents.chunks:
                         chunk = contents.chunks[-1]
                         chunk.index_offsets[_U16.unpack_from(body)[0]] = end
-                        chunk.index_end = end + _RECORD.size + length
-                elif opcode == _OP_MESSAGE:
+                        chunk.index_end = end + RECORD.size + length
+                elif opcode == OP_MESSAGE:
                     raise BagReadError(f"{path} holds a message outside a chunk, which this "
                                        "recorder never writes: not reindexed")
                 else:
@@ -167,7 +165,7 @@ def _scan(file: BinaryIO, size: int, path: Path) -> tuple[McapContents, int]:
                     break  # the crash's damage: cut off like a record it cut short
                 raise BagReadError(f"{path}: a damaged record at byte {end} (nothing was "
                                    f"changed): {exc}") from None
-        end += _RECORD.size + length
+        end += RECORD.size + length
     return contents, 0 if first else end  # (0: not even the header is whole)
 
 
@@ -186,7 +184,7 @@ def _header() -> bytes:
 
     body = b"".join(_U32.pack(len(text)) + text for text in (
         b"ros2", f"rosbags-{version('rosbags')}".encode()))
-    return _RECORD.pack(_OP_HEADER, len(body)) + body
+    return RECORD.pack(OP_HEADER, len(body)) + body
 
 
 def _read_chunk(body: bytes, start: int, contents: McapContents, schema: Any,
@@ -204,22 +202,22 @@ def _read_chunk(body: bytes, start: int, contents: McapContents, schema: Any,
     # Without a checksum (rosbags writes none) damage shows only in the structure: the records
     # a writer puts in a chunk, tiling it exactly, each message inside the chunk's time span.
     while offset < len(data):
-        opcode, length = _RECORD.unpack_from(data, offset)
-        record = offset + _RECORD.size
+        opcode, length = RECORD.unpack_from(data, offset)
+        record = offset + RECORD.size
         if record + length > len(data):
             raise ValueError(f"a record runs past the end of the chunk at byte {start}")
-        if opcode == _OP_MESSAGE and length >= _MESSAGE_HEAD.size + 8:
-            channel_id, _, log_time = _MESSAGE_HEAD.unpack_from(data, record)
+        if opcode == OP_MESSAGE and length >= MESSAGE_HEAD.size + 8:
+            channel_id, _, log_time = MESSAGE_HEAD.unpack_from(data, record)
             if channel_id not in contents.channels or not start_time <= log_time <= end_time:
                 raise ValueError(f"a message the chunk at byte {start} cannot hold")
             messages[channel_id].append((log_time, offset))
-        elif opcode in (_OP_SCHEMA, _OP_CHANNEL):
+        elif opcode in (OP_SCHEMA, OP_CHANNEL):
             _read_definition(opcode, BytesIO(data[record:record + length]), contents, schema,
                              channel)
         else:
             raise ValueError(f"a record of kind {opcode:#x} inside the chunk at byte {start}")
         offset = record + length
-    return _Chunk(start, _RECORD.size + len(body), start_time, end_time, compression,
+    return _Chunk(start, RECORD.size + len(body), start_time, end_time, compression,
                   compressed_size, uncompressed_size, dict(messages))
 
 
@@ -229,7 +227,7 @@ def _read_definition(opcode: int, body: BytesIO, contents: McapContents, schema:
     from rosbags.rosbag2.storage_mcap import read_bytes, read_string
 
     (key,) = _U16.unpack(body.read(2))
-    if opcode == _OP_SCHEMA:
+    if opcode == OP_SCHEMA:
         contents.schemas[key] = schema(key, read_string(body), read_string(body),
                                        read_string(body))
         return
@@ -252,7 +250,7 @@ def _write_message_indexes(file: BinaryIO, chunk: _Chunk) -> None:
         chunk.index_offsets[channel] = file.tell()
         body = _U16.pack(channel) + _U32.pack(16 * len(entries)) + b"".join(
             struct.pack("<QQ", stamp, offset) for stamp, offset in entries)
-        file.write(_RECORD.pack(_OP_MESSAGE_INDEX, len(body)) + body)
+        file.write(RECORD.pack(OP_MESSAGE_INDEX, len(body)) + body)
     chunk.index_end = file.tell()
 
 
