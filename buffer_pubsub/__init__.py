@@ -20,8 +20,9 @@ Quick start::
         node.create_subscription(Tensor, "/frames", print, acceptable_buffer_backends="any")
 
 Connectivity (no router by default; a config file or a router endpoint for multi-host use) is
-described in :mod:`buffer_pubsub.config`. QoS: keep-last ``depth`` (congestion control DROP) or
-``history="keep_all"`` (BLOCK), reliable, volatile durability only (no late-joiner history).
+described in :mod:`buffer_pubsub.config`. QoS (:mod:`buffer_pubsub.qos`, as rclpy's profiles):
+keep-last ``depth`` (congestion control DROP) or ``history="keep_all"`` (BLOCK), reliable or
+best-effort, volatile or transient-local (latched).
 Loaned messages (``with pub.loan(factory) as msg:``, filled in place, published on exit, storage
 reused once no reader holds it) are described in :mod:`buffer_pubsub.loan`.
 Callbacks run on the node's executor thread, or on your own thread with
@@ -56,11 +57,25 @@ from .graph import EndpointKind, NodeInfo, TopicEndpointInfo
 from .loan import Loan
 from .node import Node
 from .publisher import Publisher, RouteInfo
+from .qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+    qos_profile_system_default,
+)
 from .subscription import MessageInfo, Subscription, SubscriptionCounters
 from .timer import Timer, TimerCounters
 
 __all__ = [
     "DEFAULT_CONFIG",
+    "DurabilityPolicy",
+    "HistoryPolicy",
+    "QoSProfile",
+    "ReliabilityPolicy",
+    "qos_profile_sensor_data",
+    "qos_profile_system_default",
     "EndpointKind",
     "NodeInfo",
     "RouteInfo",

@@ -4,21 +4,29 @@
 - the registry of local subscriptions, for intra-process delivery, and of local publisher gids, so
   a subscription drops the Zenoh copy of a sample it already got intra-process;
 - the backends loaded once from the registry (a backend may hold per-process state such as an
-  IPC manager, so every node of the process shares one instance of each).
+  IPC manager, so every node of the process shares one instance of each);
+- the nodes still open, closed when the interpreter exits (:func:`close_open_nodes`).
 """
 
 from __future__ import annotations
 
+import atexit
 import collections
 import itertools
+import logging
+import os
 import threading
+import weakref
 from typing import TYPE_CHECKING
 
 from rosidl_buffer import BufferBackend
 from rosidl_buffer import registry
 
 if TYPE_CHECKING:
+    from .node import Node
     from .subscription import Subscription
+
+_log = logging.getLogger(__name__)
 
 _lock = threading.Lock()
 _ids = itertools.count(0)
@@ -33,6 +41,8 @@ PUBLISHER_GIDS: set[bytes] = set()
 RETIRED_PUBLISHERS = 4096
 _retired: collections.deque[bytes] = collections.deque()
 _backends: dict[str, BufferBackend] | None = None
+#: The nodes of this process not closed yet (weakly: a node nobody references is not kept).
+_open_nodes: weakref.WeakSet[Node] = weakref.WeakSet()
 
 
 def next_id() -> int:
@@ -88,3 +98,41 @@ def remove_publisher(gid: bytes) -> None:
         _retired.append(gid)
         if len(_retired) > RETIRED_PUBLISHERS:
             PUBLISHER_GIDS.discard(_retired.popleft())
+
+
+def add_node(node: Node) -> None:
+    with _lock:
+        _open_nodes.add(node)
+
+
+def remove_node(node: Node) -> None:
+    with _lock:
+        _open_nodes.discard(node)
+
+
+def close_open_nodes() -> None:
+    """Close the nodes still open as the interpreter exits, before it waits for its non-daemon
+    threads. Zenoh runs Python callbacks on threads of its own, which end only with their
+    session: a script that never closed its node (or died of an exception before it did) would
+    otherwise never exit, where an rclpy script does. Each close is bounded (``Node.close``)."""
+    with _lock:
+        nodes = list(_open_nodes)
+    for node in nodes:
+        try:
+            node.close()
+        except Exception:  # one node's failure must not keep the others (and the exit) waiting
+            _log.exception("closing node %s at exit failed", node.name)
+
+
+# threading's exit hooks run before the interpreter joins non-daemon threads; atexit's run after
+# that join (too late). The hook is private API, the one concurrent.futures uses (Python 3.9+).
+_register_exit_hook = getattr(threading, "_register_atexit", atexit.register)
+_register_exit_hook(close_open_nodes)
+
+
+def _after_fork_in_child() -> None:
+    # The parent's nodes are not this process's: their sessions' threads did not fork with it.
+    _open_nodes.clear()
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)

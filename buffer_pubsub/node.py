@@ -50,6 +50,7 @@ from .errors import (
 )
 from .names import expand_topic_name, validate_namespace, validate_node_name
 from .publisher import Publisher, replay_history
+from .qos import DEFAULT_DEPTH, QoSProfile, resolve_qos
 from .subscription import Subscription
 from .timer import Timer, TimerSet, period_ns
 
@@ -159,6 +160,7 @@ class Node:
                     history=True)
                 self._routes_queryable = self.session.declare_queryable(
                     wire.routes_key(self.domain_id, self.zid), self._on_routes_query)
+            _process.add_node(self)  # closed at exit if nobody closes it
         except BaseException:
             self.scheduler.stop()
             run_bounded(self.session.close, CLOSE_TIMEOUT_S, "closing the Zenoh session")
@@ -198,6 +200,7 @@ class Node:
             endpoints: list[Publisher | Subscription] = [*self._publishers, *self._subscriptions]
             self._publishers.clear()
             self._subscriptions.clear()
+        _process.remove_node(self)
         for timer in self._timers.close():  # none starts from here (a running one is waited for)
             timer.forget()
         self.graph.close()
@@ -263,9 +266,15 @@ class Node:
 
     def spin(self, timeout: float | None = None) -> None:
         """Run callbacks on this thread until the node is closed (or ``timeout`` seconds pass;
-        None or negative: no limit). Ctrl-C raises KeyboardInterrupt here, as in rclpy. Only
-        for ``executor="manual"``, one spinning thread at a time."""
+        None or negative: no limit). Ctrl-C raises KeyboardInterrupt here, as in rclpy. For
+        ``executor="manual"``, one spinning thread at a time; a node that runs its callbacks on
+        its own thread (the default) goes on doing so while this waits as long (the port of
+        ``rclpy.spin(node)``)."""
         wait = wait_seconds(timeout)
+        if self.executor_mode == "thread" and self._owner is None:
+            self._check_open()
+            self._wait_closed(wait)
+            return
         with self._spinning(), user_spin():
             deadline = None if wait is None else time.monotonic() + wait
             while not self._closed:
@@ -274,6 +283,14 @@ class Node:
                     return
                 self.scheduler.spin_once(
                     NodeExecutor.TICK_S if left is None else min(left, NodeExecutor.TICK_S))
+
+    def _wait_closed(self, wait: float | None) -> None:
+        deadline = None if wait is None else time.monotonic() + wait
+        while not self._closed:  # short sleeps: Ctrl-C is raised between two
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                return
+            time.sleep(NodeExecutor.TICK_S if left is None else min(left, NodeExecutor.TICK_S))
 
     @contextlib.contextmanager
     def _spinning(self) -> Iterator[None]:
@@ -288,7 +305,7 @@ class Node:
         if self.executor_mode != "manual":
             raise ExecutorModeError(
                 f"node {self.name!r} runs callbacks on its own thread; create it with "
-                "executor='manual' to spin it")
+                "executor='manual' to run them in spin_once() (spin() just waits here)")
         if not self._spin_lock.acquire(blocking=False):
             raise ExecutorModeError(f"node {self.name!r} is already spinning (in another "
                                     "thread, or this callback's own spin)")
@@ -334,44 +351,38 @@ class Node:
             return msg_type
         raise InvalidEndpointError(f"msg_type must be a message class or name, got {msg_type!r}")
 
-    def _endpoint_token(self, kind: str, topic: str, type_name: str, depth: int, history: str,
-                        backends: dict[str, str] | None, durability: str = wire.VOLATILE
-                        ) -> wire.EndpointToken:
+    def _endpoint_token(self, kind: str, topic: str, type_name: str, qos: QoSProfile,
+                        backends: dict[str, str] | None) -> wire.EndpointToken:
         return wire.EndpointToken(
             domain_id=self.domain_id, zid=self.zid, node_id=self.node_id,
             entity_id=_process.next_id(), kind=kind, namespace=self.namespace,
             node_name=self.name, topic=topic, type_name=type_name,
             type_hash=get_type_hash(type_name),
-            qos=wire.QoSProfile.of(depth, history, durability),
+            qos=wire.QoSProfile.of(qos.depth, qos.history, qos.durability, qos.reliability),
             backends=backends, locality=self.locality)
 
     def _installed_metadata(self, names: Sequence[str]) -> dict[str, str]:
         return {name: self.backends[name].get_backend_metadata() for name in names}
 
     @staticmethod
-    def _check_qos(depth: int, history: str) -> tuple[int, str]:
-        if history not in (wire.KEEP_LAST, wire.KEEP_ALL):
-            raise InvalidEndpointError(
-                f"history must be {wire.KEEP_LAST!r} or {wire.KEEP_ALL!r}, got {history!r}")
-        if isinstance(depth, bool) or not isinstance(depth, int) or not 0 < depth <= MAX_DEPTH:
-            raise InvalidEndpointError(f"depth must be an int in 1..{MAX_DEPTH}, got {depth!r}")
-        return depth, history
-
-    @staticmethod
-    def _check_durability(durability: str) -> bool:
-        """Whether ``durability`` is transient-local (else volatile; anything else refused)."""
-        if durability not in (wire.VOLATILE, wire.TRANSIENT_LOCAL):
-            raise InvalidEndpointError(f"durability must be {wire.VOLATILE!r} or "
-                                       f"{wire.TRANSIENT_LOCAL!r}, got {durability!r}")
-        return durability == wire.TRANSIENT_LOCAL
+    def _check_transient(qos: QoSProfile) -> bool:
+        """Whether ``qos`` is transient-local."""
+        return qos.durability == wire.TRANSIENT_LOCAL
 
     def _topic(self, topic: str) -> str:
         return expand_topic_name(topic, self.name, self.namespace)
 
-    def create_publisher(self, msg_type: type[Message] | str, topic: str, depth: int = 10, *,
-                         history: str = wire.KEEP_LAST,
-                         durability: str = wire.VOLATILE) -> Publisher:
+    def create_publisher(self, msg_type: type[Message] | str, topic: str,
+                         depth: int | QoSProfile = DEFAULT_DEPTH, *,
+                         history: str | None = None, reliability: str | None = None,
+                         durability: str | None = None,
+                         qos_profile: int | QoSProfile | None = None) -> Publisher:
         """A publisher of ``msg_type`` on ``topic`` (relative names resolve in the namespace).
+
+        QoS: keep-last ``depth`` (default 10) and the policy keywords, or a
+        :class:`~buffer_pubsub.qos.QoSProfile` in their place (positional, or rclpy's
+        ``qos_profile=``): ``create_publisher(Image, "/image", qos_profile_sensor_data)``.
+        ``reliability="best_effort"`` puts with Zenoh's best-effort reliability, as rmw_zenoh.
 
         ``history="keep_last"`` (default) publishes with Zenoh congestion control DROP, so a
         frozen or slow subscriber never stalls ``publish()``; ``"keep_all"`` uses BLOCK (no loss
@@ -383,17 +394,18 @@ class Node:
         """
         self._check_open()
         cls = self._resolve_type(msg_type)
-        depth, history = self._check_qos(depth, history)
-        transient = self._check_durability(durability)
+        qos = resolve_qos(depth, history, reliability, durability, qos_profile)
+        transient = self._check_transient(qos)
         fq_topic = self._topic(topic)
         # As rmw_zenoh's buffer-aware publishers: cpu plus every installed backend's metadata
         # (a type without a top-level uint8[], or a transient-local one, advertises nothing).
         advertised = ({"cpu": "", **self._installed_metadata(list(self.backends))}
                       if buffer_fields(cls) and not transient else None)
-        token = self._endpoint_token(wire.PUBLISHER_KIND, fq_topic, cls.__msgtype__, depth,
-                                     history, advertised, durability)
+        token = self._endpoint_token(wire.PUBLISHER_KIND, fq_topic, cls.__msgtype__, qos,
+                                     advertised)
         with typed_zenoh_errors(f"cannot declare a publisher on {fq_topic}"):
-            publisher = Publisher(self, cls, token, depth, history, on_destroy=self._forget)
+            publisher = Publisher(self, cls, token, qos.depth, qos.history,
+                                  on_destroy=self._forget)
         with self._lock:
             closed = self._closed  # close() ran meanwhile: it did not see this one
             if not closed:
@@ -411,12 +423,14 @@ class Node:
         msg_type: type[Message] | str,
         topic: str,
         callback: Callable[..., Any],
-        depth: int = 10,
+        depth: int | QoSProfile = DEFAULT_DEPTH,
         acceptable_buffer_backends: str | Sequence[str] = "cpu",
         *,
         with_info: bool = False,
-        history: str = wire.KEEP_LAST,
-        durability: str = wire.VOLATILE,
+        history: str | None = None,
+        reliability: str | None = None,
+        durability: str | None = None,
+        qos_profile: int | QoSProfile | None = None,
         raw: bool = False,
         max_rate: float | None = None,
         callback_group: CallbackGroup | None = None,
@@ -427,6 +441,7 @@ class Node:
         ``acceptable_buffer_backends``: ``"cpu"``, ``"any"`` (every loaded backend) or a comma
         separated list of backend names (or a list of them); advertised to publishers through
         discovery.
+        QoS as :meth:`create_publisher` takes it (``depth`` or a ``QoSProfile``).
         ``history="keep_last"`` keeps the newest ``depth`` messages waiting for the callback
         (older ones are dropped and counted); ``"keep_all"`` keeps every one (as rmw_zenoh).
         ``durability="transient_local"`` also receives, first, what transient-local publishers
@@ -447,8 +462,8 @@ class Node:
             raise InvalidEndpointError(f"callback must be callable, got {callback!r}")
         callback_group = self._callback_group(callback_group)
         cls = self._resolve_type(msg_type)
-        depth, history = self._check_qos(depth, history)
-        transient = self._check_durability(durability)
+        qos = resolve_qos(depth, history, reliability, durability, qos_profile)
+        transient = self._check_transient(qos)
         fq_topic = self._topic(topic)
         from rosidl_buffer import parse_acceptable_backends
 
@@ -470,11 +485,10 @@ class Node:
         advertised = (_subscription_advertisement(acceptable_buffer_backends, accepted, self)
                       if buffer_fields(cls) and not transient else None)
         token = dataclasses.replace(self._endpoint_token(
-            wire.SUBSCRIPTION_KIND, fq_topic, cls.__msgtype__, depth, history, advertised,
-            durability), max_rate_hz=rate)
+            wire.SUBSCRIPTION_KIND, fq_topic, cls.__msgtype__, qos, advertised), max_rate_hz=rate)
         with typed_zenoh_errors(f"cannot declare a subscription on {fq_topic}"):
-            subscription = Subscription(self, cls, token, callback, depth, accepted, with_info,
-                                        history, callback_group, raw=raw,
+            subscription = Subscription(self, cls, token, callback, qos.depth, accepted,
+                                        with_info, qos.history, callback_group, raw=raw,
                                         on_destroy=self._forget)
         with self._lock:
             closed = self._closed  # close() ran meanwhile: it did not see this one
@@ -525,6 +539,41 @@ class Node:
         known = self._timers.remove(timer)
         timer.forget()
         return known
+
+    # -- rclpy's names ---------------------------------------------------------------------------
+    def get_name(self) -> str:
+        return self.name
+
+    def get_namespace(self) -> str:
+        return self.namespace or "/"
+
+    def get_fully_qualified_name(self) -> str:
+        return f"{self.namespace}/{self.name}"
+
+    def get_logger(self) -> logging.Logger:
+        """A Python logger named after the node (``<namespace>.<name>``, dots for slashes, as
+        rclpy names a node's logger): configure it with :mod:`logging` (``basicConfig``)."""
+        return logging.getLogger(self.get_fully_qualified_name().strip("/").replace("/", "."))
+
+    def destroy_publisher(self, publisher: Publisher) -> bool:
+        """Destroy ``publisher`` (:meth:`Publisher.destroy`); whether it was this node's."""
+        return self._destroy_endpoint(publisher, self._publishers)
+
+    def destroy_subscription(self, subscription: Subscription) -> bool:
+        """Destroy ``subscription`` (:meth:`Subscription.destroy`); whether it was this
+        node's."""
+        return self._destroy_endpoint(subscription, self._subscriptions)
+
+    def _destroy_endpoint(self, endpoint: Any, group: list[Any]) -> bool:
+        with self._lock:
+            known = endpoint in group
+        if known:
+            endpoint.destroy()
+        return known
+
+    def destroy_node(self) -> None:
+        """rclpy's name of :meth:`close`."""
+        self.close()
 
     @property
     def timers(self) -> list[Timer]:
@@ -692,10 +741,6 @@ def _executor_waker(waker: Waker | None, option: bool | None
         return waker, waker
     return waker, None
 
-
-#: The deepest queue a publisher or subscription may ask for (rmw's depth is a size_t; a keep-last
-#: queue grows with what it holds, never preallocated).
-MAX_DEPTH = 2**31 - 1
 
 
 #: Zenoh 1.10 delivers no network message over 1 GiB, whatever ``max_message_size`` says

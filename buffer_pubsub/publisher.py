@@ -260,9 +260,14 @@ class Publisher:
             collections.OrderedDict()
         self._closed = False
         # As rmw_zenoh: keep-last drops when Zenoh's queue to a peer is full (a frozen
-        # subscriber never stalls publish()), keep-all blocks (no loss, publish() waits).
-        self._congestion = (zenoh.CongestionControl.BLOCK if history == wire.KEEP_ALL
+        # subscriber never stalls publish()), keep-all blocks (no loss, publish() waits);
+        # best-effort always drops, and Zenoh does not retransmit its samples.
+        best_effort = token.qos.best_effort
+        self._congestion = (zenoh.CongestionControl.BLOCK
+                            if history == wire.KEEP_ALL and not best_effort
                             else zenoh.CongestionControl.DROP)
+        self._reliability = (zenoh.Reliability.BEST_EFFORT if best_effort
+                             else zenoh.Reliability.RELIABLE)
         # One CDR output buffer, reused while the serialized size stays the same: Zenoh copies
         # the bytes during put(), and a fresh buffer per message costs page faults (~10 ms at
         # 16 MiB). The lock keeps concurrent publish() calls from sharing it, and their
@@ -761,16 +766,22 @@ class Publisher:
                 _close_route(*peer.take_route())
 
     def _declare_transient(self, key: str, depth: int) -> Any:
+        # Misses are detected (sporadic heartbeats) and recovered from the cache by reliable
+        # subscriptions. rmw_zenoh leaves detection off for best-effort, which then needs
+        # Zenoh's timestamping (our default configuration has it off): it stays on, and
+        # best-effort subscriptions do not recover, so what a peer sees is rmw_zenoh's.
         return zenoh.ext.declare_advanced_publisher(
             self.node.session, key, allowed_destination=zenoh.Locality.REMOTE,
-            congestion_control=self._congestion, cache=zenoh.ext.CacheConfig(max_samples=depth),
-            publisher_detection=True, sample_miss_detection=zenoh.ext.MissDetectionConfig(
+            congestion_control=self._congestion, reliability=self._reliability,
+            cache=zenoh.ext.CacheConfig(max_samples=depth), publisher_detection=True,
+            sample_miss_detection=zenoh.ext.MissDetectionConfig(
                 sporadic_heartbeat=MISS_DETECTION_HEARTBEAT_S))
 
     def _declare_channel(self, key: str) -> zenoh.Publisher:
         # Zenoh's same-session delivery is skipped: local subscriptions are served in-process.
         return self.node.session.declare_publisher(
-            key, allowed_destination=zenoh.Locality.REMOTE, congestion_control=self._congestion)
+            key, allowed_destination=zenoh.Locality.REMOTE, congestion_control=self._congestion,
+            reliability=self._reliability)
 
     # -- teardown ------------------------------------------------------------------------------
     def destroy(self) -> None:

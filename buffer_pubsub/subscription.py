@@ -184,11 +184,13 @@ class Subscription:
         session = node.session
         remote = zenoh.Locality.REMOTE
         on_base = lambda s: self._on_sample(s, ROUTE_BASE)  # noqa: E731
-        if token.qos.transient_local:  # rmw_zenoh's: history from publishers' caches first
+        if token.qos.transient_local:  # rmw_zenoh's: history from publishers' caches first,
+            # and (reliable) the misses their heartbeats reveal
             self._subscribers = [zenoh.ext.declare_advanced_subscriber(
                 session, self.base_key, on_base, allowed_origin=remote,
                 history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=depth),
-                recovery=zenoh.ext.RecoveryConfig(heartbeat=True), subscriber_detection=True)]
+                recovery=None if token.qos.best_effort else zenoh.ext.RecoveryConfig(
+                    heartbeat=True), subscriber_detection=True)]
         else:
             self._subscribers = [session.declare_subscriber(self.base_key, on_base,
                                                             allowed_origin=remote)]

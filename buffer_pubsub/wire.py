@@ -51,6 +51,7 @@ __all__ = [
     "ATTACHMENT_SIZE",
     "Attachment",
     "EndpointToken",
+    "BEST_EFFORT",
     "KEEP_ALL",
     "KEEP_LAST",
     "LIVELINESS_PREFIX",
@@ -220,6 +221,8 @@ KEEP_LAST = "keep_last"
 KEEP_ALL = "keep_all"
 VOLATILE = "volatile"
 TRANSIENT_LOCAL = "transient_local"
+RELIABLE = "reliable"
+BEST_EFFORT = "best_effort"
 
 
 @dataclass(frozen=True)
@@ -240,12 +243,18 @@ class QoSProfile:
     liveliness_lease: tuple[int, int] = INFINITE
 
     @classmethod
-    def of(cls, depth: int, history: str = KEEP_LAST, durability: str = VOLATILE
-           ) -> QoSProfile:
-        """What our endpoints offer: reliable, ``durability``, ``history`` of ``depth``."""
+    def of(cls, depth: int, history: str = KEEP_LAST, durability: str = VOLATILE,
+           reliability: str = RELIABLE) -> QoSProfile:
+        """What our endpoints offer: ``reliability``, ``durability``, ``history`` of ``depth``."""
         return cls(history=HISTORY_KEEP_ALL if history == KEEP_ALL else HISTORY_KEEP_LAST,
                    depth=depth, durability=DURABILITY_TRANSIENT_LOCAL
-                   if durability == TRANSIENT_LOCAL else DURABILITY_VOLATILE)
+                   if durability == TRANSIENT_LOCAL else DURABILITY_VOLATILE,
+                   reliability=RELIABILITY_BEST_EFFORT if reliability == BEST_EFFORT
+                   else RELIABILITY_RELIABLE)
+
+    @property
+    def best_effort(self) -> bool:
+        return self.reliability == RELIABILITY_BEST_EFFORT
 
     @property
     def keep_all(self) -> bool:

@@ -99,10 +99,14 @@ def _stream(adapter: Adapter[Any], device: str) -> Any:
 def new_msg(layout: TensorLayout, backend: str, device: Any, data: Any = None) -> Any:
     """A new ExperimentalTensor with ``layout``'s metadata and storage for it (``data``, or
     newly allocated)."""
+    nbytes = layout.required_nbytes
     if backend == "warp":
         warp_dtype(layout.dtype)  # complex has no Warp type: refused before allocating
+        # A warp buffer is never empty: an empty tensor's metadata over one byte, as a loan's
+        # (a tensor's storage may be larger than its layout; frames of size zero stay on warp).
+        nbytes = max(1, nbytes)
     if data is None:
-        data = allocate_data(layout.required_nbytes, backend, device)
+        data = allocate_data(nbytes, backend, device)
     dt = layout.dtype
     strides = () if layout.is_contiguous else layout.strides
     return tensor_msg_type()(

@@ -58,13 +58,13 @@ def _warp_buffer() -> Any:
 
 def resolve_warp_device(device: Any = None) -> str:
     """The Warp device string (``"cpu"``, ``"cuda:0"``) for ``device``; None = Warp's default."""
-    from .dlpack import import_warp
+    from warp_buffer.buffer_impl import resolve_device
+    from warp_buffer.errors import DeviceUnavailableError
 
-    wp = import_warp()
     try:
-        return str(wp.get_device(device))
-    except Exception as exc:  # Warp raises RuntimeError/ValueError for unknown or absent devices
-        raise UnsupportedBackendError(f"Warp device {device!r} is not available: {exc}") from None
+        return str(resolve_device(device))
+    except DeviceUnavailableError as exc:  # this package's type for a device it cannot serve
+        raise UnsupportedBackendError(str(exc)) from None
 
 
 def allocate_data(nbytes: int, backend: str = "cpu", device: Any = None) -> Buffer:
@@ -83,8 +83,9 @@ def allocate_data(nbytes: int, backend: str = "cpu", device: Any = None) -> Buff
         resolved = resolve_warp_device(device)
         if nbytes <= 0:
             raise UnsupportedBackendError(
-                "the 'warp' backend cannot hold an empty tensor (warp buffers are never empty); "
-                "use backend='cpu' for zero-size tensors")
+                "the 'warp' backend cannot hold an empty image or point cloud (warp buffers are "
+                "never empty, and their data must be exactly step * height bytes); use "
+                "backend='cpu' for zero-size ones")
         return _warp_buffer().allocate_buffer(nbytes, device=resolved)
     raise UnsupportedBackendError(f"unknown backend {backend!r}; supported: {', '.join(BACKENDS)}")
 

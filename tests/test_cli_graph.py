@@ -147,7 +147,20 @@ def test_node_list_and_info(graph):
                           f"    {topic}: sensor_msgs/msg/Image\n")
 
 
+def test_topic_type_and_find_answer_as_ros2s(graph):
+    domain, topic = graph
+    typed = cli("topic", "type", topic, "--domain", str(domain))
+    assert (typed.returncode, typed.stdout, typed.stderr) == (0, "sensor_msgs/msg/Image\n", "")
+    found = cli("topic", "find", "sensor_msgs/Image", "--domain", str(domain))
+    assert found.returncode == 0 and topic in found.stdout.split("\n")
+    none = cli("topic", "find", "std_msgs/msg/Bool", "-c", "--domain", str(domain),
+               "--spin-time", "0.3")
+    assert (none.returncode, none.stdout) == (0, "0\n")
+
+
 @pytest.mark.parametrize("argv, message", [
+    (("topic", "type", "/no/such/topic"), "is not in the graph"),
+    (("topic", "find", "std_msgs/msg/Nope"), "unknown message type"),
     (("topic", "info", "/no/such/topic"), "is not in the graph"),
     (("node", "info", "/nobody"), "is not in the graph"),
     (("topic", "hz", "/x", "--window", "0"), "--window"),

@@ -14,6 +14,7 @@ import pytest
 import zenoh
 
 from buffer_pubsub import Node, make_config
+from buffer_pubsub.qos import QoSProfile
 from tests._reliability_helpers import wait_until
 
 STRING = "std_msgs/msg/String"
@@ -180,7 +181,7 @@ def _string_subscription(name: str, domain: int, topic: str):
     with Node(name, domain_id=domain, executor="manual") as node:
         got: list[str] = []
         sub = node.create_subscription(STRING, topic, lambda m: got.append(m.data), depth=10)
-        token = node._endpoint_token(wire.PUBLISHER_KIND, topic, STRING, 10, wire.KEEP_LAST, {})
+        token = node._endpoint_token(wire.PUBLISHER_KIND, topic, STRING, QoSProfile(), {})
 
         def sample(sequence: int) -> tuple:
             payload = bytes(serialize_message(sub.msg_type(data=f"m{sequence}")))

@@ -351,3 +351,29 @@ def test_destroy_returns_while_a_keep_all_put_to_a_frozen_peer_blocks(domain, to
         os.kill(peer.pid, signal.SIGCONT)
         peer.kill()
         peer.wait()
+
+
+_UNCLOSED_APP = r"""
+import sys
+from buffer_pubsub import Node
+domain, topic, how = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+node = Node("never_closed", domain_id=domain)  # an rclpy habit: no close(), no destroy_node()
+publisher = node.create_publisher("std_msgs/msg/String", topic)
+node.create_subscription("std_msgs/msg/String", topic, lambda m: None)
+manual = Node("never_closed_manual", domain_id=domain, executor="manual")
+manual.create_subscription("std_msgs/msg/String", topic, lambda m: None)
+if how == "raise":
+    publisher.publish(42)  # not a message: the script dies of the exception, nodes still open
+"""
+
+
+@pytest.mark.parametrize("how", ["end", "raise"])
+def test_a_script_that_never_closes_its_nodes_still_exits(domain, topic, how):
+    # Zenoh's callback threads are not daemons and end only with their session: the nodes
+    # left open are closed as the interpreter exits, before it waits for those threads.
+    app = subprocess.run([sys.executable, "-c", _UNCLOSED_APP, str(domain), topic, how],
+                         cwd=ROOT, env=child_env(), capture_output=True, text=True, timeout=60)
+    assert app.returncode == (0 if how == "end" else 1), app.stderr
+    assert app.stdout == ""
+    if how == "raise":
+        assert "WrongMessageTypeError" in app.stderr or "SerializationError" in app.stderr

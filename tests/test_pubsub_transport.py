@@ -587,7 +587,7 @@ def test_backend_forgets_endpoints_that_churn(domain, topic, backends):
 
 def test_depth_is_bounded_and_deep_subscriptions_stay_off_the_lane(domain, topic, backends):
     from buffer_pubsub import fast_lane
-    from buffer_pubsub.node import MAX_DEPTH
+    from buffer_pubsub.qos import MAX_DEPTH
 
     with Node("depths", domain_id=domain, backends=backends) as node:
         for depth in (0, -1, MAX_DEPTH + 1, 2**64):
@@ -857,7 +857,7 @@ def test_a_subscriber_whose_link_closed_while_frozen_resumes_and_counts_what_it_
 def test_durability_is_volatile_or_transient_local_and_a_latched_subscription_takes_cpu(
         domain, topic, backends):
     with Node("durability", domain_id=domain, backends=backends) as node:
-        for bad in ("latched", None, 1):
+        for bad in ("latched", "", 1):  # (None: the default)
             with pytest.raises(InvalidEndpointError, match="durability"):
                 node.create_publisher(TENSOR, topic, durability=bad)
             with pytest.raises(InvalidEndpointError, match="durability"):

@@ -162,6 +162,22 @@ def test_empty_tensors(framework):
 
 
 @pytest.mark.parametrize("framework", list(MODULES))
+def test_empty_tensors_on_warp_storage(framework):
+    # A variable-size frame (an empty detection list, say) may be empty: it stays on warp,
+    # its empty metadata over one byte of storage, and survives the wire both ways.
+    from rosidl_buffer.messages import deserialize_message, serialize_message
+
+    module = MODULES[framework]
+    msg = module.allocate_tensor_msg((0, 3), framework_dtype(framework, "float32"),
+                                     backend="warp")
+    assert msg.data.get_backend_type() == "warp"
+    assert tuple(module.from_output_tensor_msg(msg).shape) == (0, 3)
+    for received in (msg, deserialize_message(serialize_message(msg), type(msg))):
+        assert tuple(module.from_input_tensor_msg(received).shape) == (0, 3)
+        assert tuple(module.from_input_tensor_msg(received, clone=False).shape) == (0, 3)
+
+
+@pytest.mark.parametrize("framework", list(MODULES))
 def test_unservable_backend_or_device_raises(framework):
     module = MODULES[framework]
     dtype = framework_dtype(framework, "float32")

@@ -71,6 +71,23 @@ def test_unavailable_device_and_bad_size_type():
         allocate_buffer(16.0)  # type: ignore[arg-type]
 
 
+def test_a_cuda_device_on_a_machine_without_cuda_is_refused_without_native_output(capfd):
+    # Warp's native code prints to stderr when asked for "cuda" without a driver; the library
+    # refuses the name first, with the same typed error as any device that is not here.
+    import tensor_conversions.numpy as tc
+
+    if wp.is_cuda_available():
+        assert allocate_buffer(16, "cuda").get_impl().wp_device.is_cuda
+        return
+    capfd.readouterr()
+    for name in ("cuda", "cuda:0"):
+        with pytest.raises(DeviceUnavailableError, match="not available here"):
+            allocate_buffer(16, name)
+        with pytest.raises(tc.UnsupportedBackendError, match="not available here"):
+            tc.allocate_tensor_msg((4,), np.float32, backend="warp", device=name)
+    assert capfd.readouterr().err == ""
+
+
 def test_kernel_written_bytes_reach_to_cpu_and_views_reinterpret_without_copy():
     buffer = _written(4096, seed=11)
     np.testing.assert_array_equal(buffer.to_numpy(), expected_pattern(4096, 11))

@@ -41,8 +41,15 @@ _new_impl = object.__new__
 
 
 def resolve_device(device: Any = None) -> Any:
-    """The ``wp.Device`` for ``device`` (a name, a ``wp.Device``, or None for Warp's default)."""
+    """The ``wp.Device`` for ``device`` (a name, a ``wp.Device``, or None for Warp's default).
+
+    Raises:
+        DeviceUnavailableError: no such device here (a CUDA name where CUDA is not usable is
+            refused before Warp is asked: Warp's native code would print to stderr first).
+    """
     try:
+        if isinstance(device, str) and device.startswith("cuda") and not wp.is_cuda_available():
+            raise RuntimeError("CUDA is not available (no GPU or no driver)")
         return wp.get_device(device)
     except (ValueError, RuntimeError, TypeError) as exc:
         raise DeviceUnavailableError(

@@ -127,11 +127,9 @@ def _native_error() -> str:
 
 
 def _cuda_device(device: Any) -> Any:
-    try:
-        device = wp.get_device(device)
-    except (RuntimeError, ValueError, TypeError) as exc:
-        raise DeviceUnavailableError(
-            f"Warp device {device!r} is not available here: {exc}") from None
+    from .buffer_impl import resolve_device  # (buffer_impl imports this module)
+
+    device = resolve_device(device)
     if not device.is_cuda:
         raise ExportUnavailableError(f"{device.alias} is not a CUDA device")
     return device

@@ -10,6 +10,8 @@ from .._groups import add_subcommands
 
 COMMANDS = {
     "list": ("warp_buffer_cli.topic.list", "list the topics of the domain"),
+    "type": ("warp_buffer_cli.topic.type", "print a topic's type"),
+    "find": ("warp_buffer_cli.topic.find", "print the topics of a message type"),
     "info": ("warp_buffer_cli.topic.info",
              "print a topic's type and endpoints (-v: QoS, backends and routes)"),
     "echo": ("warp_buffer_cli.topic.echo", "print the messages of a topic"),

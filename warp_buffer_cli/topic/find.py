@@ -1,0 +1,30 @@
+"""Print the topics of a type, one per line, as ``ros2 topic find`` does (``-c``: only how
+many; nothing, exit 0, when no topic has it)."""
+
+from __future__ import annotations
+
+import argparse
+
+from rosidl_buffer.messages import get_message_type
+
+from .._graph import add_graph_options, graph_node
+from .list import topics
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("topic_type", help="the message type, e.g. sensor_msgs/msg/Image")
+    parser.add_argument("-c", "--count-topics", action="store_true",
+                        help="print only the number of topics")
+    add_graph_options(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    type_name = get_message_type(args.topic_type).__msgtype__  # a misspelt type: an error
+    with graph_node(args) as node:
+        found = sorted(topic for topic, types in topics(node, args).items() if type_name in types)
+    if args.count_topics:
+        print(len(found))
+    else:
+        for topic in found:
+            print(topic)
+    return 0
