@@ -1,4 +1,4 @@
-"""The native core: two C extensions through the CPython API (no build dependency beyond a C
+"""The native core: the C extensions through the CPython API (no build dependency beyond a C
 compiler and Python's headers; see docs/native.md, which also has the AddressSanitizer build:
 setuptools adds the ``CFLAGS`` and ``LDFLAGS`` of the environment to these)."""
 
@@ -13,4 +13,6 @@ setup(ext_modules=[
               depends=["warp_buffer/_core.h"], extra_compile_args=CFLAGS),
     Extension("buffer_pubsub._ring", sources=["buffer_pubsub/_ring.c"],
               depends=["buffer_pubsub/_ring.h"], extra_compile_args=CFLAGS),
+    Extension("rosidl_buffer._cdr_native", sources=["rosidl_buffer/_cdr_native.c"],
+              extra_compile_args=CFLAGS),
 ])

@@ -22,6 +22,14 @@ once per type, and packed and unpacked with one precompiled ``struct`` call (the
 at the alignment phase where the field falls), its message built by the slots' own setters from
 C. The field-by-field path is the reference: it gives the same bytes, and the typed error for a
 value the struct refuses.
+
+Per message, :func:`serialize_message` and :func:`deserialize_message` run the C codec
+(``rosidl_buffer._cdr_native``): one call per message, interpreting a program made once per type
+from the same steps (``_MessageCodec.native``, see :func:`_native_program`). This module stays
+the reference and the fallback: the C codec hands any value or input that is not the plain case
+to the field objects here (which write it or raise their error), and a type it would not take,
+or input that is not a byte buffer of CDR_LE, goes through :func:`_serialize_python` /
+:func:`_read_python` entirely.
 """
 
 from __future__ import annotations
@@ -48,6 +56,7 @@ from ..errors import (
     RosidlBufferError,
     SerializationError,
 )
+from ..native import load_extension
 from ._classes import Message, get_message_type, numpy_dtype
 from ._schema import PRIMITIVE_FORMATS, FieldKind, FieldSpec, get_schema
 
@@ -499,6 +508,15 @@ class _BufferField(_Field):
             return end + length
         return codec.write(descriptor, out, end, descriptor_decisions)
 
+    def _native_descriptor_program(self, backend: BufferBackend) -> Any:
+        """The native Program of ``backend``'s descriptor type (the C codec's lookup, cached
+        there per backend as ``_descriptor_types`` is here)."""
+        codec = self._descriptor_types.get(backend)
+        if codec is None:
+            codec = self._descriptor_types[backend] = _codec(
+                backend.get_descriptor_type().__msgtype__)
+        return codec.native
+
     @staticmethod
     def _second_marker(ctx: _ReadContext, pos: int) -> bool:
         """Is the word after a first marker the second one? (Upstream reads it only then: an
@@ -692,6 +710,9 @@ class _MessageCodec:
                 lambda m, get=operator.attrgetter(run.names[0]): (get(m),))
             self.setters = tuple(self.cls.__dict__[name].__set__ for name in run.names)
             self.new = self.cls.__new__
+        # The same steps as a program of the C codec (None: a step it does not take, or a
+        # big-endian host; the type then keeps this codec entirely).
+        self.native: Any = _native_program(self)
 
 
 def _wrong_type(cls: type, message: Any) -> SerializationError:
@@ -812,6 +833,76 @@ def _codec_source(steps: list[Any]) -> str:
     return "\n".join([*size, "", *write, "", *read, ""])
 
 
+def _load_native() -> Any:
+    """The C codec (``rosidl_buffer._cdr_native``), configured. Missing, it raises
+    :class:`~rosidl_buffer.errors.NativeExtensionMissingError` (see docs/native.md)."""
+    native = load_extension("rosidl_buffer._cdr_native")
+    native.configure(
+        ndarray=np.ndarray, buffer=Buffer, cpu_impl=CpuBufferImpl, frombuffer=np.frombuffer,
+        uint8=np.dtype(np.uint8), cpu_impls=_CPU_IMPLS, judge_cpu=_judge_cpu, impls=_IMPLS,
+        impl_base=BufferImplBase, read_context=_ReadContext, wrong_type=_wrong_type,
+        name_bytes=_name_bytes, write_array=_write_array, pair=_pair,
+        resolve_descriptor=_descriptor_program, DeserializationError=DeserializationError,
+        SerializationError=SerializationError, DescriptorTooLargeError=DescriptorTooLargeError,
+        settings=globals())
+    return native
+
+
+def _pair(route: Any) -> tuple[Any, Any]:
+    """A route's answer as ``(backend_name, descriptor)`` (what pass one unpacks)."""
+    backend_name, descriptor = route
+    return backend_name, descriptor
+
+
+def _descriptor_program(descriptor: Any) -> Any:
+    """The C codec's Program for a descriptor a route returned (cached there per type)."""
+    program = _codec(descriptor.__msgtype__).native
+    if program is None:
+        raise SerializationError(f"no native codec for {descriptor.__msgtype__}")
+    return program
+
+
+def _native_program(codec: _MessageCodec) -> Any:
+    """The C codec's Program for ``codec``'s steps, or None (see ``_MessageCodec.native``)."""
+    if not _LITTLE_ENDIAN:
+        return None
+    slots = codec.cls.__dict__
+    kinds = {**_native.KINDS, "byte": _native.KINDS["uint8"], "char": _native.KINDS["uint8"]}
+    ops: list[tuple[Any, ...]] = []
+    for step in codec.steps:
+        kind = type(step)
+        if kind is _PrimitiveRun:
+            ops.append((_native.OP_RUN, step, tuple(
+                (slots[f.name], f.name, kinds[f.spec.element]) for f in step.fields)))
+            continue
+        spec = step.spec
+        head = (step, slots[spec.name], spec.name)
+        if kind is _String:
+            ops.append((_native.OP_STRING, *head, spec.string_bound))
+        elif kind is _Nested:
+            sub = _codec(spec.element).native
+            if sub is None:
+                return None
+            ops.append((_native.OP_NESTED, *head, sub))
+        elif kind is _NumericArray:
+            ops.append((_native.OP_NUMARRAY, *head, kinds[spec.element], spec.array_length,
+                        spec.is_sequence, spec.sequence_bound, step.dtype, step.native))
+        elif kind is _ObjectArray and spec.kind is FieldKind.STRING:
+            ops.append((_native.OP_STRARRAY, *head, spec.array_length, spec.is_sequence,
+                        spec.sequence_bound, spec.string_bound, step.element))
+        elif kind is _ObjectArray and spec.kind is FieldKind.MESSAGE:
+            sub = _codec(spec.element).native
+            if sub is None:
+                return None
+            ops.append((_native.OP_MSGARRAY, *head, spec.array_length, spec.is_sequence,
+                        spec.sequence_bound, sub))
+        elif kind is _BufferField:
+            ops.append((_native.OP_BUFFER, *head))
+        else:
+            return None
+    return _native.Program(codec.cls, tuple(ops))
+
+
 @functools.lru_cache(maxsize=None)
 def _codec(type_name: str) -> _MessageCodec:
     return _MessageCodec(type_name)
@@ -846,6 +937,35 @@ def serialize_message(message: Message, *, route: BufferRoute | None = None,
     away at once reuses one buffer and saves a fresh allocation and its page faults per message),
     else a new one.
     """
+    program = _programs.get(message.__class__, _UNKNOWN)
+    if program is _UNKNOWN:
+        program = _program_of(message)
+    if program is not None:
+        return _native.serialize(program, message, route, out)
+    return _serialize_python(message, route, out)
+
+
+_UNKNOWN = object()
+#: serialize_message's C program per message class (None: the Python codec serves it).
+_programs: dict[type, Any] = {}
+
+
+def _program_of(message: Any) -> Any:
+    """The C program for ``message``'s class, decided once per class: None for what is not a
+    generated message (the Python path raises its error) or a class the codec of its type
+    name does not take (as its wrong-type check)."""
+    program = None
+    if isinstance(message, Message):
+        codec = _codec(message.__msgtype__)
+        if issubclass(message.__class__, codec.cls):
+            program = codec.native
+        _programs[message.__class__] = program
+    return program
+
+
+def _serialize_python(message: Message, route: BufferRoute | None = None,
+                      out: bytearray | None = None) -> bytearray:
+    """:func:`serialize_message` by the Python codec (the reference, and the fallback)."""
     codec, end, decisions = _plan(message, route)
     if out is None or len(out) != end:
         out = bytearray(end)
@@ -873,6 +993,31 @@ def deserialize_message(
     if codec is None:
         type_name = msg_type if isinstance(msg_type, str) else msg_type.__msgtype__
         codec = _decoders[msg_type] = _codec(get_message_type(type_name).__msgtype__)
+    program = codec.native
+    if program is not None:
+        try:
+            message = _native.deserialize(program, data, backends, endpoint_info)
+        except RosidlBufferError:
+            raise
+        except (ValueError, TypeError, struct.error, IndexError, OverflowError) as exc:
+            raise DeserializationError(f"malformed {codec.cls.__msgtype__}: {exc}") from exc
+        if message is not _native.FALLBACK:
+            return message
+    return _read_python(codec, data, backends, endpoint_info)
+
+
+def _deserialize_python(data: bytes | bytearray | memoryview, msg_type: type[Message] | str, *,
+                        backends: Mapping[str, BufferBackend] | None = None,
+                        endpoint_info: EndpointInfo | None = None) -> Message:
+    """:func:`deserialize_message` by the Python codec (the reference, and the fallback)."""
+    type_name = msg_type if isinstance(msg_type, str) else msg_type.__msgtype__
+    return _read_python(_codec(get_message_type(type_name).__msgtype__), data, backends,
+                        endpoint_info)
+
+
+def _read_python(codec: _MessageCodec, data: bytes | bytearray | memoryview,
+                 backends: Mapping[str, BufferBackend] | None,
+                 endpoint_info: EndpointInfo | None) -> Message:
     type_name = codec.cls.__msgtype__
     view = memoryview(data).cast("B") if not isinstance(data, bytes) else memoryview(data)
     if len(view) < _ORIGIN:
@@ -889,3 +1034,6 @@ def deserialize_message(
     except (ValueError, TypeError, struct.error, IndexError, OverflowError) as exc:
         raise DeserializationError(f"malformed {type_name}: {exc}") from exc
     return message
+
+
+_native = _load_native()
