@@ -567,7 +567,10 @@ static Py_ssize_t buffer_size(Op *op, PyObject *value, Py_ssize_t pos, SCtx *c, 
             }
             Py_CLEAR(d->host);
         }
-        host = PyObject_CallMethodNoArgs(buffer, G.s_host_view);
+        /* _cdr._host_bytes(buffer): its contents as the bytes a uint8[] carries */
+        PyObject *host_bytes = PyDict_GetItemString(G.settings, "_host_bytes");  /* borrowed */
+        host = host_bytes != NULL ? PyObject_CallOneArg(host_bytes, buffer)
+                                  : PyObject_CallMethodNoArgs(buffer, G.s_host_view);
         d = &c->d[index];
         if (host == NULL)
             goto done;

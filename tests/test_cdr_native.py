@@ -239,6 +239,20 @@ def test_a_non_cpu_buffer_without_a_route_is_written_as_cpu_bytes():
     assert route.calls == []  # CPU storage never asks the route
 
 
+@pytest.mark.parametrize("values", [np.arange(4, dtype=np.float32),
+                                    np.arange(6, dtype=np.uint16).reshape(2, 3)])
+def test_a_buffer_of_another_dtype_travels_as_the_bytes_it_fills(values):
+    # A uint8[] counts bytes: a float32 Buffer of 4 values is 16 of them on the wire (its
+    # element count was written before its 16 bytes, corrupting what follows).
+    image_type = get_message_type("sensor_msgs/msg/Image")
+    image = image_type(data=Buffer(values, dtype=values.dtype), height=7)
+    for wire in (serialize_message(image), python_serialize(image)):
+        assert bytes(wire) == bytes(serialize_message(image_type(data=values.tobytes(),
+                                                                 height=7)))
+        back = deserialize_message(bytes(wire), image_type)
+        assert back.data.tobytes() == values.tobytes() and back.height == 7
+
+
 def test_a_route_that_declines_writes_cpu_bytes():
     image = get_message_type("sensor_msgs/msg/Image")(data=Buffer(FakeBufferImpl(b"xyz")))
     assert bytes(serialize_message(image, route=lambda buffer: None)) == \

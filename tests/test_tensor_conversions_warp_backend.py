@@ -182,9 +182,13 @@ def test_warp_default_backend_follows_the_array():
     assert MODULES["torch"].to_tensor_msg(torch.zeros(2)).data.get_backend_type() == "cpu"
 
 
-def test_empty_tensor_cannot_use_warp_storage():
-    with pytest.raises(tc.UnsupportedBackendError, match="empty"):
-        MODULES["numpy"].allocate_tensor_msg((0,), np.float32, backend="warp", device=DEVICE)
+def test_an_empty_tensor_may_use_warp_storage_but_an_empty_image_may_not():
+    # A tensor's storage may outgrow its layout (one byte under empty metadata); an image's
+    # data is exactly step * height bytes, and a warp buffer is never empty.
+    msg = MODULES["numpy"].allocate_tensor_msg((0,), np.float32, backend="warp", device=DEVICE)
+    assert msg.data.get_backend_type() == "warp" and len(msg.data) == 1
+    with pytest.raises(tc.UnsupportedBackendError, match="empty image"):
+        MODULES["numpy"].allocate_image_msg(0, 4, "rgb8", backend="warp", device=DEVICE)
 
 
 # ------------------------------------------------------------------------------------- CUDA

@@ -157,6 +157,16 @@ def _name_bytes(name: Any, field: str) -> bytes:
     return found
 
 
+def _host_bytes(buffer: Buffer) -> np.ndarray:
+    """``buffer``'s contents as the bytes a ``uint8[]`` carries: its host view, or (a Buffer of
+    another dtype, a view of more dimensions) that view's bytes, so the count written is the
+    byte count the data fills."""
+    host = buffer.host_view()
+    if host.dtype != np.uint8 or host.ndim != 1 or not host.flags.c_contiguous:
+        host = np.ascontiguousarray(host).reshape(-1).view(np.uint8)
+    return host
+
+
 def _buffer_of(impl: BufferImplBase) -> Buffer:
     """A Buffer over ``impl`` (``Buffer._of``, without its call: once per received field)."""
     buffer = _new_buffer(Buffer)
@@ -457,7 +467,7 @@ class _BufferField(_Field):
             cpu = _CPU_IMPLS.get(kind)
             route = None if (_judge_cpu(kind) if cpu is None else cpu) else route(value)
         if route is None:
-            host = value.host_view()
+            host = _host_bytes(value)
             ctx.decisions.append((host, None, None))
             return _align(pos, 4) + 4 + host.nbytes
         backend_name, descriptor = route
