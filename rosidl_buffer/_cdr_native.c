@@ -1345,6 +1345,21 @@ static PyObject *delegate_fail(PyObject *m) {
     return NULL;
 }
 
+/* An array's length, or a sequence's count read at *q (aligned first; *q moves past it) and
+ * within its bound: 0 when it cannot be read here (the field's Python read then says why). */
+static int element_count(RCtx *c, Op *op, Py_ssize_t *q, Py_ssize_t *n) {
+    if (!op->is_sequence) {
+        *n = op->array_length;
+        return 1;
+    }
+    *q = align(*q, 4);
+    if (*q > c->len - 4)
+        return 0;
+    *n = get_u32(c->data + *q);
+    *q += 4;
+    return !(op->bound && *n > op->bound);
+}
+
 static PyObject *program_read(Program *p, RCtx *c, Py_ssize_t *pos, int top) {
     PyObject *m = p->cls->tp_alloc(p->cls, 0);
     Py_ssize_t at = *pos;
@@ -1387,17 +1402,8 @@ static PyObject *program_read(Program *p, RCtx *c, Py_ssize_t *pos, int top) {
         case OP_NUMARRAY: {
             int w = WIDTH[op->kind];
             Py_ssize_t q = at, n;
-            if (op->is_sequence) {
-                q = align(q, 4);
-                if (q > c->len - 4)
-                    break;
-                n = get_u32(c->data + q);
-                q += 4;
-                if (op->bound && n > op->bound)
-                    break;
-            } else {
-                n = op->array_length;
-            }
+            if (!element_count(c, op, &q, &n))
+                break;
             if (n)
                 q = align(q, w);
             if (q > c->len || n * w > c->len - q)
@@ -1420,17 +1426,9 @@ static PyObject *program_read(Program *p, RCtx *c, Py_ssize_t *pos, int top) {
         case OP_STRARRAY:
         case OP_MSGARRAY: {
             Py_ssize_t q = at, n;
-            if (op->is_sequence) {
-                q = align(q, 4);
-                if (q > c->len - 4)
-                    break;
-                n = get_u32(c->data + q);
-                q += 4;
-                if ((op->bound && n > op->bound) || n > c->len - q)
-                    break;
-            } else {
-                n = op->array_length;
-            }
+            /* (each element takes a byte at least: a count past the bytes left is refused) */
+            if (!element_count(c, op, &q, &n) || (op->is_sequence && n > c->len - q))
+                break;
             PyObject *list = PyList_New(n);
             if (list == NULL)
                 return delegate_fail(m);
