@@ -111,10 +111,16 @@ def remove_node(node: Node) -> None:
 
 
 def close_open_nodes() -> None:
-    """Close the nodes still open as the interpreter exits, before it waits for its non-daemon
-    threads. Zenoh runs Python callbacks on threads of its own, which end only with their
-    session: a script that never closed its node (or died of an exception before it did) would
-    otherwise never exit, where an rclpy script does. Each close is bounded (``Node.close``)."""
+    """Close the nodes still open as the interpreter exits. Zenoh runs Python callbacks on
+    non-daemon threads of its own, which end only with their session: a script that never
+    closed its node (or died of an exception before it did) would otherwise never exit, where
+    an rclpy script does. The application's own non-daemon threads are waited for first (they
+    may still use the nodes: the interpreter would have waited for them too); a node another
+    thread is closing is waited for (``Node.close`` returns once it is closed)."""
+    for thread in threading.enumerate():
+        if not thread.daemon and thread is not threading.current_thread() \
+                and thread is not threading.main_thread() and not _zenoh_thread(thread):
+            thread.join()
     with _lock:
         nodes = list(_open_nodes)
     for node in nodes:
@@ -124,10 +130,19 @@ def close_open_nodes() -> None:
             _log.exception("closing node %s at exit failed", node.name)
 
 
-# threading's exit hooks run before the interpreter joins non-daemon threads; atexit's run after
-# that join (too late). The hook is private API, the one concurrent.futures uses (Python 3.9+).
-_register_exit_hook = getattr(threading, "_register_atexit", atexit.register)
-_register_exit_hook(close_open_nodes)
+def _zenoh_thread(thread: threading.Thread) -> bool:
+    """Is ``thread`` one zenoh-python started to run a session's Python callbacks? (Its target
+    is a pyo3 closure: ``Thread-N (pyo3-closure)``; it ends when its session closes.)"""
+    return thread.name.endswith("(pyo3-closure)")
+
+
+try:
+    # threading's exit hooks run before the interpreter joins non-daemon threads; atexit's run
+    # after that join (too late). Private API, the one concurrent.futures uses (Python 3.9+).
+    threading._register_atexit(close_open_nodes)  # type: ignore[attr-defined]
+except (AttributeError, RuntimeError):  # no such hook, or imported while the interpreter exits
+    # (nodes made then are closed by atexit, after the threads they would keep alive: hang)
+    atexit.register(close_open_nodes)
 
 
 def _after_fork_in_child() -> None:

@@ -118,6 +118,7 @@ class Node:
         self.locality = wire.Locality(local_host_id(), os.getpid(), os.getuid())
         self.executor_mode = executor
         self._closed = False
+        self._close_done = threading.Event()  # set once close() finished
         self._lock = threading.RLock()
         #: The graph of the domain as this node sees it (it shares the node's lock).
         self.graph = Graph(self._lock)
@@ -191,16 +192,27 @@ class Node:
 
         Bounded: the steps that may block on a frozen peer share ``CLOSE_TIMEOUT_S`` seconds
         (what is not done by then finishes in the background); Zenoh failures are logged, never
-        raised.
+        raised. Called again meanwhile (another thread, the exit of the interpreter), it returns
+        once the first close finished.
         """
         with self._lock:
-            if self._closed:
-                return
+            closing = self._closed
             self._closed = True
             endpoints: list[Publisher | Subscription] = [*self._publishers, *self._subscriptions]
             self._publishers.clear()
             self._subscriptions.clear()
-        _process.remove_node(self)
+        if closing:  # another thread closes it: done when that close is (not inside a callback
+            # of the node, which that close may be waiting for)
+            if not self.scheduler.in_flight.here():
+                self._close_done.wait(CLOSE_TIMEOUT_S + 1.0)
+            return
+        try:
+            self._close_steps(endpoints)
+        finally:
+            _process.remove_node(self)
+            self._close_done.set()
+
+    def _close_steps(self, endpoints: list[Publisher | Subscription]) -> None:
         for timer in self._timers.close():  # none starts from here (a running one is waited for)
             timer.forget()
         self.graph.close()
@@ -273,6 +285,10 @@ class Node:
         wait = wait_seconds(timeout)
         if self.executor_mode == "thread" and self._owner is None:
             self._check_open()
+            if self.scheduler.in_flight.here():
+                raise ExecutorModeError(
+                    f"spin() inside a callback of node {self.name!r} would hold up its other "
+                    "callbacks until it is closed")
             self._wait_closed(wait)
             return
         with self._spinning(), user_spin():

@@ -235,6 +235,14 @@ static Py_ssize_t run_end(const Op *op, Py_ssize_t pos) {
     return pos;
 }
 
+/* A failed parse leaves op holding only what it owns (prims' names, the descriptors dict): the
+ * borrowed references PyArg_ParseTuple stored are forgotten (op_clear would release them). They
+ * are taken together once the whole op parsed. */
+static int disown(Op *op) {
+    op->step = op->name = op->element = op->dtype = op->native = NULL;
+    return -1;
+}
+
 static int parse_op(Op *op, PyObject *spec) {
     PyObject *descr = NULL, *sub = NULL, *prims = NULL;
     int code;
@@ -249,75 +257,77 @@ static int parse_op(Op *op, PyObject *spec) {
     switch (code) {
     case OP_RUN:
         if (!PyArg_ParseTuple(spec, "iOO!", &code, &op->step, &PyTuple_Type, &prims))
-            return -1;
+            return disown(op);
         op->nprims = (int)PyTuple_GET_SIZE(prims);
         op->prims = PyMem_Calloc(op->nprims ? op->nprims : 1, sizeof(Prim));
         if (op->prims == NULL) {
             PyErr_NoMemory();
-            return -1;
+            return disown(op);
         }
         for (int i = 0; i < op->nprims; i++) {
             PyObject *d;
             Prim *p = &op->prims[i];
-            if (!PyArg_ParseTuple(PyTuple_GET_ITEM(prims, i), "OUi", &d, &p->name, &p->kind))
-                return -1;
+            if (!PyArg_ParseTuple(PyTuple_GET_ITEM(prims, i), "OUi", &d, &p->name, &p->kind)) {
+                p->name = NULL;  /* (borrowed, if the parse stored it) */
+                return disown(op);
+            }
             Py_INCREF(p->name);
             if (p->kind < 0 || p->kind >= P_COUNT) {
                 PyErr_SetString(PyExc_ValueError, "unknown primitive kind");
-                return -1;
+                return disown(op);
             }
             if (slot_offset(d, &p->off) < 0)
-                return -1;
+                return disown(op);
         }
         break;
     case OP_STRING:
         if (!PyArg_ParseTuple(spec, "iOOUn", &code, &op->step, &descr, &op->name,
                               &op->string_bound))
-            return -1;
+            return disown(op);
         break;
     case OP_NESTED:
         if (!PyArg_ParseTuple(spec, "iOOUO!", &code, &op->step, &descr, &op->name, &ProgramType,
                               &sub))
-            return -1;
+            return disown(op);
         break;
     case OP_NUMARRAY:
         if (!PyArg_ParseTuple(spec, "iOOUinpnOO", &code, &op->step, &descr, &op->name, &op->kind,
                               &op->array_length, &op->is_sequence, &op->bound, &op->dtype,
                               &op->native))
-            return -1;
+            return disown(op);
         if (op->kind < 0 || op->kind >= P_COUNT) {
             PyErr_SetString(PyExc_ValueError, "unknown primitive kind");
-            return -1;
+            return disown(op);
         }
-        Py_INCREF(op->dtype);
-        Py_INCREF(op->native);
         break;
     case OP_STRARRAY:
         if (!PyArg_ParseTuple(spec, "iOOUnpnnO", &code, &op->step, &descr, &op->name,
                               &op->array_length, &op->is_sequence, &op->bound, &op->string_bound,
                               &op->element))
-            return -1;
-        Py_INCREF(op->element);
+            return disown(op);
         break;
     case OP_MSGARRAY:
         if (!PyArg_ParseTuple(spec, "iOOUnpnO!", &code, &op->step, &descr, &op->name,
                               &op->array_length, &op->is_sequence, &op->bound, &ProgramType,
                               &sub))
-            return -1;
+            return disown(op);
         break;
     case OP_BUFFER:
         if (!PyArg_ParseTuple(spec, "iOOU", &code, &op->step, &descr, &op->name))
-            return -1;
+            return disown(op);
         op->descriptors = PyDict_New();
         if (op->descriptors == NULL)
-            return -1;
+            return disown(op);
         break;
     default:
         PyErr_Format(PyExc_ValueError, "unknown op code %d", code);
-        return -1;
+        return disown(op);
     }
     Py_INCREF(op->step);
     Py_XINCREF(op->name);
+    Py_XINCREF(op->element);
+    Py_XINCREF(op->dtype);
+    Py_XINCREF(op->native);
     if (sub != NULL) {
         Py_INCREF(sub);
         op->sub = (Program *)sub;
@@ -1079,9 +1089,20 @@ static PyObject *serialize(PyObject *self, PyObject *const *args, Py_ssize_t nar
         Py_INCREF(out);
     }
     c.out = out;
+    /* An export held through the write pass: code it runs (a value's __index__, a route) cannot
+     * resize out under c.buf (BufferError, as on the Python path). */
+    Py_buffer hold;
+    if (PyObject_GetBuffer(out, &hold, PyBUF_WRITABLE) < 0) {
+        Py_DECREF(out);
+        goto fail;
+    }
     refresh(&c);
     memcpy(c.buf, "\x00\x01\x00\x00", ORIGIN);
-    if (program_write(p, m, ORIGIN, &c) < 0) {
+    Py_ssize_t written = program_write(p, m, ORIGIN, &c);
+    PyBuffer_Release(&hold);
+    if (written != end) {  /* short of the sized end: a value changed in between */
+        if (written >= 0)
+            changed();
         Py_DECREF(out);
         goto fail;
     }

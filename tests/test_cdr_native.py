@@ -502,3 +502,47 @@ def test_a_backend_that_returns_no_impl_is_the_same_error():
                     endpoint_info=info),
             outcome(python_deserialize, wire, image.__class__, backends=backends,
                     endpoint_info=info))
+
+
+# -- found by review: code a value runs during the write pass ----------------------------------
+def test_a_value_that_resizes_out_while_it_is_written_is_refused():
+    image_type = get_message_type("sensor_msgs/msg/Image")
+    size = len(serialize_message(image_type(encoding="rgb8", data=bytes(64))))
+    out = bytearray(size)
+
+    class Resizes:
+        def __index__(self) -> int:
+            out.clear()  # would free the memory the C write pass holds
+            return 7
+
+    with pytest.raises(BufferError):
+        serialize_message(image_type(encoding="rgb8", data=bytes(64), height=Resizes()), out=out)
+    assert len(out) == size
+
+
+def test_a_message_that_shrinks_while_it_is_written_is_refused_not_padded_with_garbage():
+    image_type = get_message_type("sensor_msgs/msg/Image")
+    message = image_type(encoding="e" * 300, data=bytes(8))
+
+    class Shrinks:
+        def __index__(self) -> int:
+            message.encoding = ""  # a later field gets shorter after it was sized
+            return 1
+
+    message.height = Shrinks()
+    with pytest.raises(SerializationError, match="changed while it was serialized"):
+        serialize_message(message)
+
+
+def test_a_program_that_fails_to_build_releases_only_what_it_took():
+    import sys
+
+    time_type = get_message_type("builtin_interfaces/msg/Time")
+    slot = time_type.__dict__["sec"]
+    step, dtype, native = object(), object(), object()
+    before = [sys.getrefcount(o) for o in (step, dtype, native)]
+    for kind in (99, -1):  # an unknown primitive kind: refused after the op's tuple parsed
+        with pytest.raises(ValueError):
+            _cdr._native.Program(time_type, ((_cdr._native.OP_NUMARRAY, step, slot, "sec", kind,
+                                              0, False, 0, dtype, native),))
+    assert [sys.getrefcount(o) for o in (step, dtype, native)] == before

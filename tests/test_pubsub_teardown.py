@@ -377,3 +377,30 @@ def test_a_script_that_never_closes_its_nodes_still_exits(domain, topic, how):
     assert app.stdout == ""
     if how == "raise":
         assert "WrongMessageTypeError" in app.stderr or "SerializationError" in app.stderr
+
+
+_WORKER_APP = r"""
+import sys, threading, time
+from buffer_pubsub import Node
+domain, topic = int(sys.argv[1]), sys.argv[2]
+
+def work():
+    time.sleep(0.3)  # the main thread has returned: the node is made during the exit
+    node = Node("late_worker", domain_id=domain)  # never closed either
+    publisher = node.create_publisher("std_msgs/msg/String", topic)
+    for _ in range(10):
+        publisher.publish(publisher.msg_type(data="x"))
+        time.sleep(0.05)
+    print("worker done", flush=True)
+
+threading.Thread(target=work).start()  # not a daemon: the interpreter waits for it
+"""
+
+
+def test_the_exit_waits_for_the_applications_threads_before_it_closes_their_nodes(domain,
+                                                                                    topic):
+    # The open nodes are closed once the application's own non-daemon threads ended (they may
+    # still publish, even make a node: the interpreter waits for them).
+    app = subprocess.run([sys.executable, "-c", _WORKER_APP, str(domain), topic], cwd=ROOT,
+                         env=child_env(), capture_output=True, text=True, timeout=60)
+    assert (app.returncode, app.stdout) == (0, "worker done\n"), app.stderr

@@ -64,3 +64,22 @@ def test_spin_on_a_node_with_its_own_thread_waits_while_callbacks_run(domain, to
         closer.join()
     with pytest.raises(NodeClosedError):
         node.spin(0)
+
+
+def test_spin_inside_a_callback_of_the_node_is_refused(domain):
+    with Node("self_spinning", domain_id=domain) as node:
+        outcome: list[str] = []
+
+        def tick() -> None:
+            timer.cancel()
+            try:
+                node.spin(timeout=5)
+                outcome.append("returned")
+            except ExecutorModeError:
+                outcome.append("refused")
+
+        timer = node.create_timer(0.01, tick)
+        deadline = time.monotonic() + 10
+        while not outcome and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert outcome == ["refused"]

@@ -1,11 +1,12 @@
 """Print the topics of a type, one per line, as ``ros2 topic find`` does (``-c``: only how
-many; nothing, exit 0, when no topic has it)."""
+many; nothing, exit 0, when no topic has it). The type is matched by name (``pkg/Name`` or
+``pkg/msg/Name``): it need not be installed here, a ROS 2 peer's own types are found too."""
 
 from __future__ import annotations
 
 import argparse
 
-from rosidl_buffer.messages import get_message_type
+from rosidl_buffer.messages import normalize_type_name
 
 from .._graph import add_graph_options, graph_node
 from .list import topics
@@ -19,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    type_name = get_message_type(args.topic_type).__msgtype__  # a misspelt type: an error
+    type_name = normalize_type_name(args.topic_type)  # not a type name at all: an error
     with graph_node(args) as node:
         found = sorted(topic for topic, types in topics(node, args).items() if type_name in types)
     if args.count_topics:
