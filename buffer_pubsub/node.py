@@ -209,6 +209,7 @@ class Node:
         try:
             self._close_steps(endpoints)
         finally:
+            endpoints.clear()  # what they hold goes now, on this thread (see Subscription)
             _process.remove_node(self)
             self._close_done.set()
 
@@ -228,7 +229,7 @@ class Node:
                 owner.remove_node(self, timeout_sec=max(0.0, deadline - time.monotonic()))
 
         def undeclare() -> None:
-            for endpoint in endpoints:
+            for endpoint in tuple(endpoints):  # (close() clears the list once it returns)
                 try:  # one endpoint's failure must not leave the others declared
                     endpoint.destroy()
                 except Exception:

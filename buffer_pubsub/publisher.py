@@ -809,6 +809,7 @@ class Publisher:
             self._history.clear()  # type: ignore[union-attr]
         self._loans.clear()
         undeclare_quietly(self._liveliness, self._base_matching)
+        self._liveliness = self._base_matching = None  # (dropped here: see Subscription)
         for peer in peers:  # their routes; not their state in the backends: they live on, and
             peer.close()  # may import frames of ours still in flight (a lane's queue)
         # After a publish in flight on another thread: zenoh-python cannot undeclare a publisher
@@ -818,6 +819,7 @@ class Publisher:
         if self._out_lock.acquire(timeout=UNDECLARE_WAIT_S):
             try:
                 undeclare_quietly(self._base, self._cpu)  # (a second undeclare is harmless)
+                self._base = self._cpu = None  # type: ignore[assignment]  # dropped here too
             finally:
                 self._out_lock.release()
         endpoint_gone(self._backends, self.info)

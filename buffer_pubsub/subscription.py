@@ -611,6 +611,10 @@ class Subscription:
             release_buffers(msg)
         _process.remove_subscription(self.base_key, self)
         undeclare_quietly(self._liveliness, *self._subscribers)
+        # Let go of them here, in the close the exit waits for: a zenoh entity dropped later on a
+        # daemon thread, while the interpreter finalizes, aborts the process (its Rust drop
+        # cannot take the GIL back).
+        self._liveliness, self._subscribers = None, []
         if self._lane_reader is not None:  # the waker closes it once detached
             self.node.lane.detach(self._lane_reader, close=True)
         endpoint_gone(self._backends, self.info)
