@@ -502,6 +502,15 @@ static Py_ssize_t numarray_count(PyObject *v) {
     return -2;
 }
 
+/* A descriptor's serialized size on its own (from the origin: what the size limit is about),
+ * or -1 with an exception set. */
+static Py_ssize_t alone_size(Program *dp, PyObject *descriptor) {
+    SCtx alone = {0};
+    Py_ssize_t at = program_size(dp, descriptor, ORIGIN, &alone, 0);
+    sctx_free(&alone);
+    return at < 0 ? -1 : at - ORIGIN;
+}
+
 static Py_ssize_t buffer_size(Op *op, PyObject *value, Py_ssize_t pos, SCtx *c, int top) {
     PyObject *buffer = NULL, *impl = NULL, *routed = NULL, *pair = NULL;
     Py_ssize_t result = -1, index;
@@ -669,12 +678,8 @@ static Py_ssize_t buffer_size(Op *op, PyObject *value, Py_ssize_t pos, SCtx *c, 
         nbytes = dp->fixed_size;
         end = run_end(&dp->ops[0], pos);
     } else {
-        SCtx alone = {0};
-        Py_ssize_t at = program_size(dp, descriptor, ORIGIN, &alone, 0);
-        sctx_free(&alone);
-        if (at < 0)
+        if ((nbytes = alone_size(dp, descriptor)) < 0)
             goto done;
-        nbytes = at - ORIGIN;
         if ((end = program_size(dp, descriptor, pos, c, 0)) < 0)
             goto done;
         d = &c->d[index];
@@ -1312,12 +1317,8 @@ static PyObject *descriptor_read(Op *op, RCtx *c, Py_ssize_t *pos, Py_ssize_t q,
     } else {
         if ((descriptor = program_read(dp, c, &q, 1)) == NULL)
             goto fail;
-        SCtx alone = {0};
-        Py_ssize_t at = program_size(dp, descriptor, ORIGIN, &alone, 0);
-        sctx_free(&alone);
-        if (at < 0)
+        if ((nbytes = alone_size(dp, descriptor)) < 0)
             goto fail;
-        nbytes = at - ORIGIN;
     }
     Py_ssize_t limit = max_descriptor();
     if (limit < 0 && PyErr_Occurred())
