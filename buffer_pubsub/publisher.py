@@ -145,6 +145,11 @@ class _Peer:
     # The last number of its own stream (Zenoh channel and lane alike: one stream), advanced
     # under ``lock``; one that left and came back continues it (see Publisher._left_streams).
     sequence: int = 0
+    # The publisher's publish count when this stream last numbered a message (or began).
+    numbered_at: int = 0
+    # A subscription that came back: (its last number, numbered_at) when it left. Its first
+    # put skips one number per message published in between (see Publisher._continue_stream).
+    resume: tuple[int, int] | None = None
     # What backends are told when descriptors are made for it: its info, plus the depth of
     # the lane's keep-last queue while the lane carries them (EndpointInfo.delivery_queue_depth).
     route_info: EndpointInfo = field(init=False)
@@ -387,18 +392,19 @@ class Publisher:
             return
         with self._lock:
             left = self._left_streams
-            left[peer.token.gid] = (peer.sequence, self._published)
+            left[peer.token.gid] = (peer.resume if peer.resume is not None
+                                    else (peer.sequence, peer.numbered_at))
             if len(left) > MAX_LEFT_STREAMS:
                 left.popitem(last=False)
 
     def _continue_stream(self, peer: _Peer) -> None:
         """Number ``peer``'s stream on from where it stood when it left, skipping one number
-        per message published meanwhile, which it missed (call with ``self._lock`` held). A
-        rate-limited stream skips none: its reader takes every number it is sent."""
-        left = self._left_streams.pop(peer.token.gid, None)
-        if left is not None:
-            sequence, published = left
-            peer.sequence = sequence + (self._published - published if peer.rate is None else 0)
+        per message published meanwhile, which it missed (call with ``self._lock`` held). The
+        skip is counted at its first put (:meth:`_put_individual`, under the publishing lock):
+        a publish that began before the peer was kept neither reaches it nor escapes the
+        count. A rate-limited stream skips none: its reader takes every number it is sent."""
+        peer.numbered_at = self._published
+        peer.resume = self._left_streams.pop(peer.token.gid, None)
 
     def _open_lane(self, peer: _Peer) -> None:
         """Give a kept peer the same-host lane if it has one (~12 ms, once per match). Opened
@@ -744,7 +750,13 @@ class Publisher:
         with peer.lock:
             if peer.gone:
                 return  # the subscription vanished while we were publishing: nobody to send to
+            if peer.resume is not None:  # back: what was published while it was away is lost
+                sequence, numbered_at = peer.resume
+                peer.resume = None
+                skipped = self._published - 1 - numbered_at  # (this message is the next)
+                peer.sequence = sequence + (skipped if peer.rate is None else 0)
             peer.sequence = number = peer.sequence + 1
+            peer.numbered_at = self._published
             attachment = wire.new_attachment((number, stamp, self.gid)).encode()
             lane = peer.lane
             if lane is not None and lane.fits(len(attachment) + len(payload)):
