@@ -290,7 +290,7 @@ class Node:
                 raise ExecutorModeError(
                     f"spin() inside a callback of node {self.name!r} would hold up its other "
                     "callbacks until it is closed")
-            self._wait_closed(wait)
+            self._close_done.wait(wait)  # (Ctrl-C interrupts the wait, as rclpy.spin)
             return
         with self._spinning(), user_spin():
             deadline = None if wait is None else time.monotonic() + wait
@@ -300,14 +300,6 @@ class Node:
                     return
                 self.scheduler.spin_once(
                     NodeExecutor.TICK_S if left is None else min(left, NodeExecutor.TICK_S))
-
-    def _wait_closed(self, wait: float | None) -> None:
-        deadline = None if wait is None else time.monotonic() + wait
-        while not self._closed:  # short sleeps: Ctrl-C is raised between two
-            left = None if deadline is None else deadline - time.monotonic()
-            if left is not None and left <= 0:
-                return
-            time.sleep(NodeExecutor.TICK_S if left is None else min(left, NodeExecutor.TICK_S))
 
     @contextlib.contextmanager
     def _spinning(self) -> Iterator[None]:
@@ -381,11 +373,6 @@ class Node:
     def _installed_metadata(self, names: Sequence[str]) -> dict[str, str]:
         return {name: self.backends[name].get_backend_metadata() for name in names}
 
-    @staticmethod
-    def _check_transient(qos: QoSProfile) -> bool:
-        """Whether ``qos`` is transient-local."""
-        return qos.durability == wire.TRANSIENT_LOCAL
-
     def _topic(self, topic: str) -> str:
         return expand_topic_name(topic, self.name, self.namespace)
 
@@ -412,7 +399,7 @@ class Node:
         self._check_open()
         cls = self._resolve_type(msg_type)
         qos = resolve_qos(depth, history, reliability, durability, qos_profile)
-        transient = self._check_transient(qos)
+        transient = qos.transient_local
         fq_topic = self._topic(topic)
         # As rmw_zenoh's buffer-aware publishers: cpu plus every installed backend's metadata
         # (a type without a top-level uint8[], or a transient-local one, advertises nothing).
@@ -480,7 +467,7 @@ class Node:
         callback_group = self._callback_group(callback_group)
         cls = self._resolve_type(msg_type)
         qos = resolve_qos(depth, history, reliability, durability, qos_profile)
-        transient = self._check_transient(qos)
+        transient = qos.transient_local
         fq_topic = self._topic(topic)
         from rosidl_buffer import parse_acceptable_backends
 

@@ -75,6 +75,10 @@ class QoSProfile:
         for name in _CHOICES:
             object.__setattr__(self, name, _policy(name, getattr(self, name)))
 
+    @property
+    def transient_local(self) -> bool:
+        return self.durability == wire.TRANSIENT_LOCAL
+
 
 class _DefaultDepth(int):
     """The default ``depth`` (10), told apart from an explicit 10 by identity."""

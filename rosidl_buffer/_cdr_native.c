@@ -71,12 +71,12 @@ static struct {
     PyObject *frombuffer, *uint8;
     Py_ssize_t buffer_impl_off, cpu_storage_off, cpu_size_off, cpu_dtype_off, cpu_readers_off;
     PyObject *cpu_impls, *judge_cpu, *impls, *impl_base;
-    PyObject *read_context, *wrong_type, *name_bytes, *write_array, *pair;
+    PyObject *read_context, *wrong_type, *name_bytes, *write_array, *pair, *host_bytes;
     PyObject *resolve_descriptor, *descriptor_programs;
     PyObject *DeserializationError, *SerializationError, *DescriptorTooLargeError;
     PyObject *settings;      /* the Python codec's globals: its MAX_BUFFER_DESCRIPTOR_SIZE */
     PyObject *fallback;
-    PyObject *s_size, *s_write, *s_read, *s_check, *s_host_view, *s_astype, *s_dtype, *s_from,
+    PyObject *s_size, *s_write, *s_read, *s_check, *s_astype, *s_dtype, *s_from,
              *s_get, *s_impl, *s_cast, *s_B;
 } G;
 
@@ -133,7 +133,7 @@ static inline int is_instance(PyObject *v, PyTypeObject *cls) {
 static PyObject *configure(PyObject *self, PyObject *args, PyObject *kwargs) {
     static char *kw[] = {"ndarray", "buffer", "cpu_impl", "frombuffer", "uint8", "cpu_impls",
                          "judge_cpu", "impls", "impl_base", "read_context", "wrong_type",
-                         "name_bytes", "write_array", "pair", "resolve_descriptor",
+                         "name_bytes", "write_array", "pair", "host_bytes", "resolve_descriptor",
                          "DeserializationError", "SerializationError",
                          "DescriptorTooLargeError", "settings", NULL};
     PyObject *ndarray, *buffer, *cpu_impl;
@@ -142,10 +142,11 @@ static PyObject *configure(PyObject *self, PyObject *args, PyObject *kwargs) {
         return NULL;
     }
     if (!PyArg_ParseTupleAndKeywords(
-            args, kwargs, "O!O!O!OOO!OO!OOOOOOOOOOO!", kw, &PyType_Type, &ndarray, &PyType_Type,
+            args, kwargs, "O!O!O!OOO!OO!OOOOOOOOOOOO!", kw, &PyType_Type, &ndarray, &PyType_Type,
             &buffer, &PyType_Type, &cpu_impl, &G.frombuffer, &G.uint8, &PyDict_Type,
             &G.cpu_impls, &G.judge_cpu, &PyDict_Type, &G.impls, &G.impl_base, &G.read_context,
-            &G.wrong_type, &G.name_bytes, &G.write_array, &G.pair, &G.resolve_descriptor,
+            &G.wrong_type, &G.name_bytes, &G.write_array, &G.pair, &G.host_bytes,
+            &G.resolve_descriptor,
             &G.DeserializationError, &G.SerializationError, &G.DescriptorTooLargeError,
             &PyDict_Type, &G.settings))
         return NULL;
@@ -160,7 +161,7 @@ static PyObject *configure(PyObject *self, PyObject *args, PyObject *kwargs) {
         return NULL;
     PyObject *keep[] = {ndarray, buffer, cpu_impl, G.frombuffer, G.uint8, G.cpu_impls,
                         G.judge_cpu, G.impls, G.impl_base, G.read_context, G.wrong_type,
-                        G.name_bytes, G.write_array, G.pair, G.resolve_descriptor,
+                        G.name_bytes, G.write_array, G.pair, G.host_bytes, G.resolve_descriptor,
                         G.DeserializationError, G.SerializationError,
                         G.DescriptorTooLargeError, G.settings};
     for (size_t i = 0; i < sizeof keep / sizeof keep[0]; i++)
@@ -587,9 +588,7 @@ static Py_ssize_t buffer_size(Op *op, PyObject *value, Py_ssize_t pos, SCtx *c, 
             Py_CLEAR(d->host);
         }
         /* _cdr._host_bytes(buffer): its contents as the bytes a uint8[] carries */
-        PyObject *host_bytes = PyDict_GetItemString(G.settings, "_host_bytes");  /* borrowed */
-        host = host_bytes != NULL ? PyObject_CallOneArg(host_bytes, buffer)
-                                  : PyObject_CallMethodNoArgs(buffer, G.s_host_view);
+        host = PyObject_CallOneArg(G.host_bytes, buffer);
         d = &c->d[index];
         if (host == NULL)
             goto done;
@@ -1588,7 +1587,6 @@ PyMODINIT_FUNC PyInit__cdr_native(void) {
     INTERN(s_write, "write");
     INTERN(s_read, "read");
     INTERN(s_check, "_check");
-    INTERN(s_host_view, "host_view");
     INTERN(s_astype, "astype");
     INTERN(s_dtype, "dtype");
     INTERN(s_from, "from_descriptor_with_endpoint");

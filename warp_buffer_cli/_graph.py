@@ -20,7 +20,7 @@ from rosidl_buffer.errors import RosidlBufferError
 
 __all__ = ["GraphCommandError", "UnknownTopicError", "add_graph_options", "graph_node",
            "hidden", "latched_durability", "resolve_topic", "routes_by_publisher",
-           "wait_for_topic"]
+           "unknown_topic", "wait_for_topic"]
 
 #: How long a command watches the graph before it reports (peers answer in ~0.1-0.5 s here).
 DEFAULT_SPIN_TIME = 1.0
@@ -73,11 +73,16 @@ def resolve_topic(node: Any, topic: str) -> tuple[str, str]:
     name = topic if topic.startswith("/") else "/" + topic
     types = dict(node.get_topic_names_and_types()).get(name)
     if not types:
-        raise UnknownTopicError(f"topic {name!r} is not in the graph of domain "
-                                f"{node.domain_id} (see `warp-buffer topic list`)")
+        raise unknown_topic(node, name)
     if len(types) > 1:
         raise GraphCommandError(f"topic {name!r} has several types: {', '.join(types)}")
     return name, types[0]
+
+
+def unknown_topic(node: Any, name: str) -> UnknownTopicError:
+    """The error for topic ``name``, which no endpoint in ``node``'s graph has."""
+    return UnknownTopicError(f"topic {name!r} is not in the graph of domain {node.domain_id} "
+                             "(see `warp-buffer topic list`)")
 
 
 def wait_for_topic(node: Any, topic: str) -> tuple[str, str]:

@@ -851,7 +851,7 @@ def _load_native() -> Any:
         ndarray=np.ndarray, buffer=Buffer, cpu_impl=CpuBufferImpl, frombuffer=np.frombuffer,
         uint8=np.dtype(np.uint8), cpu_impls=_CPU_IMPLS, judge_cpu=_judge_cpu, impls=_IMPLS,
         impl_base=BufferImplBase, read_context=_ReadContext, wrong_type=_wrong_type,
-        name_bytes=_name_bytes, write_array=_write_array, pair=_pair,
+        name_bytes=_name_bytes, write_array=_write_array, pair=_pair, host_bytes=_host_bytes,
         resolve_descriptor=_descriptor_program, DeserializationError=DeserializationError,
         SerializationError=SerializationError, DescriptorTooLargeError=DescriptorTooLargeError,
         settings=globals())

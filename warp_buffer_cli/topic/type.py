@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 from .._arguments import absolute_topic_name
-from .._graph import UnknownTopicError, add_graph_options, graph_node
+from .._graph import add_graph_options, graph_node, unknown_topic
 from .list import topics
 
 
@@ -20,8 +20,7 @@ def run(args: argparse.Namespace) -> int:
     with graph_node(args) as node:
         types = topics(node, args).get(args.topic_name)
         if not types:
-            raise UnknownTopicError(f"topic {args.topic_name!r} is not in the graph of domain "
-                                    f"{node.domain_id} (see `warp-buffer topic list`)")
+            raise unknown_topic(node, args.topic_name)
     for type_name in sorted(types):
         print(type_name)
     return 0
