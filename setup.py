@@ -13,6 +13,8 @@ setup(ext_modules=[
               depends=["warp_buffer/_core.h"], extra_compile_args=CFLAGS),
     Extension("buffer_pubsub._ring", sources=["buffer_pubsub/_ring.c"],
               depends=["buffer_pubsub/_ring.h"], extra_compile_args=CFLAGS),
+    Extension("buffer_pubsub._streams", sources=["buffer_pubsub/_streams.c"],
+              extra_compile_args=CFLAGS),
     Extension("rosidl_buffer._cdr_native", sources=["rosidl_buffer/_cdr_native.c"],
               extra_compile_args=CFLAGS),
 ])

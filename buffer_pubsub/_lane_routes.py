@@ -4,9 +4,9 @@ Small pure pieces the publisher, subscription and node call:
 
 - :func:`serves`: the route decision for one matched subscription;
 - :func:`open_writer` / :func:`open_reader`: a lane for a route, or None (Zenoh carries it);
-- :func:`split_frame`: a lane message is the attachment (as Zenoh carries it beside the
-  payload) then the CDR payload, ``writer.write(attachment, payload)``, so lane and Zenoh
-  deliveries enter one receive path.
+- a lane message is the attachment (as Zenoh carries it beside the payload) then the CDR
+  payload, ``writer.write(attachment, payload)``, so lane and Zenoh deliveries enter one
+  receive path (:func:`.wire.split_frame` takes it apart).
 
 A lane leaves nothing behind when a peer dies (the kernel reclaims its memfds, sockets and
 eventfds): there is nothing to clean up on loss.
@@ -21,7 +21,7 @@ import resource
 from . import fast_lane, wire
 
 __all__ = ["fd_headroom", "open_reader", "open_writer", "queue_depth",
-           "serves", "split_frame"]
+           "serves"]
 
 _log = logging.getLogger(__name__)
 
@@ -102,13 +102,3 @@ def open_reader(base_key: str, gid: bytes, depth: int) -> fast_lane.LaneReader |
     except fast_lane.LaneUnavailableError as error:
         _log.info("fast lane off for %s: %s", gid.hex(), error)
         return None
-
-
-def split_frame(data: bytes) -> tuple[wire.Attachment, memoryview]:
-    """The attachment and the CDR payload of a lane message.
-
-    Raises:
-        WireFormatError: shorter than an attachment, or a malformed one.
-    """
-    head = data[:wire.ATTACHMENT_SIZE]
-    return wire.Attachment.decode(head), memoryview(data)[wire.ATTACHMENT_SIZE:]

@@ -27,7 +27,7 @@ when it is discovered (:func:`wire.subscription_channel`), not per message:
 
 Sequence numbers count per stream (base key, ``_buf_cpu``, each ``_buf/<gid>`` with its lane,
 intra-process), so whoever receives one stream from us sees 1, 2, 3...; source timestamps are
-strictly increasing per publisher (the key of duplicate detection, see :mod:`._sequence`).
+strictly increasing per publisher (the key of duplicate detection, see :mod:`._streams`).
 """
 
 from __future__ import annotations
@@ -662,11 +662,12 @@ class Publisher:
             for peer, payload in individual:
                 self._put_individual(peer, cpu_payload if payload is None else payload, stamp)
             if routing.cpu:
-                self._cpu.put(cpu_payload, attachment=wire.new_attachment(  # type: ignore[union-attr]
-                    (next(self._cpu_sequences), stamp, gid)).encode())
+                self._cpu.put(cpu_payload,  # type: ignore[union-attr]
+                              attachment=wire.pack_attachment(next(self._cpu_sequences), stamp,
+                                                              gid))
             if need_base:
-                self._base.put(cpu_payload, attachment=wire.new_attachment(
-                    (next(self._base_sequences), stamp, gid)).encode())
+                self._base.put(cpu_payload, attachment=wire.pack_attachment(
+                    next(self._base_sequences), stamp, gid))
         except zenoh.ZError as exc:
             raise TransportError(f"publish on {self.topic_name}: {exc}") from exc
 
@@ -757,7 +758,7 @@ class Publisher:
                 peer.sequence = sequence + (skipped if peer.rate is None else 0)
             peer.sequence = number = peer.sequence + 1
             peer.numbered_at = self._published
-            attachment = wire.new_attachment((number, stamp, self.gid)).encode()
+            attachment = wire.pack_attachment(number, stamp, self.gid)
             lane = peer.lane
             if lane is not None and lane.fits(len(attachment) + len(payload)):
                 try:

@@ -17,7 +17,7 @@ refuses is counted by reason in ``counters.refused``:
 - ``late``: older than a message already delivered from its publisher on the same stream
   (keep-last only; a route switch from Zenoh to the lane may let a later message overtake).
 
-Losses are judged per stream (see :mod:`._sequence`): a gap on Zenoh counts in ``lost``; a
+Losses are judged per stream (see :mod:`._streams`): a gap on Zenoh counts in ``lost``; a
 gap on the lane is the lane's keep-last queue overwriting what the executor had not taken yet,
 the subscription's own backlog, and counts in ``dropped`` with the overflow of its own keep-last
 queue; so does, for a keep-last subscription, a message whose backend memory its publisher
@@ -55,7 +55,7 @@ from ._executor import log_callback_error, spinning_here
 from .graph import matching_wait
 from ._inline import InlinePolicy
 from ._rate import RateLimit
-from ._sequence import IN_ORDER, Deduplicator, SequenceTracker
+from ._streams import Streams
 from ._zenoh import undeclare_quietly
 from .errors import PubSubError
 
@@ -93,13 +93,20 @@ _UNRESOLVED: Any = object()
 _EXACT_ROUTES = frozenset({ROUTE_INTRA, ROUTE_BASE, ROUTE_LANE})
 
 
+def _restarts(route: str, publisher: wire.EndpointToken | None) -> bool:
+    """Is a step back in this publisher's numbers its counter starting again? Another
+    implementation's numbers go back only when it restarted (rmw_zenoh drops nothing for it);
+    ours also when a route switch let a later message overtake (then it is late)."""
+    return route != ROUTE_INTRA and publisher is not None and publisher.locality is None
+
+
 def _numbered_per_stream(route: str, publisher: wire.EndpointToken | None) -> bool:
     """Does the publisher number this stream on its own (every step exact)? Ours do, in process
     or not (the lane is ours alone, discovered or not); on the base key every publisher does (a
     buffer-aware one writes it alone when it writes it at all), and so does one that advertises
     no backends. On the buffer streams,
     rmw_zenoh's publishers and publishers not discovered yet are judged by the stride of their
-    steps (see :mod:`._sequence`)."""
+    steps (see :mod:`._streams`)."""
     return route in _EXACT_ROUTES or publisher is not None and (
         publisher.locality is not None or publisher.backends is None)
 
@@ -130,7 +137,7 @@ class SubscriptionCounters:
     # Messages left out by the subscription's max_rate (here; a publisher of ours that honours
     # the rate does not send them at all, and they count nowhere).
     decimated: int = 0
-    sequence_jumps: int = 0  # jumps beyond _sequence.LOST_WINDOW (resynchronized, not counted)
+    sequence_jumps: int = 0  # jumps beyond _streams.LOST_WINDOW (resynchronized, not counted)
     refused: dict[str, int] = field(default_factory=dict)  # reason -> samples not delivered
 
 
@@ -169,8 +176,7 @@ class Subscription:
         self._queue: collections.deque[tuple[Any, ...]] = collections.deque(
             maxlen=depth if history == wire.KEEP_LAST else None)
         self._scheduled = False  # in the executor's ready set (at most once)
-        self._sequences = SequenceTracker()
-        self._copies = Deduplicator()
+        self._streams = Streams()  # sequence numbers and second copies, judged in C
         self._closed = False
         # Zenoh arrivals may run their callback on Zenoh's thread (see _inline) only when the
         # node runs its own executor thread: with executor="manual" callbacks run in spin().
@@ -273,7 +279,7 @@ class Subscription:
         received_ns = time.time_ns()
         raw = sample.attachment
         try:
-            attachment = wire.Attachment.decode(None if raw is None else raw.to_bytes())
+            attachment = wire.parse_attachment(None if raw is None else raw.to_bytes())
         except PubSubError:
             with self._lock:
                 self._refuse(REFUSED_ATTACHMENT)
@@ -293,7 +299,7 @@ class Subscription:
         (no queue, no second pass through the executor)."""
         received_ns = time.time_ns()
         try:
-            attachment, payload = _lane_routes.split_frame(data)
+            attachment, payload = wire.split_frame(data)
         except PubSubError:
             with self._lock:
                 self._refuse(REFUSED_ATTACHMENT)
@@ -317,8 +323,9 @@ class Subscription:
                 rate = self._rates[gid] = RateLimit(self.max_rate_hz)
             if rate.admit(now):
                 return True
-            self._judge(attachment, route, _numbered_per_stream(
-                route, self.node.graph.publisher(gid)))
+            publisher = self.node.graph.publisher(gid)
+            self._judge(attachment, route, _numbered_per_stream(route, publisher),
+                        _restarts(route, publisher))
             self.counters.decimated += 1
             return False
 
@@ -350,7 +357,8 @@ class Subscription:
         overwritten = isinstance(exc, BufferOverwrittenError)
         with self._lock:
             if arrived_on is not None:
-                self._judge(attachment, arrived_on, _numbered_per_stream(arrived_on, publisher))
+                self._judge(attachment, arrived_on, _numbered_per_stream(arrived_on, publisher),
+                            _restarts(arrived_on, publisher))
             if not overwritten:
                 self.counters.errors += 1
             elif self.history == wire.KEEP_LAST:
@@ -402,23 +410,29 @@ class Subscription:
         self._scheduled = True
         return evicted, schedule
 
-    def _judge(self, attachment: wire.Attachment, route: str, exact: bool) -> bool:
+    def _judge(self, attachment: wire.Attachment, route: str, exact: bool,
+               restarts: bool = False) -> bool:
         """Count what ``attachment`` says of its stream (gaps, jumps; ``exact``: see
         :func:`_numbered_per_stream`); whether the message is late, older than one already
         seen there (call with ``self._lock`` held)."""
         stream = _STREAM[route]
-        verdict = self._sequences.track(stream, attachment.publisher_gid,
-                                        attachment.sequence_number, exact, stream == _OWN)
-        if verdict is IN_ORDER:
-            return False
-        if verdict.lost:
+        verdict = self._streams.track(stream, attachment.publisher_gid,
+                                      attachment.sequence_number, exact, stream == _OWN, restarts)
+        return verdict is not None and self._count_verdict(verdict, route)
+
+    def _count_verdict(self, verdict: tuple[bool, int, bool, bool], route: str) -> bool:
+        """Count what a verdict of :class:`._streams.Streams` says (``(duplicate, lost, late,
+        jump)``, the second copies counted by the caller); whether the message is late (call
+        with ``self._lock`` held)."""
+        _, lost, late, jump = verdict
+        if lost:
             if route == ROUTE_LANE:
-                self.counters.dropped += verdict.lost  # the lane's keep-last queue overwrote
+                self.counters.dropped += lost  # the lane's keep-last queue overwrote
             else:
-                self.counters.lost += verdict.lost
-        elif verdict.jump:
+                self.counters.lost += lost
+        elif jump:
             self.counters.sequence_jumps += 1
-        return verdict.late
+        return late
 
     def _from_ours(self, gid: bytes, route: str) -> bool:
         """Is ``gid`` one of our publishers in another process? (See :meth:`_enqueue`.)"""
@@ -448,22 +462,28 @@ class Subscription:
         else:
             if publisher is _UNRESOLVED:
                 publisher = self.node.graph.publisher(attachment.publisher_gid)
-            # Only our publishers in other processes may send a message twice (see _sequence),
+            # Only our publishers in other processes may send a message twice (see _streams),
             # and only their stamps are known to be unique: another implementation may stamp
             # alike. One not discovered yet may be ours (its first messages can come before
             # its token): its copies are recognized too, trusting its stamps meanwhile.
             ours = publisher is None or publisher.locality is not None
         exact = _numbered_per_stream(route, publisher)
+        stream = _STREAM[route]
         with self._lock:
+            # One C call judges the number and, for ours, the stamp (a second copy's stream
+            # still advances); None: a new message, in order.
+            verdict = None if self._closed else self._streams.admit(
+                stream, attachment.publisher_gid, attachment.sequence_number,
+                attachment.source_timestamp_ns if ours else None, exact, stream == _OWN,
+                _restarts(route, publisher))
             if self._closed:
                 closed = True
-            elif ours and self._copies.seen_before(attachment.publisher_gid,
-                                                   attachment.source_timestamp_ns):
-                # a second copy (see _sequence): its stream's numbers still advance
-                self._judge(attachment, route, exact)
+            elif verdict is not None and verdict[0]:  # a second copy (see _streams)
+                self._count_verdict(verdict, route)
                 closed = True  # (not queued: released below, as a closed one is)
                 self._refuse(REFUSED_DUPLICATE)
-            elif self._judge(attachment, route, exact) and self.history == wire.KEEP_LAST:
+            elif (verdict is not None and self._count_verdict(verdict, route)
+                  and self.history == wire.KEEP_LAST):
                 # Older than one already delivered on its stream: a route switch (Zenoh to the
                 # lane) let a later message overtake it. A keep-last reader gets each
                 # publisher's messages in order (its gap was counted when the later one came).
@@ -502,7 +522,7 @@ class Subscription:
     def last_sequence(self, stream: str, gid: bytes) -> int | None:
         """The last number judged on ``stream`` from publisher ``gid`` (None: none yet)."""
         with self._lock:
-            return self._sequences.last(stream, gid)
+            return self._streams.last(stream, gid)
 
     # -- discovery --------------------------------------------------------------------------
     def on_publisher(self, token: wire.EndpointToken, appeared: bool) -> None:
@@ -513,7 +533,7 @@ class Subscription:
         ``wait_before_close``, and what it sent meanwhile is lost, and counted."""
         if not appeared:
             with self._lock:
-                self._copies.forget(token.gid)
+                self._streams.forget(token.gid)
                 self._rates.pop(token.gid, None)
 
     # -- executor ------------------------------------------------------------------------------

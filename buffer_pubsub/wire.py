@@ -37,7 +37,6 @@ Our extension: a locality segment
 from __future__ import annotations
 
 import functools
-import struct
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -45,6 +44,7 @@ import xxhash
 
 from rosidl_buffer.messages import get_type_hash, normalize_type_name
 
+from . import _streams
 from .errors import WireFormatError
 
 __all__ = [
@@ -67,7 +67,10 @@ __all__ = [
     "liveliness_domain_selector",
     "mangle",
     "new_attachment",
+    "pack_attachment",
+    "parse_attachment",
     "parse_token",
+    "split_frame",
     "subscription_channel",
 ]
 
@@ -87,9 +90,7 @@ SUBSCRIPTION_KIND = "MS"
 NODE_KIND = "NN"
 _ENTITY_KINDS = frozenset({NODE_KIND, PUBLISHER_KIND, SUBSCRIPTION_KIND, "SS", "SC"})
 
-_ATTACHMENT = struct.Struct("<qqB16s")
-ATTACHMENT_SIZE = _ATTACHMENT.size  # 33
-_GID_LENGTH_PREFIX = 0x10
+ATTACHMENT_SIZE = _streams.ATTACHMENT_SIZE  # 33: int64 sequence, int64 stamp, 0x10, gid
 
 
 # --------------------------------------------------------------------------- names
@@ -339,25 +340,26 @@ class Attachment(NamedTuple):
     publisher_gid: bytes
 
     def encode(self) -> bytes:
-        return _ATTACHMENT.pack(
-            self.sequence_number, self.source_timestamp_ns, _GID_LENGTH_PREFIX, self.publisher_gid
-        )
+        return pack_attachment(self.sequence_number, self.source_timestamp_ns,
+                               self.publisher_gid)
 
     @classmethod
     def decode(cls, data: bytes | None) -> Attachment:
-        if data is None or len(data) != ATTACHMENT_SIZE:
-            raise WireFormatError(
-                f"attachment must be {ATTACHMENT_SIZE} bytes, got {None if data is None else len(data)}"
-            )
-        sequence, stamp, prefix, gid = _ATTACHMENT.unpack(data)
-        if prefix != _GID_LENGTH_PREFIX:
-            raise WireFormatError(f"attachment gid length prefix is {prefix:#x}, not 0x10")
-        return new_attachment((sequence, stamp, gid))
+        """The attachment in ``data`` (WireFormatError: not 33 bytes, or a malformed one)."""
+        return parse_attachment(data)
 
 
 #: ``new_attachment((sequence, stamp, gid))``: an Attachment built in C, without the NamedTuple's
 #: generated ``__new__`` (a Python frame on every publish and arrival).
 new_attachment = functools.partial(tuple.__new__, Attachment)
+_streams.configure(new_attachment, WireFormatError)
+#: ``parse_attachment(data)``: :meth:`Attachment.decode` in one C call (what arrivals use).
+parse_attachment = _streams.parse_attachment
+#: ``pack_attachment(sequence, stamp, gid)``: :meth:`Attachment.encode` in one C call.
+pack_attachment = _streams.pack_attachment
+#: ``split_frame(frame)``: a lane frame's Attachment and its CDR payload (a memoryview of the
+#: frame's tail), in one C call; WireFormatError as :meth:`Attachment.decode`.
+split_frame = _streams.split_frame
 
 
 # --------------------------------------------------------------------------- backends segment

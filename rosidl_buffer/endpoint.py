@@ -87,20 +87,20 @@ def local_host_id() -> str:
 def parse_acceptable_backends(option: str | Sequence[str], available: list[str]) -> list[str]:
     """Resolve a subscription's ``acceptable_buffer_backends`` option to backend names.
 
-    ``"cpu"`` (or empty) = CPU only; ``"any"`` = every available backend; otherwise a comma
-    separated list of names (or a list of them), each of which must be available. ``"cpu"`` is
-    always included. Raises ValueError for anything else.
+    ``"cpu"`` (or empty) = CPU only; ``"any"`` = every available backend, also inside a list
+    (as rmw_zenoh reads it: ``"cpu, any"`` is every backend); otherwise a comma separated list of
+    names (or a list of them), each of which must be available. ``"cpu"`` is always included.
+    Raises ValueError for anything else.
     """
     if isinstance(option, (list, tuple)) and all(isinstance(name, str) for name in option):
         option = ",".join(option)
     if option is not None and not isinstance(option, str):
         raise ValueError(f"acceptable_buffer_backends must be a str (or a list of names), got "
                          f"{type(option).__name__}")
-    text = (option or "cpu").strip()
-    if text == "any":
+    names = [name.strip() for name in (option or "cpu").split(",") if name.strip()]
+    if "any" in names:
         names = list(available)
     else:
-        names = [name.strip() for name in text.split(",") if name.strip()]
         unknown = [name for name in names if name not in available and name != "cpu"]
         if unknown:
             raise ValueError(

@@ -7,7 +7,9 @@ protocol as :mod:`tests._pubsub_helpers` (``READY``, then ``RESULT <json>``).
   way another ROS 2 implementation might: ``base`` (a plain 13-segment publisher token, samples
   whose attachment carries random gids, plus two with no valid attachment), ``seq`` (spoofed
   sequence numbers), ``buffer`` (samples on a subscription's own ``_buf/<gid>`` channel from a
-  publisher whose token never comes, then from one whose token comes late).
+  publisher whose token never comes, then from one whose token comes late), ``restart`` (a
+  publisher with a token sends 1..20, its token leaves and comes back, and it numbers again
+  from 1, as a restarted rmw_zenoh publisher with the same gid does).
 - ``flood``: a keep-last publisher writing 512 KiB frames in a loop inside ``with Node(...)``
   until Ctrl-C (SIGINT); reports how long ``Node.__exit__`` took on stderr.
 - ``big``: a CPU subscription that reports size and CRC-32 of each (large) frame.
@@ -103,6 +105,20 @@ def run_foreign(args: argparse.Namespace) -> int:
                 session.put(channel, frame(10 + index), attachment=attach(index + 1, late.gid))
             time.sleep(0.4)
             tokens.append(session.liveliness().declare_token(late.key()))
+        elif args.mode == "restart":
+            publisher = _plain_token(args.domain, zid, args.topic, 3)
+            token = session.liveliness().declare_token(publisher.key())
+            time.sleep(0.3)
+            for index in range(20):
+                session.put(base, frame(index), attachment=attach(index + 1, publisher.gid))
+                time.sleep(0.005)
+            token.undeclare()
+            time.sleep(0.3)
+            tokens.append(session.liveliness().declare_token(publisher.key()))
+            time.sleep(0.3)
+            for index in range(10):
+                session.put(base, frame(100 + index), attachment=attach(index + 1, publisher.gid))
+                time.sleep(0.005)
         _emit("READY")
         _stdin_stop(args.timeout).wait()
         for token in tokens:

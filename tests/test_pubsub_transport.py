@@ -97,6 +97,25 @@ def test_spoofed_sequence_jump_does_not_count_as_loss(domain, topic, backends):
     assert sub.counters.lost == 1 and sub.counters.sequence_jumps == 2
 
 
+def test_a_restarted_foreign_publisher_is_followed_not_refused(domain, topic, backends):
+    """A publisher of another implementation that numbers again from 1 under the same gid (a
+    restarted rmw_zenoh node with a pinned Zenoh id) is resynchronized: rmw_zenoh drops nothing
+    for it, and neither does a keep-last subscription of ours."""
+    got = []
+    with Node("restart_sub", domain_id=domain, backends=backends) as node:
+        sub = node.create_subscription(TENSOR, topic, got.append, depth=50)
+        peer = Child("foreign", module=HELPERS, domain=domain, topic=topic, mode="restart")
+        try:
+            peer.wait_ready()
+            assert _wait(lambda: len(got) >= 30, 10)
+            peer.stop()
+        finally:
+            peer.close()
+    assert [check_frame(m)["index"] for m in got] == list(range(20)) + list(range(100, 110))
+    assert sub.counters.refused == {} and sub.counters.lost == 0
+    assert sub.counters.sequence_jumps == 1
+
+
 def test_samples_of_undiscovered_publishers_are_delivered_at_once(domain, topic, backends):
     """As rmw_zenoh, samples on a subscription's own stream from a publisher whose token has
     not arrived (or never comes) are messages, decoded at once with the gid alone: nothing

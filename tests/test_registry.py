@@ -179,7 +179,9 @@ AVAILABLE = ["cpu", "fake", "warp"]
     ("option", "expected"),
     [("", ["cpu"]), (None, ["cpu"]), ("cpu", ["cpu"]), (" any ", AVAILABLE),
      ("fake", ["fake", "cpu"]), ("warp, fake", ["warp", "fake", "cpu"]),
-     ("cpu,fake,fake", ["cpu", "fake"])],
+     ("cpu,fake,fake", ["cpu", "fake"]),
+     # rmw_zenoh_cpp 0.12.0 rmw_subscription_data.cpp: "any" anywhere in the list is use_all
+     ("cpu, any", AVAILABLE), ("fake,any,nope", AVAILABLE), (["any"], AVAILABLE)],
 )
 def test_parse_acceptable_backends(option, expected):
     assert parse_acceptable_backends(option, AVAILABLE) == expected

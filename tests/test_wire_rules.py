@@ -1,7 +1,7 @@
 """Our token rules against values written out by hand from rmw_zenoh 0.10.5's sources
 (``liveliness_utils.cpp``: ``qos_to_keyexpr``, ``keyexpr_to_qos``, ``Entity`` constructor and
-``Entity::make``, ``escape_backend_field`` / ``unescape_backend_field``), and the sequence and
-duplicate rules of :mod:`buffer_pubsub._sequence`.
+``Entity::make``, ``escape_backend_field`` / ``unescape_backend_field``). (The sequence and
+duplicate rules: tests/test_streams_native.py.)
 
 Every expected string below is what the C++ code produces for the input, worked out by reading it;
 none is computed with our functions.
@@ -13,7 +13,6 @@ import xxhash
 import pytest
 
 from buffer_pubsub import wire
-from buffer_pubsub._sequence import Deduplicator, SequenceTracker
 
 HASH = "RIHS01_" + "ab" * 32
 PREFIX = ("@ros2_lv/3/z1/7/9/MP/%/%/cam/%image/sensor_msgs::msg::dds_::Image_/" + HASH)
@@ -120,68 +119,3 @@ def test_subscription_channels_follow_rmw_zenoh():
     assert wire.buffer_channel_key("0/t/T/H", bytes(range(16))) == \
         "0/t/T/H/_buf/000102030405060708090a0b0c0d0e0f"
     assert wire.cpu_channel_key("0/t/T/H") == "0/t/T/H/_buf_cpu"
-
-
-# --------------------------------------------------------------------------- sequences
-GID = b"\x01" * 16
-
-
-def run(tracker, numbers, exact):
-    verdicts = [tracker.track("own", GID, n, exact) for n in numbers]
-    return sum(v.lost for v in verdicts), [v.late for v in verdicts], sum(v.jump for v in verdicts)
-
-
-def test_our_streams_count_every_gap():
-    assert run(SequenceTracker(), [1, 2, 4, 5, 9], True) == (1 + 3, [False] * 5, 0)
-
-
-def test_an_upstream_fan_out_is_not_loss():
-    # one publish to three streams: this one sees every third number
-    assert run(SequenceTracker(), [2, 5, 8, 11, 14], False)[0] == 0
-
-
-def test_a_loss_under_an_upstream_fan_out_counts_whole_messages():
-    # stride 3; 11 -> 17 skips one message of this stream (14)
-    assert run(SequenceTracker(), [2, 5, 8, 11, 17, 20, 23], False)[0] == 1
-
-
-def test_a_fan_out_that_grows_costs_no_false_loss():
-    # a subscription joined: the stride goes from 2 to 3 and stays
-    assert run(SequenceTracker(), [1, 3, 5, 7, 10, 13, 16, 19], False)[0] == 0
-
-
-def test_late_and_jumps():
-    lost, late, jumps = run(SequenceTracker(), [1, 2, 3, 2, 2**40, 4], True)
-    assert late == [False, False, False, True, False, False] and jumps == 2 and lost == 0
-
-
-def test_streams_and_publishers_are_judged_apart():
-    tracker = SequenceTracker()
-    for n in (1, 2, 3):
-        assert tracker.track("base", GID, n, True).lost == 0
-        assert tracker.track("own", GID, n, True).lost == 0
-        assert tracker.track("base", b"\x02" * 16, n * 10, True).lost == (0 if n == 1 else 9)
-
-
-def test_duplicates_by_publisher_and_stamp():
-    copies = Deduplicator()
-    assert not copies.seen_before(GID, 100)
-    assert not copies.seen_before(b"\x02" * 16, 100)  # another publisher
-    assert copies.seen_before(GID, 100)
-    assert not copies.seen_before(GID, 101)
-    copies.forget(GID)
-    assert not copies.seen_before(GID, 100)
-
-
-def test_a_stream_of_its_own_counts_what_came_before_its_first_message():
-    # a lane overwrote 1..4 before the reader's first read: 4 missed, then in order
-    assert run_from_one(SequenceTracker(), [5, 6, 8]) == 4 + 1
-    # a shared stream (base key, intra) is joined at any number: nothing missed
-    assert run(SequenceTracker(), [5, 6, 8], True)[0] == 1
-    # a stride-judged stream (rmw_zenoh's numbers count every put) is not numbered from 1
-    tracker = SequenceTracker()
-    assert tracker.track("own", GID, 7, False, True).lost == 0
-
-
-def run_from_one(tracker, numbers):
-    return sum(tracker.track("own", GID, n, True, True).lost for n in numbers)

@@ -12,6 +12,7 @@ import enum
 import functools
 import logging
 import threading
+from typing import Any
 from dataclasses import dataclass
 from importlib import metadata, resources
 
@@ -118,6 +119,26 @@ _store: Typestore | None = None
 _scanned_packages: set[tuple[str, str]] = set()
 
 
+def _field_as_idl(desc: Any) -> Any:
+    """A rosbags field description as ROS 2's IDL has it: ``char`` is ``uint8``."""
+    node_type, detail = desc
+    if node_type == Nodetype.BASE:
+        return (node_type, ("uint8", detail[1])) if detail[0] == "char" else desc
+    if node_type in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        return (node_type, (_field_as_idl(detail[0]), detail[1]))
+    return desc
+
+
+def _as_idl(types: dict[str, tuple[list, list]]) -> dict[str, tuple[list, list]]:
+    """Message definitions as ROS 2 builds them: ``rosidl_adapter`` turns a ``.msg`` file's
+    ``char`` into IDL ``uint8`` (``MSG_TYPE_TO_IDL``), so the type description, hence the REP
+    2016 hash rmw_zenoh puts in its keys, records a uint8 (rosbags hashes a ``char`` as its own
+    type id, 13), and a top-level ``char[]`` is an unbounded uint8 sequence: a buffer field to
+    rmw_zenoh's typesupport. The values (0-255) and the CDR (one byte) are the same either way."""
+    return {name: (constants, [(field, _field_as_idl(desc)) for field, desc in fields])
+            for name, (constants, fields) in types.items()}
+
+
 def _shipped_definitions() -> dict[str, tuple[list, list]]:
     """Parse the ``.msg`` files of interface packages announced since the last scan."""
     types: dict[str, tuple[list, list]] = {}
@@ -131,7 +152,8 @@ def _shipped_definitions() -> dict[str, tuple[list, list]]:
             for item in sorted(folder.iterdir(), key=lambda p: p.name):
                 if item.name.endswith(".msg"):
                     type_name = f"{package}/msg/{item.name[:-4]}"
-                    types.update(get_types_from_msg(item.read_text(encoding="utf-8"), type_name))
+                    types.update(_as_idl(get_types_from_msg(item.read_text(encoding="utf-8"),
+                                                            type_name)))
         except Exception as exc:  # one broken package must not hide the others
             _log.warning("cannot load message package %s (%s): %s", package, entry_point.value, exc)
     return types
@@ -143,6 +165,7 @@ def get_typestore() -> Typestore:
     with _lock:
         if _store is None:
             store = _rosbags_typestore(ROS_DISTRIBUTION)
+            store.fielddefs.update(_as_idl(store.fielddefs))  # (before any use of the store)
             shipped = _shipped_definitions()
             if shipped:
                 store.register(shipped)
@@ -167,7 +190,7 @@ def register_message_definitions(definitions: dict[str, str]) -> None:
     """
     types: dict[str, tuple[list, list]] = {}
     for name, text in definitions.items():
-        types.update(get_types_from_msg(text, normalize_type_name(name)))
+        types.update(_as_idl(get_types_from_msg(text, normalize_type_name(name))))
     with _lock:
         get_typestore().register(types)
 

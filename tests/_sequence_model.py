@@ -1,4 +1,5 @@
-"""What a subscription learns from the attachments it receives: gaps, late messages, duplicates.
+"""An independent Python model of the rules ``buffer_pubsub._streams.Streams`` applies in C
+(the tests judge the C tracker against it): gaps, late messages, duplicates.
 
 Sequence numbers are judged per *channel* (the Zenoh key a sample came on, or the lane, which
 carries what that subscription's own ``_buf/<gid>`` key carries) and publisher:
@@ -67,12 +68,13 @@ class SequenceTracker:
         self._channels: dict[tuple[str, bytes], _Channel] = {}
 
     def track(self, channel: str, gid: bytes, sequence: int, numbered_per_channel: bool,
-              from_one: bool = False) -> Verdict:
+              from_one: bool = False, restarts: bool = False) -> Verdict:
         """Judge ``sequence`` from publisher ``gid`` on ``channel``. ``numbered_per_channel``:
         the publisher numbers each channel from 1 (one of ours), so every step is exact.
         ``from_one``: the channel was started for this reader alone (its own stream), so a
         first number past 1 follows that many messages it missed (a lane's keep-last queue
-        overwrote them before its first read, say); elsewhere a reader joins at any number."""
+        overwrote them before its first read, say); elsewhere a reader joins at any number.
+        ``restarts``: a step back is the publisher's counter starting again (a jump)."""
         key = (channel, gid)
         state = self._channels.get(key)
         if state is None:
@@ -84,7 +86,7 @@ class SequenceTracker:
             return IN_ORDER
         step = sequence - state.last
         if step <= 0:
-            if -step < LOST_WINDOW:
+            if -step < LOST_WINDOW and not restarts:
                 return _LATE
             state.__init__(sequence)  # a restarted counter
             return _JUMP
