@@ -27,7 +27,10 @@ when it is discovered (:func:`wire.subscription_channel`), not per message:
 
 Sequence numbers count per stream (base key, ``_buf_cpu``, each ``_buf/<gid>`` with its lane,
 intra-process), so whoever receives one stream from us sees 1, 2, 3...; source timestamps are
-strictly increasing per publisher (the key of duplicate detection, see :mod:`._streams`).
+strictly increasing per publisher (the key of duplicate detection, see :mod:`._streams`). The two
+shared streams (base key, ``_buf_cpu``) number every message that left, also while nobody read
+them: a subscription that Zenoh judged gone and that comes back when it was their only reader
+counts what it missed (a ``_buf/<gid>`` stream does so through its peer's resume).
 """
 
 from __future__ import annotations
@@ -251,9 +254,9 @@ class Publisher:
         self._peers: dict[bytes, _Peer] = {}
         # Buffer-aware (it advertises backends): the _buf_cpu / _buf/<gid> routes apply.
         self._aware = token.backends is not None
-        # One numbering per stream (see the module doc); source stamps strictly increase.
-        self._base_sequences = itertools.count(1)
-        self._cpu_sequences = itertools.count(1)
+        # One numbering per stream (see the module doc); source stamps strictly increase. The
+        # shared streams count every message that left (read or not): one counter serves both.
+        self._shared_sequences = itertools.count(1)
         self._intra_sequences = itertools.count(1)
         self._last_stamp = 0
         self._published = 0  # publish() calls, for the streams of subscriptions that came back
@@ -618,6 +621,7 @@ class Publisher:
                 self._published += 1
                 intra = None if self._history is None else self._remember(msg, stamp, backends)
                 if remote is _NOBODY:
+                    next(self._shared_sequences)  # (left, read on neither shared stream)
                     self._publish_intra(msg, backends, stamp, wakers, intra)
                     return
                 try:
@@ -657,17 +661,16 @@ class Publisher:
             cpu_payload = self._out = self._checked(serialize_message(msg, out=self._out))
         if self._intra_key in _process.SUBSCRIPTIONS:
             self._publish_intra(msg, backends, stamp, wakers, intra)
-        gid = self.gid
+        shared = next(self._shared_sequences)  # (a message too large raised before: no number)
         try:
             for peer, payload in individual:
                 self._put_individual(peer, cpu_payload if payload is None else payload, stamp)
-            if routing.cpu:
-                self._cpu.put(cpu_payload,  # type: ignore[union-attr]
-                              attachment=wire.pack_attachment(next(self._cpu_sequences), stamp,
-                                                              gid))
-            if need_base:
-                self._base.put(cpu_payload, attachment=wire.pack_attachment(
-                    next(self._base_sequences), stamp, gid))
+            if routing.cpu or need_base:
+                attachment = wire.pack_attachment(shared, stamp, self.gid)
+                if routing.cpu:
+                    self._cpu.put(cpu_payload, attachment=attachment)  # type: ignore[union-attr]
+                if need_base:
+                    self._base.put(cpu_payload, attachment=attachment)
         except zenoh.ZError as exc:
             raise TransportError(f"publish on {self.topic_name}: {exc}") from exc
 

@@ -309,11 +309,20 @@ class QoSProfile:
             return int(value)
 
         def number(value: str, default: int, limit: int) -> int:
+            # str_to_size_t: a leading '-' refused, then strtoull (leading C whitespace and a
+            # sign taken, a negative wrapping modulo 2**64), the whole text a number that fits
             if value == "":
                 return default
-            if not (value.isascii() and value.isdecimal()) or int(value) > limit:
+            body = value.lstrip(" \t\n\v\f\r") if value[0] != "-" else ""
+            negative = body.startswith("-")
+            if body.startswith(("+", "-")):
+                body = body[1:]
+            if not (body.isascii() and body.isdecimal()) or int(body) > _UINT64_MAX:
                 raise WireFormatError(f"QoS segment {text!r}: {value!r} is not a valid number")
-            return int(value)
+            parsed = -int(body) % (_UINT64_MAX + 1) if negative else int(body)
+            if parsed > limit:
+                raise WireFormatError(f"QoS segment {text!r}: {value!r} is not a valid number")
+            return parsed
 
         return cls(
             reliability=enum(parts[0], d.reliability, _RELIABILITY_VALUES),

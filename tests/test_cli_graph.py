@@ -120,6 +120,14 @@ def test_topic_echo_prints_fields_and_summarises_buffers(graph):
                 "--domain", str(domain)).stdout
     indices = [int(x) for x in re.findall(r"talker/(\d+)", count)]
     assert len(indices) == 3 and indices == sorted(indices)
+    # ros2 topic echo's positional type: subscribed at once; short names as ROS 2 takes them
+    typed = cli("topic", "echo", topic, "sensor_msgs/Image", "--once", "--field", "encoding",
+                "--domain", str(domain))
+    assert typed.returncode == 0 and typed.stdout == "mono8\n---\n", typed.stderr
+    unknown = cli("topic", "echo", topic, "no_such_msgs/msg/Nope", "--once",
+                  "--domain", str(domain))
+    assert unknown.returncode == 1 and "no_such_msgs/msg/Nope" in unknown.stderr
+    assert len(unknown.stderr.strip().splitlines()) == 1
 
 
 def test_topic_hz_is_within_ten_percent_of_the_published_rate(graph):

@@ -154,3 +154,45 @@ def test_a_returning_subscription_skips_exactly_the_messages_published_while_it_
         publish(again)
         assert first.lane.numbers == [1, 2, 3]
         assert again.lane.numbers == [7]  # 4, 5 and 6 missed: a gap of three, all counted
+
+
+class _RecordingChannel:
+    """A Zenoh publisher stand-in that keeps the sequence numbers put on it."""
+
+    def __init__(self) -> None:
+        self.numbers: list[int] = []
+
+    def put(self, payload: object, attachment: bytes) -> None:
+        from buffer_pubsub import wire
+
+        self.numbers.append(wire.parse_attachment(attachment).sequence_number)
+
+    def undeclare(self) -> None:
+        pass
+
+
+def test_a_shared_stream_counts_what_was_published_while_its_readers_were_gone(
+        domain, topic) -> None:
+    # A CPU-only subscription frozen past Zenoh's lease is judged gone; when it was the stream's
+    # only reader, nothing was put meanwhile, and its numbers must still show the gap (a user
+    # trial saw 436 frames missing and lost=319).
+    from buffer_pubsub import Node
+    from buffer_pubsub.publisher import _NOBODY, _Routing
+
+    tensor = get_message_type("tensor_msgs/msg/ExperimentalTensor")
+    with Node("shared", domain_id=domain, executor="manual") as node:
+        publisher = node.create_publisher(tensor, topic)
+        cpu, base = _RecordingChannel(), _RecordingChannel()
+        publisher._cpu, publisher._base = cpu, base  # type: ignore[assignment]
+
+        def publish(routing: _Routing, times: int) -> None:
+            publisher._remote = routing
+            for _ in range(times):
+                publisher.publish(tensor())
+
+        publish(_Routing((), True, False), 3)  # the CPU-only reader
+        publish(_NOBODY, 2)  # judged gone: nobody reads either shared stream
+        publish(_Routing((), False, True), 1)  # a reader without backends, on the base key
+        publish(_Routing((), True, False), 1)  # the CPU reader is back
+        assert cpu.numbers == [1, 2, 3, 7]  # 4, 5 and 6 missed: a gap of three
+        assert base.numbers == [6]

@@ -119,3 +119,18 @@ def test_subscription_channels_follow_rmw_zenoh():
     assert wire.buffer_channel_key("0/t/T/H", bytes(range(16))) == \
         "0/t/T/H/_buf/000102030405060708090a0b0c0d0e0f"
     assert wire.cpu_channel_key("0/t/T/H") == "0/t/T/H/_buf_cpu"
+
+
+@pytest.mark.parametrize("value", [" 7", "+7", "\t+12", " -7", "-7", "7 ", "0x10", "+", " ",
+                                   "18446744073709551616", "\u0663", "00"])
+def test_qos_numbers_parse_as_upstreams_str_to_size_t(value):
+    # the independent model of liveliness_utils.cpp (tests/upstream_model/qos.py) decides
+    from tests.upstream_model import qos as qos_model
+
+    expected = qos_model.str_to_size_t(value, 42)
+    text = f"::,{value}:,:,:,,"
+    if expected is None:
+        with pytest.raises(wire.WireFormatError):
+            wire.QoSProfile.from_keyexpr(text)
+    else:
+        assert wire.QoSProfile.from_keyexpr(text).depth == expected

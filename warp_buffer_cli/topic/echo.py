@@ -18,6 +18,9 @@ from ._fields import csv_line, pick, to_plain, yaml_lines
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("topic_name", type=absolute_topic_name,
                         help="the topic, e.g. /camera/image")
+    parser.add_argument("message_type", nargs="?", default=None,
+                        help="its type, e.g. sensor_msgs/msg/Image (as ros2 topic echo takes "
+                             "it: subscribe at once, without waiting to discover the topic)")
     parser.add_argument("--once", action="store_true", help="print the first message and exit")
     parser.add_argument("--csv", action="store_true", help="one comma-separated line a message")
     parser.add_argument("--field", default="", help="print only this field, e.g. header.stamp")
@@ -30,13 +33,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_graph_options(parser)
 
 
+def _known_type(name: str) -> str:
+    """``name`` as a full message type name; GraphCommandError for one no message has."""
+    from rosidl_buffer.errors import UnknownMessageTypeError
+    from rosidl_buffer.messages import get_message_type
+
+    try:
+        return get_message_type(name).__msgtype__
+    except UnknownMessageTypeError as exc:
+        raise GraphCommandError(str(exc)) from None
+
+
 def run(args: argparse.Namespace) -> int:
     if args.truncate_length < 0 or args.count < 0:
         raise GraphCommandError("--truncate-length and --count must be >= 0")
     wanted = 1 if args.once else args.count
     inbox: queue.SimpleQueue = queue.SimpleQueue()
     with graph_node(args) as node:
-        topic, type_name = wait_for_topic(node, args.topic_name)
+        if args.message_type is None:
+            topic, type_name = wait_for_topic(node, args.topic_name)
+        else:
+            topic, type_name = args.topic_name, _known_type(args.message_type)
         durability = latched_durability(node, topic)
         node.create_subscription(
             type_name, topic, lambda msg: inbox.put(to_plain(msg, args.truncate_length)),
