@@ -27,6 +27,7 @@
 
 #include <endian.h>
 #include <stdint.h>
+#include <stdio.h>
 #include <string.h>
 
 #define ATTACHMENT_SIZE 33
@@ -63,25 +64,31 @@ static PyObject *attachment_from(const unsigned char *data) {
     return attachment;
 }
 
+/* WireFormatError: no attachment, or one too short (`got`: what came instead). */
+static PyObject *too_short(const char *got) {
+    if (wire_error == NULL)
+        PyErr_SetString(PyExc_RuntimeError, "buffer_pubsub._streams is not configured");
+    else
+        PyErr_Format(wire_error, "attachment must be %d bytes, got %s", ATTACHMENT_SIZE, got);
+    return NULL;
+}
+
+static PyObject *too_short_by(Py_ssize_t size) {
+    char got[32];
+    snprintf(got, sizeof got, "%zd", size);
+    return too_short(got);
+}
+
 static PyObject *parse_attachment(PyObject *module, PyObject *data) {
-    if (data == Py_None) {
-        if (wire_error != NULL)
-            PyErr_Format(wire_error, "attachment must be %d bytes, got None", ATTACHMENT_SIZE);
-        else
-            PyErr_SetString(PyExc_RuntimeError, "buffer_pubsub._streams is not configured");
-        return NULL;
-    }
+    if (data == Py_None)
+        return too_short("None");
     Py_buffer view;
     if (PyObject_GetBuffer(data, &view, PyBUF_SIMPLE) < 0)
         return NULL;
     PyObject *result = NULL;
     /* As rmw_zenoh's deserializer: the fields it knows, and whatever follows them ignored. */
     if (view.len < ATTACHMENT_SIZE) {
-        if (wire_error != NULL)
-            PyErr_Format(wire_error, "attachment must be %d bytes, got %zd", ATTACHMENT_SIZE,
-                         view.len);
-        else
-            PyErr_SetString(PyExc_RuntimeError, "buffer_pubsub._streams is not configured");
+        too_short_by(view.len);
     } else {
         result = attachment_from(view.buf);
     }
@@ -96,14 +103,8 @@ static PyObject *split_frame(PyObject *module, PyObject *data) {
         return NULL;
     }
     Py_ssize_t size = PyBytes_GET_SIZE(data);
-    if (size < ATTACHMENT_SIZE) {
-        if (wire_error != NULL)
-            PyErr_Format(wire_error, "attachment must be %d bytes, got %zd", ATTACHMENT_SIZE,
-                         size);
-        else
-            PyErr_SetString(PyExc_RuntimeError, "buffer_pubsub._streams is not configured");
-        return NULL;
-    }
+    if (size < ATTACHMENT_SIZE)
+        return too_short_by(size);
     PyObject *attachment = attachment_from((const unsigned char *)PyBytes_AS_STRING(data));
     if (attachment == NULL)
         return NULL;
@@ -400,10 +401,10 @@ static PyObject *streams_track(Streams *self, PyObject *const *args, Py_ssize_t 
     if (check_stream(args[0]) < 0 || check_gid(args[1]) < 0
             || int64_arg(args[2], "a sequence number", &sequence) < 0)
         return NULL;
-    int exact = PyObject_IsTrue(args[3]);
-    int from_one = nargs >= 5 ? PyObject_IsTrue(args[4]) : 0;
-    int restarts = nargs == 6 ? PyObject_IsTrue(args[5]) : 0;
-    if (exact < 0 || from_one < 0 || restarts < 0)
+    int exact, from_one = 0, restarts = 0;
+    if ((exact = PyObject_IsTrue(args[3])) < 0
+            || (nargs >= 5 && (from_one = PyObject_IsTrue(args[4])) < 0)
+            || (nargs == 6 && (restarts = PyObject_IsTrue(args[5])) < 0))
         return NULL;
     Verdict v;
     if (track(self, args[0], args[1], sequence, exact, from_one, restarts, &v) < 0)
@@ -426,10 +427,9 @@ static PyObject *streams_admit(Streams *self, PyObject *const *args, Py_ssize_t 
             || int64_arg(args[2], "a sequence number", &sequence) < 0
             || (args[3] != Py_None && int64_arg(args[3], "a source timestamp", &stamp) < 0))
         return NULL;
-    int exact = PyObject_IsTrue(args[4]);
-    int from_one = PyObject_IsTrue(args[5]);
-    int restarts = PyObject_IsTrue(args[6]);
-    if (exact < 0 || from_one < 0 || restarts < 0)
+    int exact, from_one, restarts;
+    if ((exact = PyObject_IsTrue(args[4])) < 0 || (from_one = PyObject_IsTrue(args[5])) < 0
+            || (restarts = PyObject_IsTrue(args[6])) < 0)
         return NULL;
     int duplicate = 0;
     if (args[3] != Py_None) {

@@ -661,10 +661,11 @@ class Publisher:
             cpu_payload = self._out = self._checked(serialize_message(msg, out=self._out))
         if self._intra_key in _process.SUBSCRIPTIONS:
             self._publish_intra(msg, backends, stamp, wakers, intra)
-        shared = next(self._shared_sequences)  # (a message too large raised before: no number)
         try:
             for peer, payload in individual:
                 self._put_individual(peer, cpu_payload if payload is None else payload, stamp)
+            # Numbered here: a message too large, or a send that failed before, took no number.
+            shared = next(self._shared_sequences)
             if routing.cpu or need_base:
                 attachment = wire.pack_attachment(shared, stamp, self.gid)
                 if routing.cpu:

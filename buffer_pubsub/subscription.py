@@ -84,6 +84,10 @@ REFUSED_LATE = "late"  # older than a message already delivered on its stream (k
 _OWN = "own"  # this subscription's own stream (the _buf/<gid> key and the lane carry it)
 _STREAM = {ROUTE_INTRA: "intra", ROUTE_BUFFER: _OWN, ROUTE_LANE: _OWN, ROUTE_CPU: "cpu",
            ROUTE_BASE: "base"}
+#: Our publishers number the base key and ``_buf_cpu`` with one counter (see publisher): from
+#: them, what a CPU reader gets on either key is one stream.
+_SHARED = "shared"
+_SHARED_ROUTES = frozenset({ROUTE_CPU, ROUTE_BASE})
 
 
 #: A publisher not looked up yet (None is a publisher not discovered).
@@ -91,6 +95,15 @@ _UNRESOLVED: Any = object()
 #: Streams every publisher numbers on its own (see _numbered_per_stream); only our publishers
 #: write the lane.
 _EXACT_ROUTES = frozenset({ROUTE_INTRA, ROUTE_BASE, ROUTE_LANE})
+
+
+def _stream_of(route: str, publisher: wire.EndpointToken | None) -> str:
+    """The stream a message's number belongs to: its route's, except that the base key and
+    ``_buf_cpu`` are one stream from our publishers (and from one not discovered yet, which
+    may be ours), which number both with one counter."""
+    if route in _SHARED_ROUTES and (publisher is None or publisher.locality is not None):
+        return _SHARED
+    return _STREAM[route]
 
 
 def _restarts(route: str, publisher: wire.EndpointToken | None) -> bool:
@@ -323,9 +336,7 @@ class Subscription:
                 rate = self._rates[gid] = RateLimit(self.max_rate_hz)
             if rate.admit(now):
                 return True
-            publisher = self.node.graph.publisher(gid)
-            self._judge(attachment, route, _numbered_per_stream(route, publisher),
-                        _restarts(route, publisher))
+            self._judge(attachment, route, self.node.graph.publisher(gid))
             self.counters.decimated += 1
             return False
 
@@ -357,8 +368,7 @@ class Subscription:
         overwritten = isinstance(exc, BufferOverwrittenError)
         with self._lock:
             if arrived_on is not None:
-                self._judge(attachment, arrived_on, _numbered_per_stream(arrived_on, publisher),
-                            _restarts(arrived_on, publisher))
+                self._judge(attachment, arrived_on, publisher)
             if not overwritten:
                 self.counters.errors += 1
             elif self.history == wire.KEEP_LAST:
@@ -388,7 +398,7 @@ class Subscription:
         with self._lock:
             if self._closed:
                 return None
-            if self._judge(attachment, ROUTE_INTRA, True) and self.history == wire.KEEP_LAST:
+            if self._judge(attachment, ROUTE_INTRA, None) and self.history == wire.KEEP_LAST:
                 self._refuse(REFUSED_LATE)  # (as _enqueue)
                 return None
             evicted, schedule = self._queue_item(item)
@@ -410,14 +420,14 @@ class Subscription:
         self._scheduled = True
         return evicted, schedule
 
-    def _judge(self, attachment: wire.Attachment, route: str, exact: bool,
-               restarts: bool = False) -> bool:
-        """Count what ``attachment`` says of its stream (gaps, jumps; ``exact``: see
-        :func:`_numbered_per_stream`); whether the message is late, older than one already
-        seen there (call with ``self._lock`` held)."""
-        stream = _STREAM[route]
-        verdict = self._streams.track(stream, attachment.publisher_gid,
-                                      attachment.sequence_number, exact, stream == _OWN, restarts)
+    def _judge(self, attachment: wire.Attachment, route: str,
+               publisher: wire.EndpointToken | None) -> bool:
+        """Count what ``attachment`` says of its stream (gaps, jumps); whether the message is
+        late, older than one already seen there (call with ``self._lock`` held)."""
+        stream = _stream_of(route, publisher)
+        verdict = self._streams.track(
+            stream, attachment.publisher_gid, attachment.sequence_number,
+            _numbered_per_stream(route, publisher), stream == _OWN, _restarts(route, publisher))
         return verdict is not None and self._count_verdict(verdict, route)
 
     def _count_verdict(self, verdict: tuple[bool, int, bool, bool], route: str) -> bool:
@@ -468,7 +478,7 @@ class Subscription:
             # its token): its copies are recognized too, trusting its stamps meanwhile.
             ours = publisher is None or publisher.locality is not None
         exact = _numbered_per_stream(route, publisher)
-        stream = _STREAM[route]
+        stream = _stream_of(route, publisher)
         with self._lock:
             # One C call judges the number and, for ours, the stamp (a second copy's stream
             # still advances); None: a new message, in order.

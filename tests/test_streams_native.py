@@ -143,6 +143,16 @@ def test_bad_arguments_are_typed_errors():
     with pytest.raises(TypeError):
         Streams(1)
 
+    class Refuses:
+        def __bool__(self):
+            raise ZeroDivisionError("no truth value")
+
+    # the first failing flag's own error, never a SystemError from a call made after it
+    with pytest.raises(ZeroDivisionError):
+        streams.admit("own", GID, 1, None, Refuses(), Refuses(), False)
+    with pytest.raises(ZeroDivisionError):
+        streams.track("own", GID, 1, Refuses(), Refuses())
+
 
 # ------------------------------------------------------------------------------- against the model
 def model_verdict(tracker, dedupe, stream, gid, sequence, stamp, exact, from_one, restarts):
