@@ -92,36 +92,32 @@ _SHARED_ROUTES = frozenset({ROUTE_CPU, ROUTE_BASE})
 
 #: A publisher not looked up yet (None is a publisher not discovered).
 _UNRESOLVED: Any = object()
-#: Streams every publisher numbers on its own (see _numbered_per_stream); only our publishers
+#: Streams every publisher numbers on its own (see _judging); only our publishers
 #: write the lane.
 _EXACT_ROUTES = frozenset({ROUTE_INTRA, ROUTE_BASE, ROUTE_LANE})
 
 
-def _stream_of(route: str, publisher: wire.EndpointToken | None) -> str:
-    """The stream a message's number belongs to: its route's, except that the base key and
-    ``_buf_cpu`` are one stream from our publishers (and from one not discovered yet, which
-    may be ours), which number both with one counter."""
-    if route in _SHARED_ROUTES and (publisher is None or publisher.locality is not None):
-        return _SHARED
-    return _STREAM[route]
+def _judging(route: str, publisher: wire.EndpointToken | None) -> tuple[str, bool, bool]:
+    """How a message's number is judged, ``(stream, exact, restarts)`` (one call per message):
 
-
-def _restarts(route: str, publisher: wire.EndpointToken | None) -> bool:
-    """Is a step back in this publisher's numbers its counter starting again? Another
-    implementation's numbers go back only when it restarted (rmw_zenoh drops nothing for it);
-    ours also when a route switch let a later message overtake (then it is late)."""
-    return route != ROUTE_INTRA and publisher is not None and publisher.locality is None
-
-
-def _numbered_per_stream(route: str, publisher: wire.EndpointToken | None) -> bool:
-    """Does the publisher number this stream on its own (every step exact)? Ours do, in process
-    or not (the lane is ours alone, discovered or not); on the base key every publisher does (a
-    buffer-aware one writes it alone when it writes it at all), and so does one that advertises
-    no backends. On the buffer streams,
-    rmw_zenoh's publishers and publishers not discovered yet are judged by the stride of their
-    steps (see :mod:`._streams`)."""
-    return route in _EXACT_ROUTES or publisher is not None and (
-        publisher.locality is not None or publisher.backends is None)
+    - ``stream``: its route's, except that the base key and ``_buf_cpu`` are one stream from
+      our publishers (and from one not discovered yet, which may be ours): they number both
+      with one counter;
+    - ``exact``: the publisher numbers the stream on its own (every step exact). Ours do, in
+      process or not (the lane is ours alone, discovered or not); on the base key every
+      publisher does (a buffer-aware one writes it alone when it writes it at all), and so does
+      one that advertises no backends. On the buffer streams, rmw_zenoh's publishers and
+      publishers not discovered yet are judged by the stride of their steps (see
+      :mod:`._streams`);
+    - ``restarts``: a step back is the publisher's counter starting again. Another
+      implementation's numbers go back only when it restarted (rmw_zenoh drops nothing for
+      it); ours also when a route switch let a later message overtake (then it is late).
+    """
+    foreign = publisher is not None and publisher.locality is None
+    stream = _SHARED if route in _SHARED_ROUTES and not foreign else _STREAM[route]
+    exact = route in _EXACT_ROUTES or publisher is not None and (
+        not foreign or publisher.backends is None)
+    return stream, exact, foreign and route != ROUTE_INTRA
 
 
 @dataclass(frozen=True)
@@ -398,7 +394,11 @@ class Subscription:
         with self._lock:
             if self._closed:
                 return None
-            if self._judge(attachment, ROUTE_INTRA, None) and self.history == wire.KEEP_LAST:
+            # (_judge for the intra stream, one C call: its publisher numbers it exactly)
+            verdict = self._streams.track(_STREAM[ROUTE_INTRA], attachment.publisher_gid,
+                                          attachment.sequence_number, True)
+            if (verdict is not None and self._count_verdict(verdict, ROUTE_INTRA)
+                    and self.history == wire.KEEP_LAST):
                 self._refuse(REFUSED_LATE)  # (as _enqueue)
                 return None
             evicted, schedule = self._queue_item(item)
@@ -424,10 +424,9 @@ class Subscription:
                publisher: wire.EndpointToken | None) -> bool:
         """Count what ``attachment`` says of its stream (gaps, jumps); whether the message is
         late, older than one already seen there (call with ``self._lock`` held)."""
-        stream = _stream_of(route, publisher)
-        verdict = self._streams.track(
-            stream, attachment.publisher_gid, attachment.sequence_number,
-            _numbered_per_stream(route, publisher), stream == _OWN, _restarts(route, publisher))
+        stream, exact, restarts = _judging(route, publisher)
+        verdict = self._streams.track(stream, attachment.publisher_gid,
+                                      attachment.sequence_number, exact, stream == _OWN, restarts)
         return verdict is not None and self._count_verdict(verdict, route)
 
     def _count_verdict(self, verdict: tuple[bool, int, bool, bool], route: str) -> bool:
@@ -477,15 +476,13 @@ class Subscription:
             # alike. One not discovered yet may be ours (its first messages can come before
             # its token): its copies are recognized too, trusting its stamps meanwhile.
             ours = publisher is None or publisher.locality is not None
-        exact = _numbered_per_stream(route, publisher)
-        stream = _stream_of(route, publisher)
+        stream, exact, restarts = _judging(route, publisher)
         with self._lock:
             # One C call judges the number and, for ours, the stamp (a second copy's stream
             # still advances); None: a new message, in order.
             verdict = None if self._closed else self._streams.admit(
                 stream, attachment.publisher_gid, attachment.sequence_number,
-                attachment.source_timestamp_ns if ours else None, exact, stream == _OWN,
-                _restarts(route, publisher))
+                attachment.source_timestamp_ns if ours else None, exact, stream == _OWN, restarts)
             if self._closed:
                 closed = True
             elif verdict is not None and verdict[0]:  # a second copy (see _streams)
