@@ -7,7 +7,8 @@ message whose channel or time was changed). :func:`check_mcap` compares what the
 promises with the records it points at, reading record heads only (never a payload): each
 chunk's head against its chunk index, each message index record, every record head of an
 uncompressed chunk (they must tile it, each message where its index says, with its channel and
-time), and the message counts against the statistics. A changed payload byte is not seen (no
+time), the message records outside chunks (a file written without chunks), and the message
+counts against the statistics. A changed payload byte is not seen (no
 checksum to compare); a compressed chunk is checked by its head and indexes only. A checksum a
 writer did put in a chunk is verified by rosbags' reader when the chunk is read.
 """
@@ -21,6 +22,7 @@ from typing import Any, BinaryIO
 from .errors import BagDamagedError
 from .mcap_records import (MESSAGE_HEAD, OP_CHANNEL, OP_CHUNK, OP_MESSAGE, OP_MESSAGE_INDEX,
                            OP_SCHEMA, RECORD)
+from .storage_messages import top_level_messages
 
 __all__ = ["check_mcap"]
 
@@ -43,9 +45,17 @@ def check_mcap(storage: Any) -> None:
             if problem:
                 raise BagDamagedError(f"the bag file {storage.path} is damaged at byte "
                                       f"{chunk.chunk_start_offset}: {problem}")
-    statistics = storage.statistics
-    expected = {k: v for k, v in (statistics.channel_message_counts if statistics else {}).items()
-                if v}
+        statistics = storage.statistics
+        expected = {k: v for k, v in (statistics.channel_message_counts if statistics else {})
+                    .items() if v}
+        if statistics is not None and dict(counts) != expected:
+            # Messages outside chunks (rosbag2's fastwrite preset writes no chunk at all): their
+            # record heads, walked once, count them (only when the chunks alone fall short).
+            loose = top_level_messages(file, storage.data_start, storage.data_end)
+            if loose is None or any(c not in storage.channels for _, _, c in loose):
+                raise BagDamagedError(f"the bag file {storage.path} is damaged: the records "
+                                      "outside its chunks do not tile its data section")
+            counts.update(channel for _, _, channel in loose)
     if statistics is not None and dict(counts) != expected:
         raise BagDamagedError(f"the bag file {storage.path} is damaged: its message indexes "
                               f"count {sum(counts.values())} messages, its statistics "
