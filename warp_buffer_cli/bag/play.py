@@ -4,7 +4,11 @@ Every topic of the bag, or those given with --topics, is published by a node of 
 with the QoS history its publishers offered. --backend warp puts each buffer field in Warp memory
 (--device) before publishing, so same-host subscriptions that accept warp get it zero-copy;
 cpu (the default) publishes the bytes as stored. Types this process does not know are built from
-the definitions the bag carries. Before the first message the player waits up to
+the definitions the bag carries; a topic whose type cannot be built is skipped (named in
+``unplayable``), the others play, as ``ros2 bag play`` does. Messages are read from the storage
+files' own topics (:mod:`.storage_messages`), and a pass that read fewer messages of a topic than
+the bag counts is :class:`BagDamagedError`, never a silent short playback. Before the first
+message the player waits up to
 --wait-for-subscribers seconds for each topic to have a subscription (discovery takes a moment:
 without the wait the first messages reach nobody). Ctrl-C or SIGTERM stops it.
 """
@@ -25,7 +29,8 @@ from typing import Any
 from .._arguments import absolute_topic_name, number
 from .errors import BagDamagedError, BagError, BagReadError, UnknownTopicError
 from .progress import Progress, size_text
-from .qos import latched, publisher_history
+from .qos import latched, publisher_history, publisher_reliability
+from .storage_messages import bag_messages
 
 __all__ = ["PlayTopic", "Player", "add_arguments", "open_bag", "run"]
 
@@ -141,7 +146,8 @@ class Player:
         self.reader = open_bag(path)
         try:
             self.connections = self._select(topics)
-            self._classes = {c.id: message_class(c.msgtype, c.msgdef) for c in self.connections}
+            self._classes, self.unplayable = _classes(self.connections)
+            self.connections = [c for c in self.connections if c.id in self._classes]
             if backend == "warp":
                 self._check_device()
             from buffer_pubsub import Node
@@ -157,6 +163,7 @@ class Player:
             history, depth = publisher_history(profiles)
             self._publishers[c.id] = self.node.create_publisher(
                 self._classes[c.id], c.topic, depth=depth, history=history,
+                reliability=publisher_reliability(profiles),
                 durability="transient_local" if latched(profiles) else "volatile")
 
     def _select(self, topics: list[str] | None) -> list[Any]:
@@ -202,11 +209,13 @@ class Player:
 
         started = time.monotonic()
         first: int | None = None
+        read: dict[int, int] = dict.fromkeys(self.topics, 0)  # this pass's, by connection
         for connection, timestamp, data in self._messages():
             first = timestamp if first is None else first
             due = started + (timestamp - first) / 1e9 / self.rate
             if stop.wait(max(0.0, due - time.monotonic())):
                 return
+            read[connection.id] += 1
             try:
                 msg = deserialize_message(data, self._classes[connection.id])  # buffers alias
             except DeserializationError as exc:  # one bad message must not end the playback
@@ -222,18 +231,31 @@ class Player:
             played.nbytes += len(data)
             if progress is not None:
                 progress.update(*self.totals())
+        self._check_complete(read)
+
+    def _check_complete(self, read: dict[int, int]) -> None:
+        """:class:`BagDamagedError` when a whole pass read fewer messages of a topic than the
+        bag counts (its metadata, or its file's statistics): a topic dropped on the way."""
+        short = [(c, read[c.id]) for c in self.connections if read[c.id] < c.msgcount]
+        if short:
+            raise BagDamagedError(
+                f"the bag {self.path} is damaged: its storage gave fewer messages than it "
+                "counts: " + ", ".join(f"{c.topic} ({c.msgtype}) {n} of {c.msgcount}"
+                                       for c, n in short))
 
     def _messages(self) -> Iterator[tuple[Any, int, Any]]:
         """The bag's messages; what rosbags (or its storage) raises while reading them, past
         the check at open (a checksum, a sqlite3 page, a compressed chunk), is
         :class:`BagDamagedError` naming the file and how far it was read."""
-        messages = self.reader.messages(connections=self.connections)
+        messages = bag_messages(self.reader, self.connections)
         read = 0
         while True:
             try:
                 item = next(messages)
             except StopIteration:
                 return
+            except BagDamagedError:
+                raise
             except Exception as exc:  # any reader's or storage's class: the file is damaged
                 raise BagDamagedError(
                     f"the bag {self.path} is damaged: reading it failed after {read} "
@@ -261,6 +283,28 @@ class Player:
 
     def __exit__(self, *exc_info: Any) -> None:
         self.close()
+
+
+def _classes(connections: list[Any]) -> tuple[dict[int, Any], list[tuple[str, str, str]]]:
+    """The message class of each connection whose type can be built, and (topic, type, why)
+    of those whose cannot: rosbag2's player warns and skips such a topic (a service event's
+    ``.srv`` schema, a type without definition), playing the rest. None playable: the first
+    one's :class:`UnknownMessageTypeError`."""
+    from rosidl_buffer.errors import UnknownMessageTypeError
+
+    classes: dict[int, Any] = {}
+    unplayable: list[tuple[str, str, str]] = []
+    first: Exception | None = None
+    for c in connections:
+        try:
+            classes[c.id] = message_class(c.msgtype, c.msgdef)
+        except UnknownMessageTypeError as exc:
+            first = first or exc
+            why = " ".join(str(exc).split())  # (a parse error quotes the whole definition)
+            unplayable.append((c.topic, c.msgtype, why if len(why) <= 160 else why[:159] + "…"))
+    if first is not None and not classes:
+        raise first
+    return classes, unplayable
 
 
 def _buffers_to_warp(msg: Any, device: str | None) -> None:
@@ -306,9 +350,13 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     previous = {signum: signal.signal(signum, lambda *_: stop.set())
                 for signum in (signal.SIGINT, signal.SIGTERM)}
+    name = getattr(args, "command_name", "warp-buffer bag play")
     try:
         with Player(args.bag, topics=args.topics, rate=args.rate, backend=args.backend,
                     device=args.device) as player:
+            for topic, type_name, why in player.unplayable:  # (before the playback: seen early)
+                print(f"{name}: warning: not playing {topic} ({type_name}): {why}",
+                      file=sys.stderr)
             player.wait_for_subscribers(args.wait_for_subscribers)
             started = time.monotonic()
             progress = Progress("played")
@@ -320,7 +368,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    return _report_skipped(player, getattr(args, "command_name", "warp-buffer bag play"))
+    return _report_skipped(player, name)
 
 
 def _report(player: Player, elapsed: float) -> None:
@@ -332,6 +380,8 @@ def _report(player: Player, elapsed: float) -> None:
         skipped = f"  skipped {t.skipped} undecodable" if t.skipped else ""
         print(f"  {t.topic}  {t.type_name}  {t.messages} messages  {size_text(t.nbytes)}"
               f"{skipped}")
+    for topic, type_name, _ in player.unplayable:
+        print(f"  {topic}  {type_name}  not played: its type cannot be built")
     sys.stdout.flush()
 
 

@@ -3,7 +3,8 @@
 A recording stores the profiles of the topic's publishers as the graph shows them (buffer_pubsub's
 are reliable and volatile, keep-last ``depth`` or keep-all; a ROS 2 node's may differ).
 ``ros2 bag play`` reads reliability and durability from the profiles to choose its publishers'
-QoS; deadline, lifespan and lease stay unset (0 s: the default, infinite).
+QoS, and so does ``bag play``; deadline, lifespan and lease stay unset (0 s: the default,
+infinite).
 """
 
 from __future__ import annotations
@@ -68,3 +69,12 @@ def publisher_history(profiles: Sequence[Qos]) -> tuple[str, int]:
         return KEEP_ALL, max([p.depth for p in profiles] + [DEFAULT_DEPTH])
     depth = max((p.depth for p in profiles if p.depth > 0), default=DEFAULT_DEPTH)
     return KEEP_LAST, depth
+
+
+def publisher_reliability(profiles: Sequence[Qos]) -> str:
+    """Reliability for a player's publisher: best-effort when every recorded publisher offered
+    it, else reliable. rosbag2 offers the recorded profile when all agree and its reliable
+    default when they differ (qos.cpp ``adapt_offer_to_recorded_offers``)."""
+    best_effort = bool(profiles) and all(p.reliability == QosReliability.BEST_EFFORT
+                                         for p in profiles)
+    return "best_effort" if best_effort else "reliable"
