@@ -201,3 +201,28 @@ def test_the_recorded_reliability_is_offered_again(tmp_path, domain, recorded, p
         (info,) = player.node.get_publishers_info_by_topic("/qos_t")
         best_effort = info.qos_profile.reliability == wire.RELIABILITY_BEST_EFFORT
     assert ("best_effort" if best_effort else "reliable") == played
+
+
+def test_two_connections_of_a_topic_with_different_qos_stay_apart(tmp_path):
+    """Pairing by topic and type must not merge what rosbags wrote as two connections."""
+    from rosbags.rosbag2 import Writer
+
+    from rosidl_buffer.messages import get_typestore
+    from warp_buffer_cli.bag.play import open_bag
+    from warp_buffer_cli.bag.qos import offered_profile
+    from warp_buffer_cli.bag.storage_messages import bag_messages
+
+    bag = tmp_path / "two"
+    with Writer(bag, version=9) as writer:
+        for index, best_effort in enumerate((False, True)):
+            c = writer.add_connection("/two", STRING, typestore=get_typestore(),
+                                      offered_qos_profiles=[offered_profile(
+                                          best_effort=best_effort)])
+            for k in range(index + 2):
+                writer.write(c, T0 + k, _cdr_string(f"{index}"))
+    reader = open_bag(bag)
+    try:
+        read = [c.id for c, _, _ in bag_messages(reader, reader.connections)]
+        assert sorted(read) == [1, 1, 2, 2, 2]
+    finally:
+        reader.close()

@@ -43,11 +43,12 @@ def bag_messages(reader: Any, connections: Collection[Any]) -> Iterator[tuple[An
 
 def _pair(channel: Any, connections: Collection[Any]) -> Any:
     """The connection of ``connections`` a storage channel's messages are played as: itself
-    (a single-file bag), else the one of its topic and type (QoS and hash not compared)."""
+    (a single-file bag), else the one of its topic and type with equal QoS (two of a topic
+    stay apart), else the first of its topic and type (QoS and hash not compared)."""
     if channel in connections:
         return channel
-    return next((c for c in connections
-                 if c.topic == channel.topic and c.msgtype == channel.msgtype), None)
+    same = [c for c in connections if c.topic == channel.topic and c.msgtype == channel.msgtype]
+    return next((c for c in same if c.ext == channel.ext), same[0] if same else None)
 
 
 def _decompress(data: Any) -> bytes:
