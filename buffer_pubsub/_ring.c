@@ -35,6 +35,7 @@
 #include <pthread.h>
 #include <fcntl.h>
 #include <poll.h>
+#include <sched.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <string.h>
@@ -581,7 +582,8 @@ typedef struct {
 
 typedef struct {
     PyObject_HEAD
-    int efd;                 /* notify() writes it while the waiter sleeps */
+    int efd;                 /* atomic: notify() writes it while the waiter sleeps */
+    int notifying;           /* atomic: notify() calls writing efd without the GIL */
     int sleeping;            /* atomic: the waiter is (about to be) in ppoll */
     int notified;            /* atomic */
     int in_wait;             /* a thread is inside wait(): the sets are not to change */
@@ -596,6 +598,8 @@ typedef struct {
     PyObject *empty;         /* () : what wait() returns when no watched fd fired */
     uint64_t wakeups;        /* ppoll returns */
 } Waker;
+
+static void waker_close_efd(Waker *self);
 
 static PyObject *waker_new(PyTypeObject *type, PyObject *args, PyObject *kwds) {
     Waker *self = (Waker *)type->tp_alloc(type, 0);
@@ -653,8 +657,7 @@ static void waker_dealloc(Waker *self) {
     PyMem_Free(self->pfds);
     Py_XDECREF(self->on_error);
     Py_XDECREF(self->empty);
-    if (self->efd >= 0)
-        close(self->efd);
+    waker_close_efd(self);  /* (no notify() runs: it holds a reference) */
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -920,22 +923,44 @@ done:
 /* notify(): wake the waiter (or make its next wait return at once). Any thread. */
 static PyObject *waker_notify(Waker *self, PyObject *unused) {
     __atomic_store_n(&self->notified, 1, __ATOMIC_SEQ_CST);
-    if (__atomic_load_n(&self->sleeping, __ATOMIC_SEQ_CST) && self->efd >= 0) {
-        uint64_t one = 1;
-        ssize_t ignored = write(self->efd, &one, sizeof one);
-        (void)ignored;
+    if (!__atomic_load_n(&self->sleeping, __ATOMIC_SEQ_CST))
+        Py_RETURN_NONE;
+    /* The write runs without the GIL: the waiter it wakes takes the GIL at once (an in-process
+     * subscription's callback starts while this thread returns from publish()) instead of
+     * waking only to wait for it. close() waits for such a write before it closes the fd
+     * (counted in `notifying`, read after efd: whichever of the two comes second sees the
+     * other's store). */
+    __atomic_add_fetch(&self->notifying, 1, __ATOMIC_SEQ_CST);
+    int fd = __atomic_load_n(&self->efd, __ATOMIC_SEQ_CST);
+    if (fd < 0) {
+        __atomic_sub_fetch(&self->notifying, 1, __ATOMIC_SEQ_CST);
+        Py_RETURN_NONE;
     }
+    Py_BEGIN_ALLOW_THREADS
+    uint64_t one = 1;
+    ssize_t ignored = write(fd, &one, sizeof one);
+    (void)ignored;
+    __atomic_sub_fetch(&self->notifying, 1, __ATOMIC_SEQ_CST);  /* before the GIL: see close */
+    Py_END_ALLOW_THREADS
     Py_RETURN_NONE;
+}
+
+/* Close the eventfd once no notify() is writing it (each such write ends without needing the
+ * GIL, which the caller holds). */
+static void waker_close_efd(Waker *self) {
+    int fd = __atomic_exchange_n(&self->efd, -1, __ATOMIC_SEQ_CST);
+    if (fd < 0)
+        return;
+    while (__atomic_load_n(&self->notifying, __ATOMIC_SEQ_CST))
+        sched_yield();
+    close(fd);
 }
 
 static PyObject *waker_close(Waker *self, PyObject *unused) {
     if (self->in_wait)
         return ring_error("close the waker from its waiting thread, or once it returned");
     waker_clear_sets(self);
-    if (self->efd >= 0) {
-        close(self->efd);
-        self->efd = -1;
-    }
+    waker_close_efd(self);
     Py_RETURN_NONE;
 }
 

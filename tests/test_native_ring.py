@@ -214,3 +214,41 @@ def test_a_frame_stuck_half_written_behind_the_tail_does_not_spin_the_waker() ->
         waker.close()
         pen.close()
         writer.close()
+
+
+def test_notify_racing_close_never_writes_a_closed_or_reused_descriptor() -> None:
+    # notify() writes the eventfd without the GIL (the woken waiter takes it at once): close()
+    # must wait for such a write and no later notify may reach the fd number once it is closed
+    # (the kernel hands it to the next file this process opens).
+    import threading
+
+    for _ in range(20):
+        waker = _ring.Waker(None)
+        stop = threading.Event()
+
+        def hammer() -> None:
+            while not stop.is_set():
+                waker.notify()
+
+        threads = [threading.Thread(target=hammer) for _ in range(3)]
+        for thread in threads:
+            thread.start()
+        try:
+            for _ in range(50):
+                waker.wait(0.0005)  # asleep part of the time: notifies write then
+            number = waker.fd
+            waker.close()
+            assert waker.fd == -1
+            reused = os.eventfd(0, os.EFD_NONBLOCK)  # likely the number just closed
+            try:
+                for _ in range(2000):
+                    waker.notify()  # after close: a no-op, whatever fd has that number now
+                with pytest.raises(BlockingIOError):
+                    os.eventfd_read(reused)  # nothing was written to it
+            finally:
+                os.close(reused)
+        finally:
+            stop.set()
+            for thread in threads:
+                thread.join()
+        assert number >= 0
