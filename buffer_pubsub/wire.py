@@ -317,10 +317,10 @@ class QoSProfile:
             negative = body.startswith("-")
             if body.startswith(("+", "-")):
                 body = body[1:]
-            if not (body.isascii() and body.isdecimal()) or int(body) > _UINT64_MAX:
-                raise WireFormatError(f"QoS segment {text!r}: {value!r} is not a valid number")
-            parsed = -int(body) % (_UINT64_MAX + 1) if negative else int(body)
-            if parsed > limit:
+            digits = int(body) if body.isascii() and body.isdecimal() else None
+            parsed = (None if digits is None or digits > _UINT64_MAX else
+                      -digits % (_UINT64_MAX + 1) if negative else digits)
+            if parsed is None or parsed > limit:
                 raise WireFormatError(f"QoS segment {text!r}: {value!r} is not a valid number")
             return parsed
 
@@ -354,7 +354,8 @@ class Attachment(NamedTuple):
 
     @classmethod
     def decode(cls, data: bytes | None) -> Attachment:
-        """The attachment in ``data`` (WireFormatError: not 33 bytes, or a malformed one)."""
+        """The attachment at the head of ``data`` (WireFormatError: shorter than 33 bytes, or a
+        malformed one); bytes past it are ignored, as rmw_zenoh ignores them."""
         return parse_attachment(data)
 
 

@@ -19,7 +19,7 @@ from typing import Any
 from rosidl_buffer.errors import RosidlBufferError
 
 __all__ = ["GraphCommandError", "UnknownTopicError", "add_graph_options", "graph_node",
-           "hidden", "latched_durability", "resolve_topic", "routes_by_publisher",
+           "hidden", "latched_durability", "print_names", "resolve_topic", "routes_by_publisher",
            "unknown_topic", "wait_for_topic"]
 
 #: How long a command watches the graph before it reports (peers answer in ~0.1-0.5 s here).
@@ -61,6 +61,16 @@ def graph_node(args: argparse.Namespace, wait: bool = True) -> Iterator[Any]:
         if wait:
             time.sleep(args.spin_time)
         yield node
+
+
+def print_names(names: list[str], count_only: bool) -> int:
+    """Print ``names`` one per line, or (``count_only``: ros2's ``-c``) only how many; 0."""
+    if count_only:
+        print(len(names))
+    else:
+        for name in names:
+            print(name)
+    return 0
 
 
 def hidden(node_name: str, args: argparse.Namespace) -> bool:

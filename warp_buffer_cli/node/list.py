@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from .._graph import add_graph_options, graph_node, hidden
+from .._graph import add_graph_options, graph_node, hidden, print_names
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -16,9 +16,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     with graph_node(args) as node:
         names = sorted({n.full_name for n in node.get_nodes() if not hidden(n.name, args)})
-    if args.count_nodes:
-        print(len(names))
-    else:
-        for name in names:
-            print(name)
-    return 0
+    return print_names(names, args.count_nodes)

@@ -33,17 +33,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_graph_options(parser)
 
 
-def _known_type(name: str) -> str:
-    """``name`` as a full message type name; GraphCommandError for one no message has."""
-    from rosidl_buffer.errors import UnknownMessageTypeError
-    from rosidl_buffer.messages import get_message_type
-
-    try:
-        return get_message_type(name).__msgtype__
-    except UnknownMessageTypeError as exc:
-        raise GraphCommandError(str(exc)) from None
-
-
 def run(args: argparse.Namespace) -> int:
     if args.truncate_length < 0 or args.count < 0:
         raise GraphCommandError("--truncate-length and --count must be >= 0")
@@ -53,7 +42,10 @@ def run(args: argparse.Namespace) -> int:
         if args.message_type is None:
             topic, type_name = wait_for_topic(node, args.topic_name)
         else:
-            topic, type_name = args.topic_name, _known_type(args.message_type)
+            from rosidl_buffer.messages import get_message_type
+
+            # (a name no message has: UnknownMessageTypeError, one line from main)
+            topic, type_name = args.topic_name, get_message_type(args.message_type).__msgtype__
         durability = latched_durability(node, topic)
         node.create_subscription(
             type_name, topic, lambda msg: inbox.put(to_plain(msg, args.truncate_length)),

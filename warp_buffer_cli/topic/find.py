@@ -8,7 +8,7 @@ import argparse
 
 from rosidl_buffer.messages import normalize_type_name
 
-from .._graph import add_graph_options, graph_node
+from .._graph import add_graph_options, graph_node, print_names
 from .list import topics
 
 
@@ -23,9 +23,4 @@ def run(args: argparse.Namespace) -> int:
     type_name = normalize_type_name(args.topic_type)  # not a type name at all: an error
     with graph_node(args) as node:
         found = sorted(topic for topic, types in topics(node, args).items() if type_name in types)
-    if args.count_topics:
-        print(len(found))
-    else:
-        for topic in found:
-            print(topic)
-    return 0
+    return print_names(found, args.count_topics)
