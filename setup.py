@@ -15,6 +15,8 @@ setup(ext_modules=[
               depends=["buffer_pubsub/_ring.h"], extra_compile_args=CFLAGS),
     Extension("buffer_pubsub._streams", sources=["buffer_pubsub/_streams.c"],
               extra_compile_args=CFLAGS),
+    Extension("buffer_pubsub._loans", sources=["buffer_pubsub/_loans.c"],
+              extra_compile_args=CFLAGS),
     Extension("rosidl_buffer._cdr_native", sources=["rosidl_buffer/_cdr_native.c"],
               extra_compile_args=CFLAGS),
 ])

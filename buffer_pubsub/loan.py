@@ -47,14 +47,17 @@ import collections
 import functools
 import threading
 import types
-import weakref
 from collections.abc import Callable, Hashable
 from typing import Any
 
 from rosidl_buffer import Buffer, BufferImplBase
+from rosidl_buffer.native import load_extension
 from rosidl_buffer.messages import FieldKind, Message, buffer_fields, fields_of
 
 from .errors import InvalidEndpointError, LoanError
+
+_loans = load_extension("buffer_pubsub._loans")
+_loans.configure(Buffer, LoanError)
 
 __all__ = ["DEFAULT_MAX_LOANS", "MAX_POOLS", "Loan", "LoanPool", "flat_buffer_fields",
            "loan_key"]
@@ -62,7 +65,6 @@ __all__ = ["DEFAULT_MAX_LOANS", "MAX_POOLS", "Loan", "LoanPool", "flat_buffer_fi
 DEFAULT_MAX_LOANS = 16
 #: Factory keys a publisher pools at once (see the module docstring).
 MAX_POOLS = 16
-_ref = weakref.ref
 
 
 def flat_buffer_fields(msg_type: type[Message]) -> tuple[str, ...] | None:
@@ -143,47 +145,10 @@ def _places(msg: Message) -> list[tuple[Message, str]] | None:
     return places
 
 
-class _Slot:
-    """One pooled message: where its buffers sit, the storage they hold (kept), the Buffers
-    this slot put there (weakly) and those earlier loans handed out (their holders' tokens)."""
-
-    __slots__ = ("msg", "places", "impls", "placed", "handed", "loaned")
-
-    def __init__(self, msg: Message, places: list[tuple[Message, str]]) -> None:
-        self.msg = msg
-        self.places = places
-        buffers = [getattr(owner, name) for owner, name in places]
-        self.impls = tuple(buffer.get_impl() for buffer in buffers)
-        self.placed = [_ref(buffer) for buffer in buffers]
-        self.handed: list[weakref.ref[Buffer]] = []
-        self.loaned = True
-
-    def reusable(self) -> bool:
-        """Nobody can read the storage: no Buffer an earlier loan handed out is alive, and every
-        backend re-armed its memory. First the message's buffer fields get fresh Buffers (the
-        published ones become tokens of whoever kept them)."""
-        handed = self.handed
-        placed = self.placed
-        for index, (owner, name) in enumerate(self.places):
-            mine = placed[index]
-            current = getattr(owner, name)
-            if current is mine():  # ours: it was handed out with the last loan
-                handed.append(mine)
-                fresh = current.share()
-            else:  # a Buffer the user put there: not ours, not a token
-                fresh = Buffer(self.impls[index])
-            object.__setattr__(owner, name, fresh)
-            placed[index] = _ref(fresh)
-        del current, fresh  # no reference of ours may stay alive while the tokens are checked
-        if handed:
-            for ref in handed:
-                if ref() is not None:
-                    return False
-            handed.clear()
-        for impl in self.impls:
-            if not impl.reclaim():
-                return False
-        return True
+# One pooled message (where its buffers sit, the storage they hold, the Buffers it put there
+# and those earlier loans handed out: their holders' tokens) and its ``reusable()``: C, with
+# the Loan context manager (see :mod:`._loans`).
+_Slot = _loans._Slot
 
 
 def _rearmable(msg: Message) -> list[tuple[Message, str]] | None:
@@ -248,15 +213,11 @@ class LoanPool:
             else:
                 pools.move_to_end(key)
             slots = pool.slots
-            for index, slot in enumerate(slots):
-                if not slot.loaned and slot.reusable():  # (least recently loaned first)
-                    slot.loaned = True
-                    self.reused += 1
-                    # Least recently loaned first next time: the one just published is the
-                    # likeliest to be still held (probing it costs a reclaim that fails).
-                    slots.append(slots.pop(index))
-                    reused = slot
-                    break
+            # Least recently loaned first; the one taken goes last (the one just published is
+            # the likeliest to be still held: probing it costs a reclaim that fails).
+            reused = _loans.reuse(slots)
+            if reused is not None:
+                self.reused += 1
             full = len(slots) >= limit
         if reused is not None:
             reloan = getattr(factory, "reloan", None)
@@ -294,10 +255,6 @@ class LoanPool:
                 del self._pools[key]
                 return
 
-    def give_back(self, slot: _Slot) -> None:
-        """The loan ended (published or abandoned)."""
-        slot.loaned = False
-
     def stats(self) -> dict[str, int]:
         with self._lock:
             pooled = sum(len(pool.slots) for pool in self._pools.values())
@@ -314,42 +271,7 @@ class LoanPool:
             self._pools.clear()
 
 
-class Loan:
-    """``with publisher.loan(factory) as msg:`` (see the module docstring).
-
-    The message is the publisher's until the block ends: on a normal exit it is published (the
-    loan ends at publish: buffers are sealed, and a backend may make a view kept past it
-    unwritable, as warp_buffer does on its cpu device); on an exception nothing is published
-    and the message goes back to the pool. A loaned message published intra-process is not
-    reused while any subscriber still holds it (its snapshot holds the loan's ``Buffer``).
-    """
-
-    __slots__ = ("_pool", "_publish", "_factory", "_max_loans", "_msg", "_slot")
-
-    def __init__(self, pool: LoanPool, publish: Callable[[Message], None],
-                 factory: Callable[[], Message], max_loans: int | None = None) -> None:
-        """Made by :meth:`Publisher.loan`: its pool, and its ``publish``."""
-        self._pool = pool
-        self._publish = publish
-        self._factory = factory
-        self._max_loans = max_loans
-        self._msg: Message | None = None
-        self._slot: _Slot | None = None
-
-    def __enter__(self) -> Message:
-        if self._msg is not None:
-            raise LoanError("a Loan is entered once; call publisher.loan(...) for the next one")
-        self._msg, self._slot = self._pool.take(self._factory, self._max_loans)
-        self._pool.in_blocks.add(id(self._msg))
-        return self._msg
-
-    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
-        msg, slot = self._msg, self._slot
-        self._msg = self._slot = None
-        self._pool.in_blocks.discard(id(msg))
-        try:
-            if exc_type is None and msg is not None:
-                self._publish(msg)
-        finally:
-            if slot is not None:
-                slot.loaned = False  # the loan ended (published or abandoned)
+#: ``with publisher.loan(factory) as msg:`` (see the module docstring): C, as a loan's
+#: per-message path (``Loan(pool, publish, factory, max_loans=None)``, made by
+#: :meth:`Publisher.loan`).
+Loan = _loans.Loan
