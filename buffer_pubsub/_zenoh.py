@@ -43,16 +43,23 @@ def typed_zenoh_errors(what: str) -> Iterator[None]:
 
 #: How long the interpreter's exit waits for teardown helpers still inside Zenoh (see
 #: :func:`run_bounded`): one that returns into Python while the interpreter finalizes aborts
-#: the process ("FATAL: exception not rethrown"), typically once a frozen peer resumes.
-EXIT_WAIT_S = 1.0
+#: the process ("FATAL: exception not rethrown"): a frozen peer that resumes as the program
+#: exits, or a session close that a starved machine slowed past the close's own bound (seen at
+#: a load of 12 on 2 cores). Past this the process exits anyway: a call still blocked then
+#: waits on a peer frozen for longer, and is unlikely to return in finalization's moment.
+EXIT_WAIT_S = 10.0
 _background: set[threading.Event] = set()  # the done flags of helpers still running
 _background_lock = threading.Lock()
 
 
 def _await_background() -> None:
-    deadline = time.monotonic() + EXIT_WAIT_S
     with _background_lock:
-        running = list(_background)
+        running = [done for done in _background if not done.is_set()]
+    if not running:
+        return
+    _log.warning("waiting up to %.0f s for %d Zenoh teardown call(s) before exiting (a frozen "
+                 "peer, or a busy machine)", EXIT_WAIT_S, len(running))
+    deadline = time.monotonic() + EXIT_WAIT_S
     for done in running:
         done.wait(max(0.0, deadline - time.monotonic()))
     blocked = sum(not done.is_set() for done in running)

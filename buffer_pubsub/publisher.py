@@ -3,9 +3,10 @@
 The routes are rmw_zenoh 0.10.5's (``rmw_publisher_data.cpp``), judged once per subscription
 when it is discovered (:func:`wire.subscription_channel`), not per message:
 
-- subscriptions of this process get the message object itself (intra-process, no serialization,
-  no copy of the payload) when they accept every backend the message's buffers live in, else a
-  CPU copy; they are never served through Zenoh as well;
+- subscriptions of this process get a snapshot of the message (intra-process: a message object
+  of their own sharing its buffers and arrays, no serialization, no copy of the payload) when
+  they accept every backend the message's buffers live in, else a snapshot of a CPU copy; they
+  are never served through Zenoh as well;
 - on a topic whose type has a top-level ``uint8[]`` (buffer-aware):
 
   - subscriptions that advertise exactly ``cpu`` share one CPU serialization on
@@ -472,8 +473,9 @@ class Publisher:
                  if s.node.domain_id == self.node.domain_id}
         for gid in sorted(local):
             routes.append(RouteInfo(gid, ROUTE_INTRA, "in process",
-                                    "same process: the message object itself (a CPU copy for "
-                                    "a subscription that does not accept its backend)"))
+                                    "same process: a snapshot of the message sharing its "
+                                    "buffers, no copy (of a CPU copy for a subscription that "
+                                    "does not accept its backend)"))
         own = {id(peer) for peer in routing.own}
         for peer in peers:
             gid = peer.token.gid

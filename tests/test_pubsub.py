@@ -133,6 +133,9 @@ def test_intra_process_shares_the_payload_and_gives_cpu_only_a_copy(domain, topi
                                           with_info=True)
         pub = pub_node.create_publisher(TENSOR, topic)
         assert pub.wait_for_subscriptions(2, timeout=10)
+        # what `topic info -v` shows says what the subscriptions get: a snapshot, not the object
+        reasons = [route.reason for route in pub.routes()]
+        assert len(reasons) == 2 and all("a snapshot of the message" in r for r in reasons)
         sent = [make_frame(0, i, SIZE, BACKEND) for i in range(COUNT)]
         for msg in sent:
             pub.publish(msg)

@@ -298,6 +298,33 @@ def test_exit_after_closing_with_a_frozen_keep_all_peer_is_clean(domain, topic):
         peer.wait()
 
 
+_SLOW_TEARDOWN_APP = r"""
+import sys, time
+from buffer_pubsub._zenoh import run_bounded
+
+def work():
+    time.sleep(2.5)  # (a session close a starved machine slowed past its bound)
+    with open(sys.argv[1], "w") as marker:
+        marker.write("done")
+
+assert run_bounded(work, 0.1, "slow close") is False
+print("EXITING", flush=True)
+"""
+
+
+def test_the_exit_waits_for_a_teardown_that_outlasts_its_bound(tmp_path):
+    """A node's close that outlasted its bound under load (2 cores at a load of 12) was still
+    inside Zenoh when the exit's 1 s wait ended: it returned into the finalizing interpreter and
+    the process aborted (SIGABRT). The exit now waits for it (up to EXIT_WAIT_S)."""
+    marker = tmp_path / "finished"
+    app = subprocess.run([sys.executable, "-c", _SLOW_TEARDOWN_APP, str(marker)], cwd=ROOT,
+                         env=child_env(), capture_output=True, text=True, timeout=60)
+    assert app.returncode == 0 and "EXITING" in app.stdout, app.stderr[-2000:]
+    assert marker.read_text() == "done"  # the teardown ran to its end before the exit
+    assert "waiting up to 10 s for 1 Zenoh teardown call(s)" in app.stderr
+    assert "still blocked" not in app.stderr
+
+
 _FROZEN_INDIVIDUAL_PEER = r"""
 import sys
 from buffer_pubsub import Node
