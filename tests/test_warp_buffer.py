@@ -330,6 +330,66 @@ def test_idle_bytes_beyond_the_cap_are_freed_at_once(monkeypatch):
     assert sum(b.arena is not None for b in blocks) == 1
 
 
+def test_the_idle_cap_probes_few_held_blocks_per_allocation(monkeypatch):
+    """A subscriber keeping every frame leaves its blocks on the publisher's free lists (their
+    leases ended there); the cap probed them all at every allocation, and publishing slowed 10x
+    past a GiB of holds. Now at most PROBES per allocation, the held ones moved to the back."""
+    import collections
+
+    from warp_buffer import pool as pool_module
+
+    class _Block:
+        capacity = 8192
+
+        def __init__(self, reclaimable: bool) -> None:
+            self.reclaimable, self.probes, self.destroyed = reclaimable, 0, False
+
+        def try_reclaim(self) -> bool:
+            self.probes += 1
+            return self.reclaimable
+
+        def destroy(self) -> None:
+            self.destroyed = True
+
+    pool = pool_module.BlockPool(wp.get_device("cpu"))
+    held = [_Block(False) for _ in range(500)]
+    free = [_Block(True) for _ in range(4)]  # the newest: behind every held one
+    pool._free[8192] = collections.deque((b, float(i)) for i, b in enumerate(held + free))
+    pool.free_bytes = 8192 * 504
+    monkeypatch.setenv("WARP_BUFFER_POOL_MAX_IDLE_BYTES", str(8192 * 500))
+    calls = 0
+    while not all(b.destroyed for b in free):
+        before = sum(b.probes for b in held + free)
+        pool._enforce_idle_cap()
+        assert sum(b.probes for b in held + free) - before <= pool_module.PROBES
+        calls += 1
+        assert calls < 100, "the free blocks behind the held ones were never reached"
+    assert not any(b.destroyed for b in held) and pool.free_bytes == 8192 * 500
+    assert len(pool._free[8192]) == 500
+
+
+def test_a_full_arena_is_said_once_and_counted(monkeypatch, caplog):
+    """A subscriber holding every frame filled the arena: the publisher then logged a warning
+    per publish (3,209 in 25 s) and nothing counted the blocks that lost zero copy."""
+    import logging
+
+    from warp_buffer.arena import current_arena
+
+    arena = current_arena()
+    private = get_pool(wp.get_device("cpu")).private
+    monkeypatch.setattr(arena, "alloc", lambda capacity: None)  # no range left
+    with caplog.at_level(logging.WARNING, logger="warp_buffer.pool"):
+        full = [allocate_buffer(1 << 22, "cpu") for _ in range(3)]
+        monkeypatch.undo()
+        again = allocate_buffer(1 << 22, "cpu")
+    said = [r.getMessage() for r in caplog.records if r.name == "warp_buffer.pool"]
+    assert len(said) == 2 and "no 4194304-byte range left" in said[0] and "CPU bytes" in said[0]
+    assert "serves again" in said[1]
+    assert not any(b.get_impl().is_exportable for b in full) and again.get_impl().is_exportable
+    assert get_pool(wp.get_device("cpu")).private == private + 3
+    assert warp_buffer.pool_stats()["cpu"]["private"] == private + 3
+
+
 def test_disabled_ipc_uses_private_memory(monkeypatch):
     monkeypatch.setenv("WARP_BUFFER_DISABLE_IPC", "1")
     buffer = allocate_buffer(5000, "cpu")

@@ -23,9 +23,9 @@ An exported block is reused or freed only when (a) every peer it was sent to imp
 later descriptor (it dropped this one: keep-last), or is gone (:meth:`warp_buffer.arena.Arena.
 delivered`), and (b) no reader holds it: the pool's write-lock probe on the block's lock byte
 fails while any reader's read lock is held, and the kernel drops a reader's lock when it dies.
-No timer is involved. At most :data:`PROBES` candidates are probed per allocation (oldest first,
-the busy ones move to the back), so a subscriber holding thousands of blocks does not make
-allocation slow.
+No timer is involved. At most :data:`PROBES` candidates are probed per allocation for reuse, and
+as many to hold free memory to its cap (oldest first, the busy ones move to the back), so a
+subscriber holding thousands of blocks does not make allocation slow.
 
 Memory goes back to the system when idle: free blocks unused for ``WARP_BUFFER_POOL_IDLE_S``
 seconds (default 10) are destroyed by a janitor thread (their arena pages punched out), and free
@@ -132,10 +132,8 @@ class HostBlock(Block):
                 _log.warning("no shared arena (%s): using private memory; buffers in it "
                              "travel as CPU bytes", exc)
             else:
-                if offset is None:
-                    _log.warning("the arena has no %d-byte range left: using private memory",
-                                 capacity)
-                else:
+                _arena_full(offset is None, capacity)
+                if offset is not None:
                     self.arena, self.offset, self.shared = arena, offset, True
                     self.data_ptr = arena.base + offset
                     self._host = arena.host[offset:offset + capacity]
@@ -157,6 +155,24 @@ class HostBlock(Block):
             self.arena.free(self.offset, self.capacity)
             self.arena = None
         self._private = None
+
+
+_arena_was_full = False
+
+
+def _arena_full(full: bool, capacity: int) -> None:
+    """Say when the arena stops serving (private memory: zero-copy stops, peers get CPU bytes)
+    and when it serves again: once per change, not per block (a subscriber holding every frame
+    fills it at the publishing rate)."""
+    global _arena_was_full
+    if full and not _arena_was_full:
+        _log.warning("the arena has no %d-byte range left: new buffers use private memory and "
+                     "travel as CPU bytes (no zero copy) until readers let blocks go "
+                     "(WARP_BUFFER_ARENA_GIB sizes the arena; pool_stats() counts them)",
+                     capacity)
+    elif not full and _arena_was_full:
+        _log.warning("the arena serves again: new buffers are shared (zero copy) once more")
+    _arena_was_full = full
 
 
 class CudaBlock(Block):
@@ -356,6 +372,7 @@ class BlockPool:
         self.reused = 0
         self.destroyed = 0
         self.free_bytes = 0
+        self.private = 0  # blocks made in private memory because the arena was full
         self._leased = 0  # blocks handed out (returned ones are subtracted when drained)
         # The smallest block (VMM: the allocation granularity, ~2 MiB, so small buffers share
         # one size class); None until the first CUDA allocation judged it.
@@ -415,7 +432,12 @@ class BlockPool:
 
     def _create(self, capacity: int) -> Block:
         if self.device.is_cpu:
-            return HostBlock(capacity, shared=not ipc_disabled())
+            shared = not ipc_disabled()
+            block = HostBlock(capacity, shared=shared)
+            if shared and not block.shared:
+                with self._lock:
+                    self.private += 1
+            return block
         return cuda_block(self.device, capacity)
 
     def _give_back(self, block: Block) -> None:
@@ -438,9 +460,31 @@ class BlockPool:
             self.free_bytes += block.capacity
 
     def _enforce_idle_cap(self) -> None:
+        """Free blocks beyond the cap go back, oldest first, at most :data:`PROBES` probed per
+        allocation: blocks a reader still holds sit on the free lists too (their lease ended
+        here), and probing them all at every allocation made publishing slow (each probe walks
+        the arena's lock list, as long as the readers' holds). A held one goes to the back."""
         cap = int(env_float("WARP_BUFFER_POOL_MAX_IDLE_BYTES", 1 << 30))
-        if self.free_bytes > cap:
-            self.trim(max_free_bytes=cap)
+        if self.free_bytes <= cap:
+            return
+        victims: list[Block] = []
+        with self._lock:
+            for _ in range(PROBES):
+                if self.free_bytes <= cap:
+                    break
+                heads = [queue for queue in self._free.values() if queue]
+                if not heads:
+                    break
+                queue = min(heads, key=lambda q: q[0][1])  # the oldest free block
+                block, released = queue.popleft()
+                if block.try_reclaim():
+                    self.free_bytes -= block.capacity
+                    self.destroyed += 1
+                    victims.append(block)
+                else:  # held: idle from now at the earliest
+                    queue.append((block, time.monotonic()))
+        for block in victims:
+            block.destroy()
 
     # -- giving memory back ---------------------------------------------------------------------
     def trim(self, idle_s: float = 0.0, max_free_bytes: int | None = None) -> int:
@@ -491,6 +535,7 @@ class BlockPool:
                 "created": self.created,
                 "reused": self.reused,
                 "destroyed": self.destroyed,
+                "private": self.private,
                 "leased": self._leased,
                 "free_blocks": sum(len(q) for q in self._free.values()),
                 "free_bytes": self.free_bytes,
@@ -569,7 +614,9 @@ def get_pool(device: Any) -> BlockPool:
 
 
 def pool_stats() -> dict[str, dict[str, int]]:
-    """Counters of every pool, by device: created, reused, destroyed, leased, free blocks/bytes."""
+    """Counters of every pool, by device: created, reused, destroyed, leased, free blocks/bytes,
+    and ``private``: blocks made in private memory because the arena was full (their buffers
+    reach other processes as CPU bytes)."""
     with _pools_lock:
         pools = dict(_pools)
     return {name: pool.stats() for name, pool in pools.items()}
