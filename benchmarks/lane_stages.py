@@ -20,6 +20,10 @@ the user callback stamps its entry and the moment the view is usable. Each wrapp
 For the lane, a bare 602-byte frame on a lane reader of the child's own, attached to the same
 waker, is interleaved with the messages: what the lane alone costs in the same run.
 
+``--warm`` runs it all again warm (the publisher spins, the subscriber's waker busy-polls:
+nobody sleeps) and prints each stage's two medians side by side: what a stage costs after an
+idle wake-up (caches and branch predictors cold, a core woken from idle) against its own work.
+
 After the timed messages, ``--frames N`` more (default 10) are sent with the Python frames they
 run counted (:class:`benchmarks.frames.FrameCounter`, ``sys.setprofile``): on the publisher from
 the loan to the end of ``publish()``, on the subscriber from the frame's arrival in the
@@ -444,6 +448,33 @@ def table(rows: list[tuple[str, float, float]]) -> str:
     return "\n".join(lines)
 
 
+#: ``--warm``: the subscriber's waker spins this long before it blocks (the publisher spins too).
+WARM_BUSY_POLL_S = 0.05
+
+
+def _after_warm_up(records: list[tuple[int, dict[str, Any]]], args: argparse.Namespace
+                   ) -> list[tuple[int, dict[str, Any]]]:
+    """The timed records past the first ones (first imports map files, warm caches)."""
+    timed = [r for r in records if r[0] in (BARE, BARE_IDLE, FULL)]
+    per = 3 if args.route == "lane" else 1
+    return timed[per * min(20, args.count // 10):]
+
+
+def side_by_side(idle: list[tuple[str, float, float]], hot: list[tuple[str, float, float]]
+                 ) -> str:
+    """The p50 of each stage after an idle wake-up (the default run) beside the same stage warm
+    (nobody sleeps), and their ratio."""
+    warm = {name: p50 for name, p50, _ in hot}
+    width = max(len(r[0]) for r in idle)
+    lines = [f"{'stage':<{width}}  {'idle p50':>9}  {'warm p50':>9}  {'ratio':>6}"]
+    for name, p50, _ in idle:
+        other = warm.get(name)
+        ratio = f"{p50 / other:5.1f}x" if other is not None and other > 0.5 else "     -"
+        shown = f"{other:9.1f}" if other is not None else f"{'-':>9}"
+        lines.append(f"{name:<{width}}  {p50:9.1f}  {shown}  {ratio}")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the publisher (default) or the subscriber role."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.lane_stages",
@@ -463,6 +494,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--syscalls", type=int, default=-1, metavar="N",
                         help="count the system calls of N more messages (strace on each side's "
                              "message thread; default 20 when strace is installed, 0: none)")
+    parser.add_argument("--warm", action="store_true",
+                        help="also run every stage warm (--spin, --busy-poll 0.05: no idle "
+                             "wake-up on either side) and print both medians side by side: what "
+                             "each stage costs after an idle wake-up against its own work")
     parser.add_argument("--frame-detail", action="store_true",
                         help="print where the counted frames go, per function (to stderr)")
     parser.add_argument("--role", choices=("pub", "sub"), default="pub")
@@ -482,9 +517,8 @@ def main(argv: list[str] | None = None) -> int:
         syscalls = 20 if available() else 0
     records = publisher(args.count, args.nbytes, args.route, args.busy_poll, args.spin,
                         max(0, args.frames), syscalls)
-    timed = [r for r in records if r[0] in (BARE, BARE_IDLE, FULL)]
+    warm = _after_warm_up(records, args)
     per = 3 if args.route == "lane" else 1
-    warm = timed[per * min(20, args.count // 10):]  # first imports map files, warm caches
     what = ("loaned warp tensor over the fast lane" if args.route == "lane"
             else "prepared CPU tensor over Zenoh")
     frames = frame_counts(records)
@@ -495,7 +529,12 @@ def main(argv: list[str] | None = None) -> int:
     if calls:
         counted += f"; system calls per message: {calls}"
     print(f"{what}, {args.nbytes} B, {len(warm) // per} messages (one in flight){counted}:")
-    print(table(stage_figures(warm, args.route)))
+    rows = stage_figures(warm, args.route)
+    if args.warm:
+        hot = publisher(args.count, args.nbytes, args.route, WARM_BUSY_POLL_S, True)
+        print(side_by_side(rows, stage_figures(_after_warm_up(hot, args), args.route)))
+    else:
+        print(table(rows))
     if by_name:
         print(f"system calls per message, by name: {by_name}", file=sys.stderr)
     if args.frame_detail:

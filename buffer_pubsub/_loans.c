@@ -32,7 +32,7 @@ static int configured(void) {
 typedef struct {
     PyObject_HEAD
     PyObject *msg;
-    PyObject *places;  /* list of (owner message, field name) */
+    PyObject *places;  /* tuple of (owner message, field name) */
     PyObject *impls;   /* tuple: the storage of each place, kept */
     PyObject *placed;  /* list: a weak reference to the Buffer this slot put at each place */
     PyObject *handed;  /* list: weak references to Buffers earlier loans handed out (tokens) */
@@ -43,18 +43,22 @@ static PyTypeObject SlotType;
 
 static int slot_init(Slot *self, PyObject *args, PyObject *kwargs) {
     static char *names[] = {"msg", "places", NULL};
-    PyObject *msg, *places;
+    PyObject *msg, *given;
     if (!PyArg_ParseTupleAndKeywords(args, kwargs, "OO!:_Slot", names, &msg, &PyList_Type,
-                                     &places))
+                                     &given))
         return -1;
     if (!configured())
         return -1;
-    Py_ssize_t n = PyList_GET_SIZE(places);
+    /* A tuple of our own: the caller's list may change, and user code runs in our loops. */
+    PyObject *places = PyList_AsTuple(given);
+    if (places == NULL)
+        return -1;
+    Py_ssize_t n = PyTuple_GET_SIZE(places);
     PyObject *impls = PyTuple_New(n), *placed = PyList_New(n), *handed = PyList_New(0);
     if (impls == NULL || placed == NULL || handed == NULL)
         goto fail;
     for (Py_ssize_t i = 0; i < n; i++) {
-        PyObject *place = PyList_GET_ITEM(places, i);
+        PyObject *place = PyTuple_GET_ITEM(places, i);
         if (!PyTuple_Check(place) || PyTuple_GET_SIZE(place) != 2
                 || !PyUnicode_Check(PyTuple_GET_ITEM(place, 1))) {
             PyErr_SetString(PyExc_TypeError, "a place is an (owner, field name) tuple");
@@ -75,13 +79,14 @@ static int slot_init(Slot *self, PyObject *args, PyObject *kwargs) {
         PyList_SET_ITEM(placed, i, ref);
     }
     Py_XSETREF(self->msg, Py_NewRef(msg));
-    Py_XSETREF(self->places, Py_NewRef(places));
+    Py_XSETREF(self->places, places);
     Py_XSETREF(self->impls, impls);
     Py_XSETREF(self->placed, placed);
     Py_XSETREF(self->handed, handed);
     self->loaned = 1;
     return 0;
 fail:
+    Py_DECREF(places);
     Py_XDECREF(impls);
     Py_XDECREF(placed);
     Py_XDECREF(handed);
@@ -112,6 +117,18 @@ static void slot_dealloc(Slot *self) {
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
+/* What weak reference `ref` points to now: a new reference, Py_None when it is dead. */
+static PyObject *referent(PyObject *ref) {
+#if PY_VERSION_HEX >= 0x030D0000
+    PyObject *target;
+    if (PyWeakref_GetRef(ref, &target) < 0)
+        return NULL;
+    return target != NULL ? target : Py_NewRef(Py_None);
+#else
+    return Py_NewRef(PyWeakref_GET_OBJECT(ref));
+#endif
+}
+
 /* Another Buffer over `current`'s impl (Buffer.share without its frame). */
 static PyObject *share(PyObject *current) {
     PyObject *impl = PyObject_GetAttr(current, str_impl);
@@ -125,27 +142,32 @@ static PyObject *share(PyObject *current) {
     return fresh;
 }
 
-/* Fresh Buffers in every place (the last loan's become tokens). 0, or -1 on error. */
-static int slot_refresh(Slot *self) {
-    Py_ssize_t n = PyList_GET_SIZE(self->places);
-    for (Py_ssize_t i = 0; i < n; i++) {
-        PyObject *place = PyList_GET_ITEM(self->places, i);
+/* Fresh Buffers in every place (the last loan's become tokens). 0, or -1 on error. The
+ * containers are the caller's strong references: getattr and setattr on the messages run user
+ * code, which may even re-initialize the slot. */
+static int slot_refresh(PyObject *places, PyObject *impls, PyObject *placed, PyObject *handed) {
+    Py_ssize_t n = PyTuple_GET_SIZE(places);
+    if (PyTuple_GET_SIZE(impls) != n)
+        return 0;  /* (a placed list shorter than the places: re-initialized meanwhile) */
+    for (Py_ssize_t i = 0; i < n && i < PyList_GET_SIZE(placed); i++) {
+        PyObject *place = PyTuple_GET_ITEM(places, i);
         PyObject *owner = PyTuple_GET_ITEM(place, 0), *name = PyTuple_GET_ITEM(place, 1);
-        PyObject *mine = PyList_GET_ITEM(self->placed, i);
+        PyObject *mine = Py_NewRef(PyList_GET_ITEM(placed, i));
         PyObject *current = PyObject_GetAttr(owner, name);
-        if (current == NULL)
-            return -1;
-        PyObject *fresh;
-        if (current == PyWeakref_GET_OBJECT(mine)) {  /* handed out with the last loan */
-            if (PyList_Append(self->handed, mine) < 0) {
-                Py_DECREF(current);
-                return -1;
+        PyObject *last = current ? referent(mine) : NULL;
+        PyObject *fresh = NULL;
+        if (last != NULL) {
+            if (current == last) {  /* handed out with the last loan: now its holders' token */
+                if (PyList_Append(handed, mine) == 0)
+                    fresh = share(current);
+            } else {  /* a Buffer the user put there: not ours, not a token */
+                fresh = PyObject_CallOneArg(buffer_type, PyTuple_GET_ITEM(impls, i));
             }
-            fresh = share(current);
-        } else {  /* a Buffer the user put there: not ours, not a token */
-            fresh = PyObject_CallOneArg(buffer_type, PyTuple_GET_ITEM(self->impls, i));
         }
-        Py_DECREF(current);  /* none of our references may stay while the tokens are checked */
+        /* none of our references may stay while the tokens are checked */
+        Py_XDECREF(last);
+        Py_XDECREF(current);
+        Py_DECREF(mine);
         if (fresh == NULL)
             return -1;
         PyObject *ref = PyObject_GenericSetAttr(owner, name, fresh) < 0
@@ -153,32 +175,51 @@ static int slot_refresh(Slot *self) {
         Py_DECREF(fresh);
         if (ref == NULL)
             return -1;
-        PyList_SetItem(self->placed, i, ref);  /* steals ref, drops the old one */
+        if (i < PyList_GET_SIZE(placed)) {
+            PyList_SetItem(placed, i, ref);  /* steals ref, drops the old one */
+        } else {
+            Py_DECREF(ref);
+        }
+    }
+    return 0;
+}
+
+/* Is any of these weak references alive? 1, 0, or -1 on error. */
+static int any_alive(PyObject *refs) {
+    for (Py_ssize_t i = 0; i < PyList_GET_SIZE(refs); i++) {
+        PyObject *target = referent(PyList_GET_ITEM(refs, i));
+        if (target == NULL)
+            return -1;
+        int alive = target != Py_None;
+        Py_DECREF(target);
+        if (alive)
+            return 1;
     }
     return 0;
 }
 
 /* 1: nobody can read the storage, 0: somebody may, -1: error. */
 static int slot_reusable_c(Slot *self) {
-    if (slot_refresh(self) < 0)
-        return -1;
-    Py_ssize_t handed = PyList_GET_SIZE(self->handed);
-    if (handed) {
-        for (Py_ssize_t i = 0; i < handed; i++)
-            if (PyWeakref_GET_OBJECT(PyList_GET_ITEM(self->handed, i)) != Py_None)
-                return 0;
-        if (PyList_SetSlice(self->handed, 0, handed, NULL) < 0)
-            return -1;
+    PyObject *places = Py_NewRef(self->places), *impls = Py_NewRef(self->impls);
+    PyObject *placed = Py_NewRef(self->placed), *handed = Py_NewRef(self->handed);
+    int done = slot_refresh(places, impls, placed, handed) < 0 ? -1 : 1;
+    if (done > 0 && PyList_GET_SIZE(handed)) {
+        int alive = any_alive(handed);
+        if (alive != 0)
+            done = alive < 0 ? -1 : 0;
+        else if (PyList_SetSlice(handed, 0, PyList_GET_SIZE(handed), NULL) < 0)
+            done = -1;
     }
-    Py_ssize_t n = PyTuple_GET_SIZE(self->impls);
-    for (Py_ssize_t i = 0; i < n; i++) {
-        PyObject *r = PyObject_CallMethodNoArgs(PyTuple_GET_ITEM(self->impls, i), str_reclaim);
-        int done = r == NULL ? -1 : PyObject_IsTrue(r);
+    for (Py_ssize_t i = 0; done > 0 && i < PyTuple_GET_SIZE(impls); i++) {
+        PyObject *r = PyObject_CallMethodNoArgs(PyTuple_GET_ITEM(impls, i), str_reclaim);
+        done = r == NULL ? -1 : PyObject_IsTrue(r);
         Py_XDECREF(r);
-        if (done <= 0)
-            return done;
     }
-    return 1;
+    Py_DECREF(places);
+    Py_DECREF(impls);
+    Py_DECREF(placed);
+    Py_DECREF(handed);
+    return done;
 }
 
 static PyObject *slot_reusable(Slot *self, PyObject *unused) {
@@ -348,6 +389,7 @@ static PyObject *loan_enter(Loan *self, PyObject *unused) {
         PyErr_SetString(PyExc_TypeError, "a loan pool's take returns (message, _Slot or None)");
         return NULL;
     }
+    Py_INCREF(msg);  /* ours until returned: the getattr below may run code that ends the loan */
     Py_XSETREF(self->msg, Py_NewRef(msg));
     Py_XSETREF(self->slot, slot == Py_None ? NULL : Py_NewRef(slot));
     Py_DECREF(taken);
@@ -356,9 +398,11 @@ static PyObject *loan_enter(Loan *self, PyObject *unused) {
     int added = id ? PySet_Add(blocks, id) : -1;
     Py_XDECREF(id);
     Py_XDECREF(blocks);
-    if (added < 0)
+    if (added < 0) {
+        Py_DECREF(msg);
         return NULL;
-    return Py_NewRef(msg);
+    }
+    return msg;
 }
 
 static PyObject *loan_exit(Loan *self, PyObject *const *args, Py_ssize_t nargs) {

@@ -6,6 +6,7 @@ import atexit
 import contextlib
 import logging
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -48,6 +49,9 @@ def typed_zenoh_errors(what: str) -> Iterator[None]:
 #: a load of 12 on 2 cores). Past this the process exits anyway: a call still blocked then
 #: waits on a peer frozen for longer, and is unlikely to return in finalization's moment.
 EXIT_WAIT_S = 10.0
+#: The same after the program ended on Ctrl-C (an uncaught KeyboardInterrupt): out promptly.
+#: A Ctrl-C during the longer wait also ends it.
+INTERRUPTED_EXIT_WAIT_S = 1.0
 _background: set[threading.Event] = set()  # the done flags of helpers still running
 _background_lock = threading.Lock()
 
@@ -57,11 +61,18 @@ def _await_background() -> None:
         running = [done for done in _background if not done.is_set()]
     if not running:
         return
-    _log.warning("waiting up to %.0f s for %d Zenoh teardown call(s) before exiting (a frozen "
-                 "peer, or a busy machine)", EXIT_WAIT_S, len(running))
-    deadline = time.monotonic() + EXIT_WAIT_S
-    for done in running:
-        done.wait(max(0.0, deadline - time.monotonic()))
+    interrupted = getattr(sys, "last_type", None) is KeyboardInterrupt
+    wait_s = INTERRUPTED_EXIT_WAIT_S if interrupted else EXIT_WAIT_S
+    if not interrupted:
+        _log.warning("waiting up to %.0f s for %d Zenoh teardown call(s) before exiting (a "
+                     "frozen peer, or a busy machine; Ctrl-C ends the wait)", wait_s,
+                     len(running))
+    deadline = time.monotonic() + wait_s
+    try:
+        for done in running:
+            done.wait(max(0.0, deadline - time.monotonic()))
+    except KeyboardInterrupt:
+        pass  # the user wants out now
     blocked = sum(not done.is_set() for done in running)
     if blocked:
         _log.warning("exiting with %d Zenoh teardown call(s) still blocked (a frozen peer?)",

@@ -168,6 +168,38 @@ def test_lane_stages_reports_every_stage(options: list[str]) -> None:
     assert any(name.startswith("lane alone") for name in rows)
 
 
+def test_side_by_side_puts_each_stage_beside_its_warm_self() -> None:
+    from benchmarks.lane_stages import side_by_side
+
+    text = side_by_side([("loan", 30.0, 90.0), ("wake-up", 25.0, 40.0), ("view", 12.0, 20.0)],
+                        [("loan", 10.0, 20.0), ("wake-up", 0.2, 1.0)])
+    header, loan, wake, view = text.splitlines()
+    assert header.split()[-5:] == ["idle", "p50", "warm", "p50", "ratio"]
+    assert loan.split()[-3:] == ["30.0", "10.0", "3.0x"]
+    assert wake.split()[-3:] == ["25.0", "0.2", "-"]  # no wake-up to divide by when warm
+    assert view.split()[-3:] == ["12.0", "-", "-"]
+
+
+@pytest.mark.multiprocess
+def test_lane_stages_warm_prints_both_medians_of_every_stage() -> None:
+    from benchmarks.lane_stages import STAGES
+
+    process = subprocess.run(
+        [sys.executable, "-m", "benchmarks.lane_stages", "--count", "30", "--warm", "--frames",
+         "0", "--syscalls", "0"], cwd=ROOT, capture_output=True, text=True, timeout=180)
+    if "cannot run the lane" in process.stderr:
+        pytest.skip("no same-host lane here")
+    assert process.returncode == 0, process.stderr[-3000:]
+    lines = process.stdout.splitlines()
+    assert lines[1].split()[-5:] == ["idle", "p50", "warm", "p50", "ratio"]
+    rows = {line.rsplit(None, 3)[0].strip(): line.rsplit(None, 3)[1:] for line in lines[2:]}
+    for name, _start, _end in STAGES["lane"]:
+        idle, warm, _ratio = rows[name]
+        assert float(idle) > 0 and float(warm) != 0, (name, process.stdout)
+    idle, warm, ratio = rows["one-way total (loan -> readable view)"]
+    assert float(ratio.rstrip("x")) == pytest.approx(float(idle) / float(warm), abs=0.051)
+
+
 @pytest.mark.parametrize("argv", [["--sizes", "0,abc"], ["--sizes", ","], ["--paths", "nosuch"],
                                   ["--paths", ","], ["--rounds", "0"], ["--rounds", "two"],
                                   ["--sizes", "infK"], ["--sizes", "1e400K"],

@@ -171,3 +171,70 @@ def test_a_loan_is_entered_once_and_checks_its_arguments():
     msg, slot = _slot()
     with pytest.raises(TypeError, match="_Slot or None"):
         Loan(_Odd(msg, slot), lambda m: None, lambda: msg).__enter__()
+
+
+# ------------------------------------------------------------------ re-entrancy (user code runs)
+class _Owner:
+    """A message-like owner whose buffer field runs ``hook`` once when read (user code)."""
+
+    def __init__(self) -> None:
+        self._data = Buffer(_Rearm())
+        self.hook = None
+
+    @property
+    def data(self):
+        hook, self.hook = self.hook, None
+        if hook is not None:
+            hook()
+            [bytearray(80) for _ in range(2000)]  # reuse freed memory, as a crash would need
+        return self._data
+
+    @data.setter
+    def data(self, value) -> None:
+        self._data = value
+
+
+def test_a_slot_keeps_its_places_whatever_its_caller_does_with_the_list():
+    owner = _Owner()
+    places = [(owner, "data")]
+    slot = _Slot(owner, places)
+    places.append((_Owner(), "data"))  # the caller's list: not the slot's any more
+    places.clear()
+    impl = owner._data.get_impl()
+    assert slot.reusable() is True  # its one place, refreshed; nothing else read
+    assert owner._data.get_impl() is impl and slot.impls == (impl,)
+
+
+def test_a_slot_re_initialized_by_user_code_during_reusable_does_not_crash():
+    owner, other = _Owner(), _Owner()
+    slot = _Slot(owner, [(owner, "data")])
+    owner.hook = lambda: slot.__init__(other, [(other, "data")])
+    assert slot.reusable() in (True, False)  # the old state is kept alive until the call ends
+    assert slot.msg is other
+
+
+def test_enter_returns_a_live_message_even_if_user_code_ends_the_loan_inside_it():
+    freed = []
+
+    class _Msg:
+        def __del__(self) -> None:
+            freed.append(id(self))
+
+    class _Reentrant:
+        ended = False
+
+        def take(self, factory, max_loans):
+            return _Msg(), None  # the tuple holds the only reference
+
+        @property
+        def in_blocks(self) -> set:
+            if not self.ended:
+                self.ended = True
+                loan.__exit__(ValueError, None, None)  # the loan ends inside __enter__
+            return set()
+
+    loan = Loan(_Reentrant(), lambda msg: None, lambda: None)
+    msg = loan.__enter__()
+    assert type(msg) is _Msg and id(msg) not in freed
+    del msg
+    assert len(freed) == 1

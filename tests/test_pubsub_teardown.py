@@ -325,6 +325,36 @@ def test_the_exit_waits_for_a_teardown_that_outlasts_its_bound(tmp_path):
     assert "still blocked" not in app.stderr
 
 
+_STUCK_TEARDOWN_APP = r"""
+import signal, sys, time
+from buffer_pubsub._zenoh import run_bounded
+
+signal.signal(signal.SIGINT, signal.default_int_handler)  # (a background job ignores it)
+assert run_bounded(lambda: time.sleep(60), 0.1, "stuck close") is False
+print("EXITING", flush=True)
+"""
+
+
+def test_ctrl_c_ends_the_exits_wait_for_a_stuck_teardown():
+    import signal
+
+    app = subprocess.Popen([sys.executable, "-c", _STUCK_TEARDOWN_APP], cwd=ROOT,
+                           env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           text=True)
+    try:
+        assert app.stdout.readline().strip() == "EXITING"
+        time.sleep(1.0)  # inside the exit's wait now
+        started = time.monotonic()
+        app.send_signal(signal.SIGINT)
+        _, err = app.communicate(timeout=30)
+        assert time.monotonic() - started < 5.0, err[-2000:]
+        assert "waiting up to 10 s" in err and "still blocked" in err, err[-2000:]
+    finally:
+        if app.poll() is None:
+            app.kill()
+            app.wait()
+
+
 _FROZEN_INDIVIDUAL_PEER = r"""
 import sys
 from buffer_pubsub import Node
