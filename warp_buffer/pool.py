@@ -487,11 +487,10 @@ class BlockPool:
             block.destroy()
 
     # -- giving memory back ---------------------------------------------------------------------
-    def trim(self, idle_s: float = 0.0, max_free_bytes: int | None = None) -> int:
-        """Destroy free blocks idle for ``idle_s`` seconds or more (all with 0), or, with
-        ``max_free_bytes``, the oldest ones until free memory fits. Blocks a reader still holds
-        are kept, and so are exported blocks whose descriptors are still on their way to a live
-        peer. Returns the bytes given back."""
+    def trim(self, idle_s: float = 0.0) -> int:
+        """Destroy free blocks idle for ``idle_s`` seconds or more (all with 0). Blocks a reader
+        still holds are kept, and so are exported blocks whose descriptors are still on their way
+        to a live peer. Returns the bytes given back."""
         now = time.monotonic()
         arena = _arena.existing_arena()
         if arena is not None:
@@ -505,10 +504,7 @@ class BlockPool:
             )
             free = self.free_bytes
             for released, block in entries:
-                if max_free_bytes is not None:
-                    if free <= max_free_bytes:
-                        break
-                elif now - released < idle_s:
+                if now - released < idle_s:
                     continue
                 if block.try_reclaim():
                     self._free[block.capacity].remove((block, released))
