@@ -469,7 +469,8 @@ def side_by_side(idle: list[tuple[str, float, float]], hot: list[tuple[str, floa
     lines = [f"{'stage':<{width}}  {'idle p50':>9}  {'warm p50':>9}  {'ratio':>6}"]
     for name, p50, _ in idle:
         other = warm.get(name)
-        ratio = f"{p50 / other:5.1f}x" if other is not None and other > 0.5 else "     -"
+        ratio = (f"{p50 / other:5.1f}x" if other is not None and other > 0.5 and p50 > 0
+                 else "     -")
         shown = f"{other:9.1f}" if other is not None else f"{'-':>9}"
         lines.append(f"{name:<{width}}  {p50:9.1f}  {shown}  {ratio}")
     return "\n".join(lines)

@@ -61,7 +61,10 @@ def _await_background() -> None:
         running = [done for done in _background if not done.is_set()]
     if not running:
         return
-    interrupted = getattr(sys, "last_type", None) is KeyboardInterrupt
+    # An uncaught Ctrl-C leaves its type here before the exit (an interactive session, which
+    # keeps it from an earlier prompt, is never that exit: ps1 is set there)
+    interrupted = (getattr(sys, "last_type", None) is KeyboardInterrupt
+                   and not hasattr(sys, "ps1"))
     wait_s = INTERRUPTED_EXIT_WAIT_S if interrupted else EXIT_WAIT_S
     if not interrupted:
         _log.warning("waiting up to %.0f s for %d Zenoh teardown call(s) before exiting (a "

@@ -355,6 +355,27 @@ def test_ctrl_c_ends_the_exits_wait_for_a_stuck_teardown():
             app.wait()
 
 
+_INTERACTIVE_SESSION = (
+    "raise KeyboardInterrupt\n"  # a Ctrl-C at the prompt, long before the exit
+    "import sys, time\n"
+    "from buffer_pubsub._zenoh import run_bounded\n"
+    "def work():\n"
+    "    time.sleep(2.5)\n"
+    "    open(sys.argv[1], 'w').write('done')\n"
+    "\n"
+    "run_bounded(work, 0.1, 'slow close')\n")
+
+
+def test_an_earlier_ctrl_c_at_an_interactive_prompt_does_not_shorten_the_exits_wait(tmp_path):
+    """Only a program ended by Ctrl-C gets the short wait: the interpreter keeps the last
+    error's type (KeyboardInterrupt) from an interactive prompt, where it ended nothing."""
+    marker = tmp_path / "finished"
+    app = subprocess.run([sys.executable, "-i", "-", str(marker)], input=_INTERACTIVE_SESSION,
+                         cwd=ROOT, env=child_env(), capture_output=True, text=True, timeout=60)
+    assert app.returncode == 0, app.stderr[-2000:]
+    assert marker.read_text() == "done", app.stderr[-2000:]
+
+
 _FROZEN_INDIVIDUAL_PEER = r"""
 import sys
 from buffer_pubsub import Node

@@ -377,9 +377,16 @@ def test_a_full_arena_is_said_once_and_counted(monkeypatch, caplog):
 
     arena = current_arena()
     private = get_pool(wp.get_device("cpu")).private
-    monkeypatch.setattr(arena, "alloc", lambda capacity: None)  # no range left
+    alloc = arena.alloc
+    # no 4 MiB range left; smaller ones still served (they must not say "serves again" each)
+    monkeypatch.setattr(arena, "alloc", lambda capacity: None if capacity >= 1 << 22
+                        else alloc(capacity))
     with caplog.at_level(logging.WARNING, logger="warp_buffer.pool"):
-        full = [allocate_buffer(1 << 22, "cpu") for _ in range(3)]
+        full = []
+        for _ in range(3):
+            full.append(allocate_buffer(1 << 22, "cpu"))
+            small = allocate_buffer(1 << 16, "cpu")
+            assert small.get_impl().is_exportable
         monkeypatch.undo()
         again = allocate_buffer(1 << 22, "cpu")
     said = [r.getMessage() for r in caplog.records if r.name == "warp_buffer.pool"]

@@ -132,7 +132,7 @@ class HostBlock(Block):
                 _log.warning("no shared arena (%s): using private memory; buffers in it "
                              "travel as CPU bytes", exc)
             else:
-                _arena_full(offset is None, capacity)
+                _arena_full.note(offset is None, capacity)
                 if offset is not None:
                     self.arena, self.offset, self.shared = arena, offset, True
                     self.data_ptr = arena.base + offset
@@ -157,22 +157,39 @@ class HostBlock(Block):
         self._private = None
 
 
-_arena_was_full = False
+class _ArenaFull:
+    """Whether block sizes found the arena full, to say so once per episode, not per block (a
+    subscriber holding every frame fills it at the publishing rate): one warning when a size
+    first finds no range, one when every size that did was served again. A size served also
+    clears the smaller ones; a smaller one served leaves a larger one full (no flip-flop)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._sizes: set[int] = set()
+
+    def note(self, full: bool, capacity: int) -> None:
+        with self._lock:
+            if full:
+                first = not self._sizes
+                self._sizes.add(capacity)
+                if first:
+                    _log.warning("the arena has no %d-byte range left: new buffers use private "
+                                 "memory and travel as CPU bytes (no zero copy) until readers "
+                                 "let blocks go (WARP_BUFFER_ARENA_GIB sizes the arena; "
+                                 "pool_stats() counts them)", capacity)
+            elif self._sizes:
+                self._sizes = {size for size in self._sizes if size > capacity}
+                if not self._sizes:
+                    _log.warning("the arena serves again: new buffers are shared (zero copy) "
+                                 "once more")
+
+    def after_fork_in_child(self) -> None:
+        self._lock = threading.Lock()
+        self._sizes = set()  # the child's arena is a new one
 
 
-def _arena_full(full: bool, capacity: int) -> None:
-    """Say when the arena stops serving (private memory: zero-copy stops, peers get CPU bytes)
-    and when it serves again: once per change, not per block (a subscriber holding every frame
-    fills it at the publishing rate)."""
-    global _arena_was_full
-    if full and not _arena_was_full:
-        _log.warning("the arena has no %d-byte range left: new buffers use private memory and "
-                     "travel as CPU bytes (no zero copy) until readers let blocks go "
-                     "(WARP_BUFFER_ARENA_GIB sizes the arena; pool_stats() counts them)",
-                     capacity)
-    elif not full and _arena_was_full:
-        _log.warning("the arena serves again: new buffers are shared (zero copy) once more")
-    _arena_was_full = full
+_arena_full = _ArenaFull()
+os.register_at_fork(after_in_child=_arena_full.after_fork_in_child)
 
 
 class CudaBlock(Block):
@@ -372,7 +389,7 @@ class BlockPool:
         self.reused = 0
         self.destroyed = 0
         self.free_bytes = 0
-        self.private = 0  # blocks made in private memory because the arena was full
+        self.private = 0  # blocks made in private memory: the arena was full, or not there
         self._leased = 0  # blocks handed out (returned ones are subtracted when drained)
         # The smallest block (VMM: the allocation granularity, ~2 MiB, so small buffers share
         # one size class); None until the first CUDA allocation judged it.
@@ -611,8 +628,8 @@ def get_pool(device: Any) -> BlockPool:
 
 def pool_stats() -> dict[str, dict[str, int]]:
     """Counters of every pool, by device: created, reused, destroyed, leased, free blocks/bytes,
-    and ``private``: blocks made in private memory because the arena was full (their buffers
-    reach other processes as CPU bytes)."""
+    and ``private``: blocks made in private memory because the arena was full or could not be
+    made (their buffers reach other processes as CPU bytes)."""
     with _pools_lock:
         pools = dict(_pools)
     return {name: pool.stats() for name, pool in pools.items()}
