@@ -452,12 +452,16 @@ def table(rows: list[tuple[str, float, float]]) -> str:
 WARM_BUSY_POLL_S = 0.05
 
 
+def _records_per_message(route: str) -> int:
+    """Timed records per message: the lane's adds its two bare frames."""
+    return 3 if route == "lane" else 1
+
+
 def _after_warm_up(records: list[tuple[int, dict[str, Any]]], args: argparse.Namespace
                    ) -> list[tuple[int, dict[str, Any]]]:
     """The timed records past the first ones (first imports map files, warm caches)."""
     timed = [r for r in records if r[0] in (BARE, BARE_IDLE, FULL)]
-    per = 3 if args.route == "lane" else 1
-    return timed[per * min(20, args.count // 10):]
+    return timed[_records_per_message(args.route) * min(20, args.count // 10):]
 
 
 def side_by_side(idle: list[tuple[str, float, float]], hot: list[tuple[str, float, float]]
@@ -519,7 +523,7 @@ def main(argv: list[str] | None = None) -> int:
     records = publisher(args.count, args.nbytes, args.route, args.busy_poll, args.spin,
                         max(0, args.frames), syscalls)
     warm = _after_warm_up(records, args)
-    per = 3 if args.route == "lane" else 1
+    per = _records_per_message(args.route)
     what = ("loaned warp tensor over the fast lane" if args.route == "lane"
             else "prepared CPU tensor over Zenoh")
     frames = frame_counts(records)

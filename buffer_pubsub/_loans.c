@@ -78,12 +78,17 @@ static int slot_init(Slot *self, PyObject *args, PyObject *kwargs) {
         PyTuple_SET_ITEM(impls, i, impl);
         PyList_SET_ITEM(placed, i, ref);
     }
-    Py_XSETREF(self->msg, Py_NewRef(msg));
-    Py_XSETREF(self->places, places);
-    Py_XSETREF(self->impls, impls);
-    Py_XSETREF(self->placed, placed);
-    Py_XSETREF(self->handed, handed);
+    /* Every field replaced before the old ones go (a finalizer run by a decref may call into
+     * this slot): its places, impls and placed always come from one init, of one length. */
+    PyObject *old[] = {self->msg, self->places, self->impls, self->placed, self->handed};
+    self->msg = Py_NewRef(msg);
+    self->places = places;
+    self->impls = impls;
+    self->placed = placed;
+    self->handed = handed;
     self->loaned = 1;
+    for (size_t i = 0; i < sizeof old / sizeof old[0]; i++)
+        Py_XDECREF(old[i]);
     return 0;
 fail:
     Py_DECREF(places);
@@ -143,13 +148,11 @@ static PyObject *share(PyObject *current) {
 }
 
 /* Fresh Buffers in every place (the last loan's become tokens). 0, or -1 on error. The
- * containers are the caller's strong references: getattr and setattr on the messages run user
- * code, which may even re-initialize the slot. */
+ * containers are the caller's strong references, from one init (places, impls and placed of
+ * one length; placed is never resized): getattr and setattr on the messages run user code,
+ * which may even re-initialize the slot. */
 static int slot_refresh(PyObject *places, PyObject *impls, PyObject *placed, PyObject *handed) {
-    Py_ssize_t n = PyTuple_GET_SIZE(places);
-    if (PyTuple_GET_SIZE(impls) != n)
-        return 0;  /* (a placed list shorter than the places: re-initialized meanwhile) */
-    for (Py_ssize_t i = 0; i < n && i < PyList_GET_SIZE(placed); i++) {
+    for (Py_ssize_t i = 0; i < PyTuple_GET_SIZE(places); i++) {
         PyObject *place = PyTuple_GET_ITEM(places, i);
         PyObject *owner = PyTuple_GET_ITEM(place, 0), *name = PyTuple_GET_ITEM(place, 1);
         PyObject *mine = Py_NewRef(PyList_GET_ITEM(placed, i));
@@ -175,11 +178,7 @@ static int slot_refresh(PyObject *places, PyObject *impls, PyObject *placed, PyO
         Py_DECREF(fresh);
         if (ref == NULL)
             return -1;
-        if (i < PyList_GET_SIZE(placed)) {
-            PyList_SetItem(placed, i, ref);  /* steals ref, drops the old one */
-        } else {
-            Py_DECREF(ref);
-        }
+        PyList_SetItem(placed, i, ref);  /* steals ref, drops the old one */
     }
     return 0;
 }
