@@ -4,8 +4,11 @@ setuptools adds the ``CFLAGS`` and ``LDFLAGS`` of the environment to these)."""
 
 from setuptools import Extension, setup
 
+# -Werror=implicit-function-declaration: a CPython function this Python lacks fails the build
+# (pip install), not the import (an undefined symbol).
 CFLAGS = ["-O2", "-std=gnu11", "-Wall", "-Wextra", "-Wno-unused-parameter",
-          "-Wno-missing-field-initializers", "-fvisibility=hidden"]
+          "-Wno-missing-field-initializers", "-fvisibility=hidden",
+          "-Werror=implicit-function-declaration"]
 
 setup(ext_modules=[
     Extension("warp_buffer._core", sources=["warp_buffer/_core.c", "warp_buffer/_core_import.c",

@@ -397,7 +397,9 @@ static PyObject *loan_enter(Loan *self, PyObject *unused) {
     int added = id ? PySet_Add(blocks, id) : -1;
     Py_XDECREF(id);
     Py_XDECREF(blocks);
-    if (added < 0) {
+    if (added < 0) {  /* no loan then: no __exit__ will come for it */
+        Py_CLEAR(self->msg);
+        Py_CLEAR(self->slot);
         Py_DECREF(msg);
         return NULL;
     }

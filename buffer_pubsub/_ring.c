@@ -27,7 +27,7 @@
  * connection sockets). The GIL is released only inside ppoll() and the optional busy-poll spin.
  */
 #define PY_SSIZE_T_CLEAN
-#define _GNU_SOURCE
+#define _GNU_SOURCE 1  /* (as pyconfig.h defines it) */
 #include <Python.h>
 #include <structmember.h>
 

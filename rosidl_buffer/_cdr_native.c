@@ -22,6 +22,21 @@
 #error "the CDR codec assumes a little-endian host (as the Python codec's fast paths do)"
 #endif
 
+#if PY_VERSION_HEX < 0x030B0000  /* public since 3.11; Python 3.10 has them under private names */
+static inline int PyFloat_Pack4(double x, char *p, int le) {
+    return _PyFloat_Pack4(x, (unsigned char *)p, le);
+}
+static inline int PyFloat_Pack8(double x, char *p, int le) {
+    return _PyFloat_Pack8(x, (unsigned char *)p, le);
+}
+static inline double PyFloat_Unpack4(const char *p, int le) {
+    return _PyFloat_Unpack4((const unsigned char *)p, le);
+}
+static inline double PyFloat_Unpack8(const char *p, int le) {
+    return _PyFloat_Unpack8((const unsigned char *)p, le);
+}
+#endif
+
 #define ORIGIN 4
 #define MARKER 0xFFFFFFFFu
 #define MARKER2 0x524F5332u

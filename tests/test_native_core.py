@@ -206,3 +206,93 @@ def _random_import(fields: tuple[int, ...], generation: int) -> None:
         assert arena.session.held == 0
     finally:
         arena.close()
+
+
+# ------------------------------------------------------------ misuse from Python (the audit's)
+def test_a_released_hold_gives_no_new_view_and_a_huge_stream_is_a_typed_error() -> None:
+    import numpy as np
+
+    arena = _Arena()
+    try:
+        arena.export(DATA_OFFSET + 8192, 8192, (7 << 6) | 13)
+        hold = arena.session.import_block(_values(arena))
+        with pytest.raises(BufferError, match="no stream"):
+            hold.__dlpack__(stream=2**70)  # (was: a capsule returned with an error pending)
+        with pytest.raises(BufferError, match="no stream"):
+            hold.__dlpack__(stream=0)
+        assert hold.live and arena.session.held == 1
+        hold.__dlpack__(stream=-1)  # the one stream a cpu consumer passes
+        hold.release()
+        with pytest.raises(BufferError, match="released"):
+            np.frombuffer(hold, np.uint8)  # its lock is gone: the bytes may be reused
+        with pytest.raises(BufferError, match="released"):
+            memoryview(hold)
+    finally:
+        arena.close()
+
+
+def test_a_session_over_no_mapping_is_refused() -> None:
+    arena = _Arena()
+    try:
+        with pytest.raises(ValueError, match="session of"):
+            _core.Session(arena.pid, arena.tag, -1, 0, DATA_OFFSET, arena.base + DATA_OFFSET,
+                          DATA_BYTES, DATA_OFFSET, False)
+    finally:
+        arena.close()
+
+
+class _Device:
+    is_cpu = True
+
+
+@pytest.mark.parametrize("name", ["pool", "block", "writer", "event", "fence", "write_stream"])
+def test_a_lease_field_may_be_set_but_not_deleted(name: str) -> None:
+    lease = _core.Lease(None, None, _Device())
+    with pytest.raises(AttributeError, match="cannot be deleted"):
+        delattr(lease, name)
+    setattr(lease, name, None)
+    assert getattr(lease, name) is None
+    lease.seal()
+    lease.end_publish()  # (read a deleted field as NULL before: SIGSEGV)
+    assert lease.state == _core.PUBLISHED
+
+
+def test_an_export_of_a_block_whose_offset_is_not_in_its_arena_is_refused() -> None:
+    from warp_buffer.arena import Arena
+
+    arena = Arena(1 << 20)  # (unmapped when collected)
+
+    class Block(_core.Exports):
+        capacity = 4096
+
+    for offset in (0, arena.data_offset + 4096 * 100_000, arena.data_offset + 1):
+        block = Block()
+        block.arena = arena
+        block.offset = offset
+        with pytest.raises(ValueError, match="no block"):
+            _core.Lease(None, block, _Device()).export(None)
+        assert block.generation == 0
+
+
+def test_an_export_survives_python_code_that_replaces_the_lease_block() -> None:
+    import gc
+
+    from warp_buffer.arena import Arena
+
+    arena = Arena(1 << 20)  # (unmapped when collected)
+    leases: list = []
+
+    class Block(_core.Exports):
+        @property
+        def capacity(self) -> int:
+            leases[0].block = None  # the last reference to this block, during the export
+            gc.collect()
+            return 4096
+
+    block = Block()
+    block.arena, block.offset = arena, arena.data_offset
+    leases.append(_core.Lease(None, block, _Device()))
+    del block
+    generation, slot, sequence = leases[0].export(None)  # (freed the block under it before)
+    assert generation != 0 and sequence == 0 and leases[0].block is None
+    assert arena.core.generation(arena.data_offset) == generation

@@ -20,7 +20,7 @@
  * CPython builds with a GIL.
  */
 #define PY_SSIZE_T_CLEAN
-#define _GNU_SOURCE
+#define _GNU_SOURCE 1  /* (as pyconfig.h defines it) */
 #include <Python.h>
 #include <structmember.h>
 

@@ -1,7 +1,7 @@
 /* warp_buffer._core: imports (see _core.c): Session, an attached arena, and Hold, an import's
  * token. */
 #define PY_SSIZE_T_CLEAN
-#define _GNU_SOURCE
+#define _GNU_SOURCE 1  /* (as pyconfig.h defines it) */
 #include <Python.h>
 #include <structmember.h>
 
@@ -151,7 +151,7 @@ static int session_init(Session *self, PyObject *args, PyObject *kwds) {
         return -1;
     }
     if (head_len < ARENA_GENS_OFFSET + data_len / ARENA_MIN_BLOCK * 8 || data_offset != head_len
-            || data_len == 0) {
+            || data_len == 0 || head == 0 || data == 0) {  /* (a NULL head marks "not linked") */
         PyErr_Format(PyExc_ValueError, "a session of %llu header and %llu data bytes",
                      head_len, data_len);
         return -1;
@@ -510,6 +510,11 @@ static PyObject *hold_call(PyObject *self, PyObject *args, PyObject *kwds) {
 }
 
 static int hold_getbuffer(Hold *self, Py_buffer *view, int flags) {
+    if (!self->live) {  /* its lock is gone: the publisher may reuse the bytes */
+        PyErr_SetString(PyExc_BufferError, "the hold was released");
+        view->obj = NULL;
+        return -1;
+    }
     if (flags & PyBUF_WRITABLE) {
         PyErr_SetString(PyExc_BufferError, "an imported block is read-only");
         view->obj = NULL;
@@ -609,9 +614,15 @@ static PyObject *hold_dlpack(Hold *self, PyObject *args, PyObject *kwds) {
         PyErr_SetString(PyExc_BufferError, "the hold was released");
         return NULL;
     }
-    if (stream != Py_None && !(PyLong_Check(stream) && PyLong_AsLong(stream) == -1)) {
-        PyErr_SetString(PyExc_BufferError, "a cpu block takes no stream");
-        return NULL;
+    if (stream != Py_None) {  /* the one stream a cpu consumer may pass: -1 */
+        int overflow = 0;
+        long value = PyLong_Check(stream) ? PyLong_AsLongAndOverflow(stream, &overflow) : 0;
+        if (value == -1 && PyErr_Occurred())
+            return NULL;
+        if (!PyLong_Check(stream) || overflow || value != -1) {
+            PyErr_SetString(PyExc_BufferError, "a cpu block takes no stream");
+            return NULL;
+        }
     }
     if (copy == Py_True) {
         PyErr_SetString(PyExc_BufferError, "the block is exported without a copy");

@@ -15,7 +15,7 @@
  * it, with its lock held, as the Python lease did.
  */
 #define PY_SSIZE_T_CLEAN
-#define _GNU_SOURCE
+#define _GNU_SOURCE 1  /* (as pyconfig.h defines it) */
 #include <Python.h>
 #include <structmember.h>
 #include <pythread.h>
@@ -35,6 +35,25 @@ enum { FREE, WRITABLE, WRITING, WRITTEN, READ, PUBLISHED };
 
 /* Python helpers of warp_buffer.lease, set by configure() */
 static PyObject *WriteStateClass, *CompleteWrite, *OrderAfterWrite, *WriteHandleError;
+/* An object attribute Python may set but not delete (the C reads it without a NULL check): the
+ * getset's closure is the field's offset in the object. */
+#define OBJECT_FIELD(type, field) ((void *)offsetof(type, field))
+
+static PyObject *object_field_get(PyObject *self, void *offset) {
+    PyObject *value = *(PyObject **)((char *)self + (Py_ssize_t)offset);
+    return Py_NewRef(value != NULL ? value : Py_None);
+}
+
+static int object_field_set(PyObject *self, PyObject *value, void *offset) {
+    if (value == NULL) {
+        PyErr_SetString(PyExc_AttributeError, "this attribute cannot be deleted (set it to None)");
+        return -1;
+    }
+    PyObject **field = (PyObject **)((char *)self + (Py_ssize_t)offset);
+    Py_XSETREF(*field, Py_NewRef(value));
+    return 0;
+}
+
 static PyObject *str_closed, *str_sealed, *str_stream, *str_published, *str_read, *str_core,
                 *str_give_back, *str_close, *str_protect, *str_protected, *str_try_reclaim,
                 *str_ensure_arena_range, *str_is_cpu, *str_capacity, *str_writable;
@@ -408,6 +427,8 @@ static int exports_try_reclaim_c(Exports *self) {
         return 1;  /* never in an arena: nobody else can read it */
     if (self->npending && !exports_delivered(self))
         return 0;  /* a descriptor is still on its way to a live peer */
+    if (core_check_block(self->core, self->offset, ARENA_MIN_BLOCK))
+        return -1;  /* (offset is settable from Python: never index the table with a bad one) */
     int done = core_try_retire(self->core, self->offset);
     if (done <= 0)
         return done;  /* a reader holds it, or an error */
@@ -437,8 +458,6 @@ static PyMemberDef exports_members[] = {
     {"offset", T_ULONGLONG, offsetof(Exports, offset), 0, "the block's lock range in the arena"},
     {"generation", T_ULONGLONG, offsetof(Exports, generation), 0,
      "the generation of the current export (0: none since the block was free)"},
-    {"cuda_uses", T_OBJECT, offsetof(Exports, cuda_uses), 0,
-     "last-use events of local readers (CUDA blocks)"},
     {"__dictoffset__", T_PYSSIZET, offsetof(Exports, dict), READONLY},
     {"__weaklistoffset__", T_PYSSIZET, offsetof(Exports, weakrefs), READONLY},
     {NULL}
@@ -449,6 +468,8 @@ static PyGetSetDef exports_getset[] = {
      "the arena of the block's lock range (None: none yet)", NULL},
     {"pending", (getter)exports_get_pending, (setter)exports_set_pending,
      "peer slot -> delivery sequence of the last descriptor sent with the block (a copy)", NULL},
+    {"cuda_uses", object_field_get, object_field_set,
+     "last-use events of local readers (CUDA blocks)", OBJECT_FIELD(Exports, cuda_uses)},
     {"__dict__", PyObject_GenericGetDict, PyObject_GenericSetDict, NULL, NULL},
     {NULL}
 };
@@ -892,7 +913,7 @@ static PyObject *lease_hold(Lease *self, PyObject *unused) {
  * block's current export (a new one when it is the first since the block was free), the peer's
  * slot and the delivery sequence the block now waits for. 0 or -1 (an error set). */
 static int lease_export_c(Lease *self, PyObject *peer, uint64_t *generation_out,
-                          uint32_t *slot_out, uint64_t *sequence_out) {
+                          uint32_t *slot_out, uint64_t *sequence_out, Exports **block_out) {
     if (peer != Py_None && !PyObject_TypeCheck(peer, &PeerSlotType)) {
         PyErr_SetString(PyExc_TypeError, "export(peer): a PeerSlot or None");
         return -1;
@@ -901,7 +922,8 @@ static int lease_export_c(Lease *self, PyObject *peer, uint64_t *generation_out,
         PyErr_SetString(PyExc_TypeError, "this lease's block cannot be exported");
         return -1;
     }
-    Exports *block = (Exports *)self->block;
+    /* Held: the Python calls below (ensure_arena_range, capacity) may replace lease.block. */
+    Exports *block = (Exports *)Py_NewRef(self->block);
     lease_lock(self);
     int rc = -1;
     uint64_t generation = block->generation;
@@ -927,6 +949,8 @@ static int lease_export_c(Lease *self, PyObject *peer, uint64_t *generation_out,
             PyErr_Format(PyExc_ValueError, "a block of %llu bytes", capacity);
             goto done;
         }
+        if (core_check_block(block->core, block->offset, ARENA_MIN_BLOCK))
+            goto done;  /* (offset is settable from Python: never index the table with a bad one) */
         /* (a CUDA block's lock range is one MIN_BLOCK; its generation names its capacity) */
         generation = block->generation = core_new_generation(block->core, block->offset,
                                                              capacity);
@@ -947,6 +971,10 @@ static int lease_export_c(Lease *self, PyObject *peer, uint64_t *generation_out,
     rc = 0;
 done:
     lease_unlock(self);
+    if (rc == 0 && block_out != NULL)
+        *block_out = block;  /* the caller's reference now */
+    else
+        Py_DECREF(block);
     return rc;
 }
 
@@ -954,7 +982,7 @@ done:
 static PyObject *lease_export(Lease *self, PyObject *peer) {
     uint64_t generation, sequence;
     uint32_t slot;
-    if (lease_export_c(self, peer, &generation, &slot, &sequence) != 0)
+    if (lease_export_c(self, peer, &generation, &slot, &sequence, NULL) != 0)
         return NULL;
     return Py_BuildValue("(KIK)", (unsigned long long)generation, slot,
                          (unsigned long long)sequence);
@@ -1078,14 +1106,14 @@ PyObject *describe(PyObject *module, PyObject *args) {
     }
     uint64_t generation, sequence;
     uint32_t slot;
-    if (lease_export_c((Lease *)lease, peer, &generation, &slot, &sequence) != 0)
+    Exports *block;  /* the block exported, held while Python code runs (capacity) */
+    if (lease_export_c((Lease *)lease, peer, &generation, &slot, &sequence, &block) != 0)
         return NULL;
-    Exports *block = (Exports *)((Lease *)lease)->block;
     PyObject *cap = PyObject_GetAttr((PyObject *)block, str_capacity);
-    if (cap == NULL)
-        return NULL;
-    unsigned long long capacity = PyLong_AsUnsignedLongLong(cap);
-    Py_DECREF(cap);
+    unsigned long long capacity = cap == NULL ? 0 : PyLong_AsUnsignedLongLong(cap);
+    Py_XDECREF(cap);
+    uint64_t offset = block->offset;
+    Py_DECREF(block);
     if (PyErr_Occurred())
         return NULL;
     v[F_VERSION] = DESC_VERSION;
@@ -1093,7 +1121,7 @@ PyObject *describe(PyObject *module, PyObject *args) {
     v[F_SLOT] = slot;
     v[F_PID] = pid;
     v[F_SESSION] = session;
-    v[F_OFFSET] = block->offset;
+    v[F_OFFSET] = offset;
     v[F_CAPACITY] = capacity;
     v[F_SIZE] = size;
     v[F_GENERATION] = generation;
@@ -1237,15 +1265,7 @@ static PyMethodDef lease_methods[] = {
 };
 
 static PyMemberDef lease_members[] = {
-    {"pool", T_OBJECT, offsetof(Lease, pool), 0, "gets the block back (None: nobody)"},
-    {"block", T_OBJECT, offsetof(Lease, block), 0, "the block (None: private memory)"},
     {"device", T_OBJECT, offsetof(Lease, device), READONLY, "the Warp device"},
-    {"writer", T_OBJECT, offsetof(Lease, writer), 0, "the open write (a WriteState) or None"},
-    {"event", T_OBJECT, offsetof(Lease, event), 0, "CUDA: the last write's completion event"},
-    {"fence", T_OBJECT, offsetof(Lease, fence), 0,
-     "what fences a published lease off from stale writes (a loan's pages) or None"},
-    {"write_stream", T_OBJECT, offsetof(Lease, write_stream), 0,
-     "CUDA: the stream a loan's views write on"},
     {"state", T_INT, offsetof(Lease, state), READONLY, "FREE ... PUBLISHED"},
     {"on_cpu", T_BOOL, offsetof(Lease, on_cpu), READONLY, "the memory is host memory"},
     {"rearmable", T_BOOL, offsetof(Lease, rearmable), READONLY, "reclaim may re-arm it"},
@@ -1301,6 +1321,19 @@ static PyObject *lease_get_lock(Lease *self, void *closure) {
 
 static PyGetSetDef lease_getset[] = {
     {"readers", (getter)lease_get_readers, NULL, "tokens alive", NULL},
+    {"pool", object_field_get, object_field_set, "gets the block back (None: nobody)",
+     OBJECT_FIELD(Lease, pool)},
+    {"block", object_field_get, object_field_set, "the block (None: private memory)",
+     OBJECT_FIELD(Lease, block)},
+    {"writer", object_field_get, object_field_set, "the open write (a WriteState) or None",
+     OBJECT_FIELD(Lease, writer)},
+    {"event", object_field_get, object_field_set, "CUDA: the last write's completion event",
+     OBJECT_FIELD(Lease, event)},
+    {"fence", object_field_get, object_field_set,
+     "what fences a published lease off from stale writes (a loan's pages) or None",
+     OBJECT_FIELD(Lease, fence)},
+    {"write_stream", object_field_get, object_field_set,
+     "CUDA: the stream a loan's views write on", OBJECT_FIELD(Lease, write_stream)},
     {"_lock", (getter)lease_get_lock, NULL, "the lease's lock, as a context manager", NULL},
     {NULL}
 };

@@ -136,7 +136,7 @@ class _ReadContext(NamedTuple):
 _CPU_IMPLS: dict[type, bool] = {}  # impl type -> is it CPU storage (judged once per type)
 _IMPLS: dict[type, bool] = {}  # type a backend returned -> is it a BufferImplBase
 _NAMES: dict[str, bytes] = {}  # backend name -> its CDR string bytes after the length
-_call = operator.call
+_call = getattr(operator, "call", lambda function, *args: function(*args))  # (3.11+)
 _repeat = itertools.repeat
 _drain = collections.deque(maxlen=0).extend  # runs an iterator at C speed, keeps nothing
 _new_buffer = Buffer.__new__
