@@ -34,6 +34,7 @@
 #include <errno.h>
 #include <pthread.h>
 #include <fcntl.h>
+#include <limits.h>
 #include <poll.h>
 #include <sched.h>
 #include <stdint.h>
@@ -278,10 +279,12 @@ static PyObject *writer_take_memfd(RingWriter *self, PyObject *unused) {
 /* watch(fd): the reader's connection, polled for a hang-up when the reader falls a whole
  * ring behind (the caller keeps it open while the writer lives). */
 static PyObject *writer_watch(RingWriter *self, PyObject *arg) {
-    int fd = PyLong_AsLong(arg);
+    long fd = PyLong_AsLong(arg);
     if (fd == -1 && PyErr_Occurred())
         return NULL;
-    self->conn = fd;
+    if (fd < -1 || fd > INT_MAX)
+        return PyErr_Format(PyExc_ValueError, "watch(fd): %ld is not a file descriptor", fd);
+    self->conn = (int)fd;
     Py_RETURN_NONE;
 }
 
@@ -614,7 +617,7 @@ static int waker_init(Waker *self, PyObject *args, PyObject *kwds) {
     double busy = 0.0;
     if (!PyArg_ParseTupleAndKeywords(args, kwds, "|Od", kwlist, &on_error, &busy))
         return -1;
-    if (self->efd >= 0) {
+    if (self->efd >= 0 || self->pfds != NULL) {  /* (closed: still its buffers) */
         PyErr_SetString(PyExc_RuntimeError, "Waker initialized twice");
         return -1;
     }

@@ -252,3 +252,18 @@ def test_notify_racing_close_never_writes_a_closed_or_reused_descriptor() -> Non
             for thread in threads:
                 thread.join()
         assert number >= 0
+
+
+def test_a_closed_waker_is_not_initialized_again_and_watch_takes_only_a_descriptor() -> None:
+    waker = _ring.Waker(None)
+    waker.close()
+    with pytest.raises(RuntimeError, match="twice"):
+        waker.__init__(None)  # (leaked its first buffers and callback before)
+    writer = _ring.RingWriter(4, SLOT)
+    try:
+        for bad in (2**40, -2):
+            with pytest.raises(ValueError, match="not a file descriptor"):
+                writer.watch(bad)  # (truncated to an int before)
+        writer.watch(-1)
+    finally:
+        writer.close()
