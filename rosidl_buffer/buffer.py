@@ -9,7 +9,6 @@ the only way to hold another backend. Operations that need host memory raise
 from __future__ import annotations
 
 import operator
-import sys
 from collections.abc import Iterable, Iterator
 from typing import Any, Generic, TypeVar
 
@@ -45,6 +44,9 @@ def _cannot_store(data: Any, dtype: npt.DTypeLike, exc: Exception) -> InvalidBuf
     kind = f"{type(data).__name__} {data.dtype}" if isinstance(data, np.ndarray) \
         else type(data).__name__
     return InvalidBufferDataError(f"cannot store {kind} data in a {np.dtype(dtype)} buffer: {exc}")
+
+
+_PYBUF_WRITABLE = 0x0001  # (inspect.BufferFlags.WRITABLE, 3.12+)
 
 
 class Buffer(Generic[T]):
@@ -239,12 +241,21 @@ class Buffer(Generic[T]):
         return view.copy() if copy else view
 
     def memoryview(self) -> memoryview:
-        """The buffer protocol on Python 3.11 (3.12+ also supports ``memoryview(buffer)``)."""
+        """A writable memoryview (received bytes are copied first, as any write copies them).
+        On Python 3.12+ ``memoryview(buffer)`` is the buffer protocol: zero-copy, read-only over
+        received bytes."""
         return memoryview(self._cpu("memoryview").writable_view())
 
-    if sys.version_info >= (3, 12):
-        def __buffer__(self, flags: int) -> memoryview:
-            return memoryview(self._cpu("buffer protocol").writable_view())
+    # The buffer protocol from Python 3.12 on (3.11 ignores the method).
+    def __buffer__(self, flags: int) -> memoryview:
+        view = self._cpu("buffer protocol").view()
+        if flags & _PYBUF_WRITABLE and not view.flags.writeable:
+            # Received bytes are borrowed: refused as a read-only object refuses a writable
+            # request, so NumPy (asarray, frombuffer) asks again read-only and copies
+            # nothing. buffer[...] and .memoryview() write, copying first.
+            raise BufferError("this buffer holds received bytes, read-only through the "
+                              "buffer protocol: buffer.memoryview() is a writable copy")
+        return memoryview(view)
 
     def __bytes__(self) -> bytes:
         return self._cpu("bytes").view().tobytes()

@@ -357,6 +357,26 @@ def test_write_to_a_view_of_received_bytes_copies_first(write):
     assert deserialize_message(wire, "sensor_msgs/msg/Image").data == payload
 
 
+def test_the_buffer_protocol_reads_received_bytes_without_a_copy_and_refuses_writes():
+    # Python 3.12+ calls __buffer__ for memoryview()/NumPy; called directly here so that every
+    # version tests it. A writable request over borrowed bytes is refused (NumPy then asks
+    # read-only): it would copy the payload, and a received view would stop being zero-copy.
+    payload = bytes(range(1, 9))
+    message, wire = _deserialized_image(payload)
+    received = message.data
+    WRITABLE, SIMPLE = 1, 0
+    view = received.__buffer__(SIMPLE)
+    assert view.readonly and bytes(view) == payload
+    assert np.shares_memory(np.frombuffer(view, np.uint8), np.frombuffer(wire, np.uint8))
+    with pytest.raises(BufferError, match="received bytes"):
+        received.__buffer__(WRITABLE)
+    assert np.shares_memory(np.asarray(received), np.frombuffer(wire, np.uint8))  # unchanged
+    owned = Buffer(bytearray(payload))  # writable storage: writable through the protocol
+    writable = owned.__buffer__(WRITABLE)
+    writable[0] = 99
+    assert not writable.readonly and owned[0] == 99
+
+
 def test_buffer_over_bytes_copies_on_first_write():
     source = bytes(CONTENT)
     buffer = Buffer(source)
