@@ -17,6 +17,7 @@ __all__ = [
     "DescriptorTooLargeError",
     "UnknownMessageTypeError",
     "InvalidBufferDataError",
+    "InvalidMessageDefinitionError",
     "UnknownFieldError",
     "NativeExtensionMissingError",
     "BufferOverwrittenError",
@@ -66,6 +67,11 @@ class DescriptorTooLargeError(SerializationError):
 
 class UnknownMessageTypeError(RosidlBufferError, LookupError):
     """No message definition of that name ships with the project or is known to rosbags."""
+
+
+class InvalidMessageDefinitionError(RosidlBufferError, ValueError):
+    """A ``.msg`` definition the project cannot take as written: a field's default value that
+    its type cannot hold (``int32 x 1.5``), or a fixed array's of the wrong length."""
 
 
 class InvalidBufferDataError(RosidlBufferError, TypeError, ValueError):

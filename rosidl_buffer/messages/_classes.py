@@ -144,6 +144,14 @@ def _element_default(spec: FieldSpec) -> Any:
 
 
 def _default(spec: FieldSpec) -> Any:
+    if spec.default is not None:  # the .msg file's (a new object each time: lists are mutable)
+        if not spec.is_collection:
+            return spec.default
+        if spec.is_buffer:
+            return Buffer(np.array(spec.default, dtype=np.uint8))
+        if spec.kind is FieldKind.PRIMITIVE:
+            return np.array(spec.default, dtype=numpy_dtype(spec.element))
+        return list(spec.default)
     if spec.is_buffer:
         return Buffer()
     numeric = spec.kind is FieldKind.PRIMITIVE

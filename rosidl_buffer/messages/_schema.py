@@ -22,6 +22,7 @@ from rosbags.typesys import get_typestore as _rosbags_typestore
 from rosbags.typesys.store import Typestore
 
 from ..errors import UnknownMessageTypeError
+from ._defaults import DISTRIBUTION_DEFAULTS, parse_defaults
 
 __all__ = [
     "INTERFACES_ENTRY_POINT_GROUP",
@@ -84,6 +85,8 @@ class FieldSpec:
     is_sequence: bool = False
     sequence_bound: int = 0
     string_bound: int = 0
+    #: The ``.msg`` file's default value (``float64 w 1``), None: the type's zero.
+    default: Any = None
 
     @property
     def is_buffer(self) -> bool:
@@ -114,6 +117,9 @@ def normalize_type_name(name: str) -> str:
 
 _lock = threading.RLock()
 _store: Typestore | None = None
+#: Field default values by type name (rosbags drops them: see ._defaults).
+_DEFAULTS: dict[str, dict[str, Any]] = {name: dict(values) for name, values in
+                                        DISTRIBUTION_DEFAULTS.items()}
 
 
 _scanned_packages: set[tuple[str, str]] = set()
@@ -152,8 +158,9 @@ def _shipped_definitions() -> dict[str, tuple[list, list]]:
             for item in sorted(folder.iterdir(), key=lambda p: p.name):
                 if item.name.endswith(".msg"):
                     type_name = f"{package}/msg/{item.name[:-4]}"
-                    types.update(_as_idl(get_types_from_msg(item.read_text(encoding="utf-8"),
-                                                            type_name)))
+                    text = item.read_text(encoding="utf-8")
+                    types.update(_as_idl(get_types_from_msg(text, type_name)))
+                    _DEFAULTS[type_name] = parse_defaults(text, type_name)
         except Exception as exc:  # one broken package must not hide the others
             _log.warning("cannot load message package %s (%s): %s", package, entry_point.value, exc)
     return types
@@ -186,16 +193,21 @@ def register_message_definitions(definitions: dict[str, str]) -> None:
     """Add message types at run time: ``{"pkg/msg/Name": "<.msg text>"}``.
 
     For definitions that do not ship as files (tests, generated code). Registering a name that
-    already exists with a different definition raises rosbags' TypesysError.
+    already exists with a different definition raises rosbags' TypesysError; a default value its
+    field's type cannot hold raises :class:`InvalidMessageDefinitionError`.
     """
     types: dict[str, tuple[list, list]] = {}
+    defaults: dict[str, dict[str, Any]] = {}
     for name, text in definitions.items():
-        types.update(_as_idl(get_types_from_msg(text, normalize_type_name(name))))
+        name = normalize_type_name(name)
+        types.update(_as_idl(get_types_from_msg(text, name)))
+        defaults[name] = parse_defaults(text, name)
     with _lock:
         get_typestore().register(types)
+        _DEFAULTS.update(defaults)
 
 
-def _field_spec(name: str, desc: tuple) -> FieldSpec:
+def _field_spec(name: str, desc: tuple, default: Any = None) -> FieldSpec:
     node_type, detail = desc
     if node_type == Nodetype.BASE:
         base, bound = detail
@@ -203,16 +215,16 @@ def _field_spec(name: str, desc: tuple) -> FieldSpec:
         if base not in PRIMITIVE_FORMATS and base != "string":
             # wstring and float128 have no agreed CDR form in ROS 2 Python tooling.
             raise UnknownMessageTypeError(f"field {name!r}: type {base!r} is not supported")
-        return FieldSpec(name, kind, base, string_bound=bound)
+        return FieldSpec(name, kind, base, string_bound=bound, default=default)
     if node_type == Nodetype.NAME:
         return FieldSpec(name, FieldKind.MESSAGE, detail)
     sub, count = detail
     element = _field_spec(name, sub)
     if node_type == Nodetype.ARRAY:
         return FieldSpec(name, element.kind, element.element, array_length=count,
-                         string_bound=element.string_bound)
+                         string_bound=element.string_bound, default=default)
     return FieldSpec(name, element.kind, element.element, is_sequence=True,
-                     sequence_bound=count, string_bound=element.string_bound)
+                     sequence_bound=count, string_bound=element.string_bound, default=default)
 
 
 @functools.lru_cache(maxsize=None)
@@ -229,8 +241,10 @@ def get_schema(type_name: str) -> MessageSchema:
             f"unknown message type {name!r}: not shipped with the project nor known to rosbags "
             f"for {ROS_DISTRIBUTION.value}"
         ) from None
+    defaults = _DEFAULTS.get(name, {})
     return MessageSchema(
         name=name,
-        fields=tuple(_field_spec(field_name, desc) for field_name, desc in fields),
+        fields=tuple(_field_spec(field_name, desc, defaults.get(field_name))
+                     for field_name, desc in fields),
         constants=tuple((c[0], c[1], c[2]) for c in constants),
     )

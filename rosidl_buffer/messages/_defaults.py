@@ -1,0 +1,112 @@
+"""Default values of ``.msg`` fields (``float64 w 1``), which rosbags' parser drops.
+
+A field written ``TYPE NAME VALUE`` starts at ``VALUE`` in a new message, as rclpy's generated
+classes do; every other field at its type's zero. The definitions rosbags ships (the ROS 2
+distribution's) come without their text, so their non-zero defaults are listed here:
+``DISTRIBUTION_DEFAULTS`` holds every one in that distribution's interface packages
+(common_interfaces and rcl_interfaces sources: the others are zeros or have none).
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from ..errors import InvalidMessageDefinitionError
+
+DISTRIBUTION_DEFAULTS: dict[str, dict[str, Any]] = {
+    "geometry_msgs/msg/Quaternion": {"w": 1.0},  # the identity rotation
+    "sensor_msgs/msg/NavSatStatus": {"status": -2},  # STATUS_UNKNOWN
+}
+
+# TYPE NAME VALUE; a constant (TYPE NAME=VALUE) has its "=" right after the name.
+_FIELD = re.compile(r"^\s*(?P<type>\S+)\s+(?P<name>[A-Za-z][A-Za-z0-9_]*)\s+(?P<value>[^=\s].*?)\s*$")
+_ARRAY = re.compile(r"^(?P<base>[^\[]+)\[(?P<bound><=)?(?P<count>\d*)\]$")
+_FLOATS = frozenset({"float32", "float64"})
+_STRINGS = frozenset({"string", "wstring"})
+
+
+def parse_defaults(text: str, type_name: str) -> dict[str, Any]:
+    """The default values of ``text``'s fields (its first definition: a bag's concatenated
+    ``MSG:`` sections after a line of ``=`` are other types), by field name."""
+    defaults: dict[str, Any] = {}
+    for raw in text.splitlines():
+        if raw.startswith("==="):
+            break
+        match = _FIELD.match(_strip_comment(raw))
+        if match is None:
+            continue
+        field_type, name, value = match["type"], match["name"], match["value"]
+        try:
+            defaults[name] = _value(field_type, value)
+        except ValueError as exc:
+            raise InvalidMessageDefinitionError(
+                f"{type_name}: field {name!r} ({field_type}) cannot default to {value}: {exc}"
+            ) from None
+    return defaults
+
+
+def _strip_comment(line: str) -> str:
+    """``line`` up to its first ``#`` outside quotes."""
+    quote = ""
+    for i, char in enumerate(line):
+        if quote:
+            if char == quote:
+                quote = ""
+        elif char in "'\"":
+            quote = char
+        elif char == "#":
+            return line[:i]
+    return line
+
+
+def _value(field_type: str, text: str) -> Any:
+    array = _ARRAY.match(field_type)
+    if array is None:
+        return _scalar(field_type.split("<=")[0], text)
+    base = array["base"].split("<=")[0]
+    if not (text.startswith("[") and text.endswith("]")):
+        raise ValueError("an array's default is a list in brackets")
+    inner = text[1:-1].strip()
+    items = [_scalar(base, item.strip()) for item in _split(inner)] if inner else []
+    count = int(array["count"]) if array["count"] else 0
+    if count and not array["bound"] and len(items) != count:
+        raise ValueError(f"{len(items)} values for an array of {count}")
+    if count and array["bound"] and len(items) > count:
+        raise ValueError(f"{len(items)} values for a sequence of at most {count}")
+    return items
+
+
+def _split(text: str) -> list[str]:
+    """Comma-separated items, commas inside quotes kept."""
+    items, quote, start = [], "", 0
+    for i, char in enumerate(text):
+        if quote:
+            if char == quote:
+                quote = ""
+        elif char in "'\"":
+            quote = char
+        elif char == ",":
+            items.append(text[start:i])
+            start = i + 1
+    items.append(text[start:])
+    return items
+
+
+def _scalar(base: str, text: str) -> Any:
+    if base in _STRINGS:
+        if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":
+            return text[1:-1]
+        return text
+    if base == "bool":
+        lowered = text.lower()
+        if lowered in ("true", "1"):
+            return True
+        if lowered in ("false", "0"):
+            return False
+        raise ValueError("a bool is true or false")
+    if base in _FLOATS:
+        return float(text)
+    if "/" in base or base[:1].isupper():
+        raise ValueError("a field of a message type has no default")
+    return int(text)
