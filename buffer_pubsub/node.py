@@ -658,14 +658,15 @@ class Node:
         return sorted((topic, sorted(types)) for topic, types in topics.items())
 
     def get_node_names_and_namespaces(self) -> list[tuple[str, str]]:
-        """``(name, namespace)`` of every node of the domain, this one included, like rclpy."""
-        return sorted({(n.name, n.namespace) for n in self.get_nodes()})
+        """``(name, namespace)`` of every node of the domain, this one included, like rclpy: two
+        nodes that share a name are listed twice."""
+        return sorted((n.name, n.namespace) for n in self.get_nodes())
 
     def get_nodes(self) -> list[NodeInfo]:
         """Every node of the domain (name, namespace, enclave, Zenoh session), this one
         included."""
         self._check_open()
-        return sorted({node_info(t) for t in self.graph.nodes()},
+        return sorted((node_info(t) for t in self.graph.nodes()),  # one token per node
                       key=lambda n: (n.namespace, n.name, n.zid))
 
     def _endpoints(self, kind: str, topic: str | None) -> list[TopicEndpointInfo]:

@@ -261,3 +261,18 @@ def test_echo_of_a_latched_topic_shows_what_was_published_before_it_started(doma
     finally:
         procs.close()
     assert done.returncode == 0 and done.stdout.endswith("---\n"), (done.stdout, done.stderr)
+
+
+def test_nodes_that_share_a_name_are_listed_each_with_ros2s_warning(domain):
+    from buffer_pubsub import Node
+
+    with Node("twin", domain_id=domain) as first, Node("twin", domain_id=domain) as second:
+        deadline = time.monotonic() + 10
+        while (first.get_node_names_and_namespaces().count(("twin", "/")) < 2
+               and time.monotonic() < deadline):
+            time.sleep(0.05)
+        assert first.get_node_names_and_namespaces().count(("twin", "/")) == 2  # as rclpy
+        assert second.get_node_names_and_namespaces().count(("twin", "/")) == 2
+        listed = cli("node", "list", "--domain", str(domain))
+    assert listed.returncode == 0 and listed.stdout.split().count("/twin") == 2, listed
+    assert "share an exact name" in listed.stderr

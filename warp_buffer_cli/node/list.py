@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from .._graph import add_graph_options, graph_node, hidden, print_names
 
@@ -15,5 +16,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     with graph_node(args) as node:
-        names = sorted({n.full_name for n in node.get_nodes() if not hidden(n.name, args)})
+        names = sorted(n.full_name for n in node.get_nodes() if not hidden(n.name, args))
+    if len(set(names)) < len(names):  # (ros2 node list's warning, on stderr)
+        print("WARNING: Be aware that there are nodes in the graph that share an exact name, "
+              "which can have unintended side effects.", file=sys.stderr)
     return print_names(names, args.count_nodes)
