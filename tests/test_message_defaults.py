@@ -71,3 +71,15 @@ int32 zero
 def test_a_default_its_type_cannot_hold_is_a_typed_error(line: str, words: str) -> None:
     with pytest.raises(InvalidMessageDefinitionError, match=words):
         _register(line + "\n")
+
+
+def test_a_type_with_array_defaults_round_trips() -> None:
+    defaults = _register("int32[] numbers [1, 2, 3]\nstring[2] names ['a', 'b']\n"
+                         "uint8[] data [7]\n")
+    msg = defaults()
+    back = deserialize_message(bytes(serialize_message(msg)), defaults)
+    assert back.numbers.tolist() == [1, 2, 3] and back.names == ["a", "b"]
+    assert bytes(back.data) == b"\x07"
+    from rosidl_buffer.messages._schema import get_schema
+
+    hash(get_schema(defaults.__msgtype__).fields)  # field specs stay hashable (cache keys)

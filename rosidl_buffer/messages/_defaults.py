@@ -20,7 +20,8 @@ DISTRIBUTION_DEFAULTS: dict[str, dict[str, Any]] = {
 }
 
 # TYPE NAME VALUE; a constant (TYPE NAME=VALUE) has its "=" right after the name.
-_FIELD = re.compile(r"^\s*(?P<type>\S+)\s+(?P<name>[A-Za-z][A-Za-z0-9_]*)\s+(?P<value>[^=\s].*?)\s*$")
+_FIELD = re.compile(
+    r"^\s*(?P<type>\S+)\s+(?P<name>[A-Za-z][A-Za-z0-9_]*)\s+(?P<value>[^=\s].*?)\s*$")
 _ARRAY = re.compile(r"^(?P<base>[^\[]+)\[(?P<bound><=)?(?P<count>\d*)\]$")
 _FLOATS = frozenset({"float32", "float64"})
 _STRINGS = frozenset({"string", "wstring"})
@@ -74,7 +75,7 @@ def _value(field_type: str, text: str) -> Any:
         raise ValueError(f"{len(items)} values for an array of {count}")
     if count and array["bound"] and len(items) > count:
         raise ValueError(f"{len(items)} values for a sequence of at most {count}")
-    return items
+    return tuple(items)  # (a field spec is hashable)
 
 
 def _split(text: str) -> list[str]:
