@@ -10,6 +10,7 @@ distribution's) come without their text, so their non-zero defaults are listed h
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from typing import Any
 
 from ..errors import InvalidMessageDefinitionError
@@ -47,18 +48,22 @@ def parse_defaults(text: str, type_name: str) -> dict[str, Any]:
     return defaults
 
 
-def _strip_comment(line: str) -> str:
-    """``line`` up to its first ``#`` outside quotes."""
+def _unquoted(text: str) -> Iterator[tuple[int, str]]:
+    """``(index, character)`` of each character of ``text`` outside quotes (quotes excluded)."""
     quote = ""
-    for i, char in enumerate(line):
+    for i, char in enumerate(text):
         if quote:
             if char == quote:
                 quote = ""
         elif char in "'\"":
             quote = char
-        elif char == "#":
-            return line[:i]
-    return line
+        else:
+            yield i, char
+
+
+def _strip_comment(line: str) -> str:
+    """``line`` up to its first ``#`` outside quotes."""
+    return next((line[:i] for i, char in _unquoted(line) if char == "#"), line)
 
 
 def _value(field_type: str, text: str) -> Any:
@@ -80,18 +85,8 @@ def _value(field_type: str, text: str) -> Any:
 
 def _split(text: str) -> list[str]:
     """Comma-separated items, commas inside quotes kept."""
-    items, quote, start = [], "", 0
-    for i, char in enumerate(text):
-        if quote:
-            if char == quote:
-                quote = ""
-        elif char in "'\"":
-            quote = char
-        elif char == ",":
-            items.append(text[start:i])
-            start = i + 1
-    items.append(text[start:])
-    return items
+    cuts = [i for i, char in _unquoted(text) if char == ","]
+    return [text[a + 1:b] for a, b in zip([-1, *cuts], [*cuts, len(text)])]
 
 
 def _scalar(base: str, text: str) -> Any:
