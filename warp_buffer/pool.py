@@ -493,7 +493,7 @@ class BlockPool:
                 if not heads:
                     break
                 queue = min(heads, key=lambda q: q[0][1])  # the oldest free block
-                block, released = queue.popleft()
+                block, _ = queue.popleft()
                 if block.try_reclaim():
                     self.free_bytes -= block.capacity
                     self.destroyed += 1
@@ -515,19 +515,13 @@ class BlockPool:
         victims: list[Block] = []
         with self._lock:
             self._drain()
-            entries = sorted(
-                ((released, block) for queue in self._free.values() for block, released in queue),
-                key=lambda item: item[0],
-            )
-            free = self.free_bytes
-            for released, block in entries:
-                if now - released < idle_s:
-                    continue
+            idle = [(block, released) for queue in self._free.values()
+                    for block, released in queue if now - released >= idle_s]
+            for block, released in idle:
                 if block.try_reclaim():
                     self._free[block.capacity].remove((block, released))
-                    free -= block.capacity
+                    self.free_bytes -= block.capacity
                     victims.append(block)
-            self.free_bytes = free
             self.destroyed += len(victims)
         freed = 0
         for block in victims:
