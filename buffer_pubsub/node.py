@@ -1,4 +1,4 @@
-"""``Node``: a Zenoh session, its discovery graph and its executor.
+"""``Node``: its share of a Zenoh session, its discovery graph and its executor.
 
 Shaped after ``rclpy.node.Node``. Callbacks of every subscription and timer of a node run one
 at a time: on the node's own executor thread (``Node(executor="thread")``, the default), or on
@@ -34,14 +34,13 @@ import zenoh
 from rosidl_buffer import BufferBackend, RosidlBufferError, local_host_id
 from rosidl_buffer.messages import Message, buffer_fields, get_message_type, get_type_hash
 
-from . import _process, fast_lane as _fast_lane, wire
+from . import _process, _sessions, fast_lane as _fast_lane, wire
 from ._executor import NodeExecutor, user_spin, wait_seconds
 from ._info import endpoint_gone, endpoint_info
 from ._waker import Waker
 from ._zenoh import run_bounded, typed_zenoh_errors, undeclare_quietly
 from .callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
 from .config import make_config, resolve_domain_id
-from .connectivity import open_session
 from .graph import Graph, NodeInfo, TopicEndpointInfo, node_info
 from .errors import (
     ExecutorModeError,
@@ -90,8 +89,11 @@ class Node:
     Added to an executor (``executor.add_node(node)``, :mod:`buffer_pubsub.executors`), the
     node's callbacks run there instead, as their callback groups allow
     (``default_callback_group``: one at a time).
+    Nodes of a process configured alike share one Zenoh session (``node.session``), as
+    rmw_zenoh's nodes of one context do (:mod:`buffer_pubsub._sessions`).
     Use as a context manager or call :meth:`close`, which undeclares everything (after the
-    callbacks running then ended, within its budget).
+    callbacks running then ended, within its budget) and closes the session if no other node
+    uses it.
     """
 
     def __init__(
@@ -141,7 +143,10 @@ class Node:
 
         try:
             config_obj = make_config(config, router)
-            self.session = open_session(config_obj)  # typed errors, unreachable-router warnings
+            # Nodes configured alike share a session, as rmw_zenoh's nodes of one context do
+            # (typed errors, unreachable-router warnings: see connectivity).
+            self._shared_session = _sessions.acquire(config_obj)
+            self.session: zenoh.Session = self._shared_session.session
         except BaseException:
             self._close_waker()  # its eventfd: a retry loop would run out of fds
             raise
@@ -159,12 +164,15 @@ class Node:
                 self._graph_subscriber = self.session.liveliness().declare_subscriber(
                     wire.liveliness_domain_selector(self.domain_id), self._on_liveliness,
                     history=True)
+                self._routes_key = wire.routes_key(self.domain_id, self.zid, self.node_id)
                 self._routes_queryable = self.session.declare_queryable(
-                    wire.routes_key(self.domain_id, self.zid), self._on_routes_query)
+                    self._routes_key, self._on_routes_query)
             _process.add_node(self)  # closed at exit if nobody closes it
         except BaseException:
             self.scheduler.stop()
-            run_bounded(self.session.close, CLOSE_TIMEOUT_S, "closing the Zenoh session")
+            undeclare_quietly(*(getattr(self, name, None) for name in (
+                "_routes_queryable", "_graph_subscriber", "_node_token")))
+            _sessions.release(self._shared_session, CLOSE_TIMEOUT_S)
             self._close_waker()
             raise
 
@@ -188,7 +196,8 @@ class Node:
     closed = property(operator.attrgetter("_closed"))
 
     def close(self) -> None:
-        """Undeclare every endpoint and token, stop the executor and close the Zenoh session.
+        """Undeclare every endpoint and token, stop the executor and close the Zenoh session
+        (when no other node shares it).
 
         Bounded: the steps that may block on a frozen peer share ``CLOSE_TIMEOUT_S`` seconds
         (what is not done by then finishes in the background); Zenoh failures are logged, never
@@ -246,8 +255,7 @@ class Node:
                      lambda: run_bounded(undeclare, left(), f"undeclaring node {self.name}"),
                      lambda: self._join_executor_thread(left()),
                      self._close_waker,
-                     lambda: run_bounded(self.session.close, left(),
-                                         f"closing node {self.name}'s session")):
+                     lambda: _sessions.release(self._shared_session, left())):
             try:
                 step()
             except KeyboardInterrupt as exc:
@@ -605,7 +613,7 @@ class Node:
         try:
             payload = json.dumps({"node": self.name, "namespace": self.namespace or "/",
                                   "publishers": self.routes()})
-            query.reply(query.key_expr, payload.encode())
+            query.reply(self._routes_key, payload.encode())
         except Exception:  # a Zenoh thread: never raise into it
             _log.debug("answering a routes query failed", exc_info=True)
 

@@ -143,13 +143,14 @@ def liveliness_domain_selector(domain_id: int) -> str:
 ADMIN_PREFIX = "@warp_buffer"
 
 
-def routes_key(domain_id: int, zid: str) -> str:
-    """Where a node of ours answers what route each of its publishers takes (JSON)."""
-    return f"{ADMIN_PREFIX}/{domain_id}/{zid}/routes"
+def routes_key(domain_id: int, zid: str, node_id: int) -> str:
+    """Where a node of ours answers what route each of its publishers takes (JSON); nodes
+    that share a session answer on keys of their own."""
+    return f"{ADMIN_PREFIX}/{domain_id}/{zid}/{node_id}/routes"
 
 
 def routes_selector(domain_id: int) -> str:
-    return f"{ADMIN_PREFIX}/{domain_id}/*/routes"
+    return f"{ADMIN_PREFIX}/{domain_id}/*/*/routes"
 
 
 def gid_from_key(canonical_key: str) -> bytes:

@@ -573,7 +573,7 @@ def test_a_node_out_of_file_descriptors_gets_a_typed_error_that_says_so() -> Non
         "from rosidl_buffer import RosidlBufferError\n"
         "nodes = []\n"
         "try:\n"
-        "    for i in range(60):\n"
+        "    for i in range(1000):\n"
         "        node = Node(f'fds_{i}', domain_id=int(sys.argv[1]))\n"
         "        nodes.append(node)\n"
         "        node.create_subscription('tensor_msgs/msg/ExperimentalTensor', '/fds', lambda m: None,\n"

@@ -1,0 +1,85 @@
+"""One Zenoh session per process and configuration, shared by the nodes that use it.
+
+rmw_zenoh opens one session per context, whatever the number of nodes in it; its nodes are told
+apart by their node id, not their session. A session is the expensive part of a node (its
+runtime's threads, a socket per peer it links to, about half a second to open), so nodes made
+with the same resolved configuration share one: its first user opens it, its last one closes it.
+A fork's child starts with none (Zenoh sessions do not survive a fork; see
+:mod:`buffer_pubsub.connectivity`).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from dataclasses import dataclass, field
+
+import zenoh
+
+from ._zenoh import run_bounded
+from .connectivity import open_session
+
+__all__ = ["SharedSession", "acquire", "release"]
+
+
+@dataclass(eq=False)
+class SharedSession:
+    """A session and the number of nodes using it (the registry's lock guards ``users``)."""
+
+    key: str
+    session: zenoh.Session | None = None
+    users: int = 0
+    opening: threading.Lock = field(default_factory=threading.Lock)  # one open per key
+
+
+_lock = threading.Lock()
+_shared: dict[str, SharedSession] = {}
+
+
+def acquire(config: zenoh.Config) -> SharedSession:
+    """The session of ``config`` (a resolved configuration), opened by its first user.
+
+    Raises what :func:`~buffer_pubsub.connectivity.open_session` raises; a failed open leaves
+    nothing behind, and the next node tries again."""
+    key = str(config)  # its complete JSON: nodes configured alike share
+    with _lock:
+        entry = _shared.get(key)
+        if entry is None:
+            entry = _shared[key] = SharedSession(key)
+        entry.users += 1
+    try:
+        with entry.opening:  # nodes of another configuration do not wait for this one
+            if entry.session is None:
+                entry.session = open_session(config)
+    except BaseException:
+        _drop(entry)
+        raise
+    return entry
+
+
+def release(entry: SharedSession, timeout: float) -> None:
+    """One user less; the last one closes the session (bounded by ``timeout`` seconds)."""
+    if _drop(entry) and entry.session is not None:
+        run_bounded(entry.session.close, timeout, "closing the Zenoh session")
+
+
+def _drop(entry: SharedSession) -> bool:
+    """Count a user out; True when it was the last (the entry leaves the registry)."""
+    with _lock:
+        entry.users -= 1
+        if entry.users > 0:
+            return False
+        if _shared.get(entry.key) is entry:
+            del _shared[entry.key]
+        return True
+
+
+def _forget_in_child() -> None:
+    # The parent's sessions are not the child's (their threads were not forked): its nodes
+    # must not find them.
+    global _lock
+    _lock = threading.Lock()
+    _shared.clear()
+
+
+os.register_at_fork(after_in_child=_forget_in_child)

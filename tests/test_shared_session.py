@@ -1,0 +1,129 @@
+"""Nodes of one process configured alike share one Zenoh session (rmw_zenoh: one per context).
+
+A session per node cost about 40 file descriptors and half a second each once a process held 20
+nodes (a default ``ulimit -n`` of 1024 ran out near 24): these tests hold what a user sees of
+the sharing, on real sessions."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+import zenoh
+
+from buffer_pubsub import Node, TransportConfigError, _sessions
+from buffer_pubsub.config import make_config
+from rosidl_buffer.messages import get_message_type
+from tests._pubsub_helpers import ROOT, TENSOR, Child, check_frame, child_env, make_frame
+from tests._reliability_helpers import wait_until
+
+STRING = get_message_type("std_msgs/msg/String")
+COUNT = 5
+
+
+def _fds() -> int:
+    return len(os.listdir("/proc/self/fd"))
+
+
+def test_nodes_configured_alike_share_one_session_that_the_last_one_closes(domain):
+    first = Node("share_first", domain_id=domain, fast_lane=False)
+    before = _fds()
+    others = [Node(f"share_{k}", domain_id=domain, fast_lane=False) for k in range(12)]
+    try:
+        grown = _fds() - before
+        assert all(node.session is first.session for node in others)
+        assert {node.zid for node in others} == {first.zid}
+        assert len({node.node_id for node in (first, *others)}) == 13  # told apart by node id
+        assert grown <= 3 * len(others), f"{grown} descriptors for {len(others)} nodes"
+        session = first.session
+        first.close()
+        for node in others[:-1]:
+            node.close()
+        assert not session.is_closed()  # one node still uses it
+    finally:
+        for node in others:
+            node.close()
+    assert session.is_closed()
+
+
+def test_a_closed_node_leaves_the_others_of_its_session_working_and_its_graph(domain, topic):
+    """B and C share A's session: once A closes, its tokens leave B's graph, and B still
+    exchanges messages with another process (and in process with C) through the session."""
+    child = Child("sub", domain=domain, topic=topic, accept="cpu", expect=COUNT)
+    got: list[int] = []
+    try:
+        with Node("share_b", domain_id=domain) as b, Node("share_c", domain_id=domain) as c:
+            a = Node("share_a", domain_id=domain)
+            a.create_publisher(STRING, topic + "_a")
+            assert wait_until(lambda: ("share_a", "/") in b.get_node_names_and_namespaces())
+            assert wait_until(lambda: b.get_publishers_info_by_topic(topic + "_a"))
+            a.close()
+            assert wait_until(lambda: ("share_a", "/") not in b.get_node_names_and_namespaces())
+            assert wait_until(lambda: not b.get_publishers_info_by_topic(topic + "_a"))
+            c.create_subscription(TENSOR, topic, lambda m: got.append(check_frame(m)["index"]),
+                                  depth=COUNT)
+            pub = b.create_publisher(TENSOR, topic)
+            child.wait_ready()
+            assert pub.wait_for_subscriptions(2, timeout=10)
+            for index in range(COUNT):
+                pub.publish(make_frame(0, index, 256, "cpu"))
+            result = child.stop()
+            assert wait_until(lambda: len(got) == COUNT)
+    finally:
+        child.close()
+    assert sorted(r["index"] for r in result["records"]) == list(range(COUNT))
+    assert got == list(range(COUNT))  # once each: the session's own delivery is not a second
+
+
+def test_nodes_of_two_sessions_answer_the_routes_query_each(domain, topic):
+    from warp_buffer_cli._graph import routes_by_publisher
+
+    with Node("routes_a", domain_id=domain) as a, Node("routes_b", domain_id=domain) as b:
+        gids = {a.create_publisher(STRING, topic).gid.hex(),
+                b.create_publisher(STRING, topic).gid.hex()}
+        assert a.session is b.session
+        assert wait_until(lambda: gids <= set(routes_by_publisher(a, timeout=1.0)))
+
+
+def test_nodes_configured_differently_get_sessions_of_their_own(domain):
+    config = zenoh.Config()
+    config.insert_json5("scouting/multicast/enabled", "false")
+    with Node("own_a", domain_id=domain) as a, Node("own_b", config=config,
+                                                    domain_id=domain) as b:
+        assert a.session is not b.session and a.zid != b.zid
+
+
+def test_a_session_that_fails_to_open_leaves_nothing_and_the_next_node_opens_one(domain):
+    config = zenoh.Config()
+    config.insert_json5("listen/endpoints", '["tcp/256.0.0.1:1"]')  # no such address
+    with pytest.raises(TransportConfigError):
+        Node("never", config=config, domain_id=domain)
+    assert str(make_config(config)) not in _sessions._shared  # no entry left half-open
+    with Node("after", domain_id=domain) as node:
+        assert not node.session.is_closed()
+
+
+_FORK_WHILE_A_NODE_IS_OPEN = r"""
+import os, sys
+from buffer_pubsub import ForkedAfterZenohError, Node
+with Node("fork_parent", domain_id=int(sys.argv[1])) as parent:
+    pid = os.fork()
+    if pid == 0:
+        try:
+            Node("fork_child", domain_id=int(sys.argv[1]))  # not the parent's session
+        except ForkedAfterZenohError:
+            os._exit(0)
+        os._exit(3)
+    _, status = os.waitpid(pid, 0)
+    assert not parent.session.is_closed()
+sys.exit(os.waitstatus_to_exitcode(status))
+"""
+
+
+def test_a_fork_child_never_gets_its_parents_open_session(domain):
+    process = subprocess.run([sys.executable, "-c", _FORK_WHILE_A_NODE_IS_OPEN, str(domain)],
+                             cwd=ROOT, env=child_env(), capture_output=True, text=True,
+                             timeout=60)
+    assert process.returncode == 0, (process.returncode, process.stderr[-2000:])
