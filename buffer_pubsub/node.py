@@ -47,6 +47,7 @@ from .errors import (
     InvalidEndpointError,
     NodeClosedError,
 )
+from .node_logger import NodeLogger
 from .names import expand_topic_name, validate_namespace, validate_node_name
 from .publisher import Publisher, replay_history
 from .qos import DEFAULT_DEPTH, QoSProfile, resolve_qos
@@ -140,6 +141,9 @@ class Node:
         #: The group of subscriptions and timers created without ``callback_group`` (rclpy's).
         self.default_callback_group: CallbackGroup = MutuallyExclusiveCallbackGroup()
         self._thread: threading.Thread | None = None
+        # One logger for the node's life: its filters keep their state per call site.
+        self._logger = NodeLogger(logging.getLogger(
+            self.get_fully_qualified_name().strip("/").replace("/", ".")))
 
         try:
             config_obj = make_config(config, router)
@@ -562,10 +566,13 @@ class Node:
     def get_fully_qualified_name(self) -> str:
         return f"{self.namespace}/{self.name}"
 
-    def get_logger(self) -> logging.Logger:
-        """A Python logger named after the node (``<namespace>.<name>``, dots for slashes, as
-        rclpy names a node's logger): configure it with :mod:`logging` (``basicConfig``)."""
-        return logging.getLogger(self.get_fully_qualified_name().strip("/").replace("/", "."))
+    def get_logger(self) -> NodeLogger:
+        """The node's logger (always the same one): a Python logger named after the node
+        (``<namespace>.<name>``, dots for slashes, as rclpy names a node's logger) that also
+        takes rclpy's calls (``throttle_duration_sec=``, ``once=``, ``skip_first=``, ``warn``,
+        ``fatal``, ``get_child``: :mod:`buffer_pubsub.node_logger`). Configure its output with
+        :mod:`logging` (``basicConfig``): the library adds no handler."""
+        return self._logger
 
     def destroy_publisher(self, publisher: Publisher) -> bool:
         """Destroy ``publisher`` (:meth:`Publisher.destroy`); whether it was this node's."""
