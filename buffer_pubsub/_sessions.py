@@ -30,6 +30,8 @@ class SharedSession:
     session: zenoh.Session | None = None
     users: int = 0
     opening: threading.Lock = field(default_factory=threading.Lock)  # one open per key
+    failures: int = 0  # opens that failed (under ``opening``)
+    error: BaseException | None = None  # what the last one raised
 
 
 _lock = threading.Lock()
@@ -39,18 +41,28 @@ _shared: dict[str, SharedSession] = {}
 def acquire(config: zenoh.Config) -> SharedSession:
     """The session of ``config`` (a resolved configuration), opened by its first user.
 
-    Raises what :func:`~buffer_pubsub.connectivity.open_session` raises; a failed open leaves
-    nothing behind, and the next node tries again."""
+    Raises what :func:`~buffer_pubsub.connectivity.open_session` raises; the nodes that waited
+    for that open raise the same error at once. A failed open leaves nothing behind once those
+    nodes are gone, and the next node tries again."""
     key = str(config)  # its complete JSON: nodes configured alike share
     with _lock:
         entry = _shared.get(key)
         if entry is None:
             entry = _shared[key] = SharedSession(key)
         entry.users += 1
+    failures = entry.failures  # an open that fails from now on is one this node waits for
     try:
         with entry.opening:  # nodes of another configuration do not wait for this one
             if entry.session is None:
-                entry.session = open_session(config)
+                if entry.failures > failures and entry.error is not None:
+                    # the open this node waited for failed: fail alike, not one after another
+                    raise entry.error.with_traceback(None)
+                try:
+                    entry.session = open_session(config)
+                except BaseException as error:
+                    entry.error = error
+                    entry.failures += 1
+                    raise
     except BaseException:
         _drop(entry)
         raise

@@ -8,7 +8,8 @@ library adds no handler and writes nothing unless the application configures log
 
 Filters follow rclpy's: they are kept per call site (a line, and a place within it), evaluated
 only when the level is enabled, in the order throttle, skip-first, once; a throttled call site
-logs its first call, then at most once per interval of the monotonic clock.
+logs its first call, then at most once per interval of the monotonic clock; a site whose filter
+arguments change between calls raises ValueError, as in rclpy.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ from typing import Any
 
 __all__ = ["NodeLogger"]
 
+#: Attributes of the logging.Logger a user sets through the node's logger.
+_LOGGER_SETTINGS = frozenset({"propagate", "disabled", "level", "handlers", "filters", "parent"})
 #: rclpy's only throttle clock (``RCUTILS_STEADY_TIME``: Python's monotonic clock).
 STEADY_TIME = "RCUTILS_STEADY_TIME"
 
@@ -28,16 +31,18 @@ STEADY_TIME = "RCUTILS_STEADY_TIME"
 class _Site:
     """One call site's filter state."""
 
-    __slots__ = ("last_logged", "skipped", "logged_once")
+    __slots__ = ("filters", "last_logged", "skipped", "logged_once")
 
-    def __init__(self) -> None:
+    def __init__(self, filters: tuple[Any, ...]) -> None:
+        self.filters = filters  # (throttle, skip_first, once), fixed at the site's first call
         self.last_logged: float | None = None
         self.skipped = False
         self.logged_once = False
 
 
 class NodeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
-    """A node's logger: ``logging.Logger``'s methods, plus rclpy's filters and names.
+    """A node's logger: ``logging.Logger``'s methods and attributes (forwarded to the logger it
+    wraps, ``.logger``), plus rclpy's filters and names.
 
     ``debug/info/warning/warn/error/fatal/critical(msg, *args, throttle_duration_sec=None,
     throttle_time_source_type="RCUTILS_STEADY_TIME", skip_first=False, once=False, **kwargs)``
@@ -49,6 +54,19 @@ class NodeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
         super().__init__(logger, {})
         self._sites: dict[tuple[Any, ...], _Site] = {}
         self._lock = threading.Lock()
+
+    # The logging.Logger underneath answers for what an adapter lacks (handlers, filters,
+    # getChild, ...), and takes the settings a user assigns (propagate, disabled).
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("__") or name in ("logger", "_sites", "_lock"):
+            raise AttributeError(name)
+        return getattr(self.logger, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name in _LOGGER_SETTINGS:
+            setattr(self.logger, name, value)
+        else:
+            object.__setattr__(self, name, value)
 
     def process(self, msg: Any, kwargs: Any) -> tuple[Any, Any]:
         return msg, kwargs  # no extra context: records are the logger's own
@@ -98,7 +116,8 @@ class NodeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
         """rclpy's FATAL: :meth:`critical`."""
         return self._log_filtered(logging.CRITICAL, msg, args, kwargs)
 
-    def log(self, level: Any, msg: Any, *args: Any, **kwargs: Any) -> bool:  # type: ignore[override]
+    def log(self, level: Any, msg: Any, *args: Any,  # type: ignore[override]
+            **kwargs: Any) -> bool:
         if isinstance(level, str) and isinstance(msg, int):  # rclpy: log(message, severity)
             level, msg = msg, level
         if not isinstance(level, int) or isinstance(level, bool):
@@ -121,7 +140,7 @@ class NodeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
             return False
         if throttle or skip_first or once:
             caller = sys._getframe(2)  # the user's frame: it called debug/info/... which came here
-            key = (caller.f_code, caller.f_lasti, throttle, skip_first, once)
+            key = (caller.f_code, caller.f_lasti)
             if not self._passes(key, throttle, skip_first, once):
                 return False
         kwargs.setdefault("stacklevel", 1)
@@ -133,10 +152,14 @@ class NodeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
                 once: bool) -> bool:
         # rclpy's order: throttle, then skip-first, then once; a filter that refuses ends it
         # (the later ones keep their state, as rcutils' macros do).
+        filters = (throttle, skip_first, once)
         with self._lock:
             site = self._sites.get(key)
             if site is None:
-                site = self._sites[key] = _Site()
+                site = self._sites[key] = _Site(filters)
+            elif site.filters != filters:  # rclpy refuses it too: the site keeps one state
+                raise ValueError(f"a call site's logging filters cannot change between calls "
+                                 f"(throttle, skip_first, once: {site.filters} then {filters})")
             if throttle:
                 now = time.monotonic()
                 if site.last_logged is not None and now < site.last_logged + throttle:

@@ -301,23 +301,31 @@ class Publisher:
         self._transient = token.qos.transient_local
         self._history: collections.deque[tuple[Message, wire.Attachment, frozenset[str]]] | \
             None = collections.deque(maxlen=depth) if self._transient else None
-        self._base = (self._declare_transient(self.base_key, depth) if self._transient
-                      else self._declare_channel(self.base_key))
-        self._cpu = (self._declare_channel(wire.cpu_channel_key(self.base_key)) if self._aware
-                     else None)
-        # A type without buffer fields is put on the base key whenever Zenoh routes that key to
-        # a subscriber in another session, as rmw_zenoh's publishers put it always: a ROS 2
-        # subscription declares its Zenoh subscriber before its token, and what is published
-        # in between reaches it (and a plain Zenoh listener, which has no token, gets it).
-        self._base_matched = self._transient  # (its cache takes every message)
-        self._base_matching = (None if self._aware or self._transient else
-                               self._base.declare_matching_listener(self._on_base_matching))
-        if self._transient:
-            self._remote = _Routing((), False, True)  # from the first publish, into its cache
-            with _transient_lock:
-                _TRANSIENT.setdefault(self._intra_key, weakref.WeakSet()).add(self)
-        _process.add_publisher(self.gid)
-        self._liveliness = node.session.liveliness().declare_token(token.key())
+        # What __init__ declares, undeclared by _undeclare() if a later step fails: the
+        # session is shared with other nodes and outlives this node (see _sessions).
+        self._base = self._cpu = self._base_matching = self._liveliness = None
+        try:
+            self._base = (self._declare_transient(self.base_key, depth) if self._transient
+                          else self._declare_channel(self.base_key))
+            self._cpu = (self._declare_channel(wire.cpu_channel_key(self.base_key))
+                         if self._aware else None)
+            # A type without buffer fields is put on the base key whenever Zenoh routes that key
+            # to a subscriber in another session, as rmw_zenoh's publishers put it always: a ROS
+            # 2 subscription declares its Zenoh subscriber before its token, and what is
+            # published in between reaches it (and a plain Zenoh listener, which has no token,
+            # gets it).
+            self._base_matched = self._transient  # (its cache takes every message)
+            self._base_matching = (None if self._aware or self._transient else
+                                   self._base.declare_matching_listener(self._on_base_matching))
+            if self._transient:
+                self._remote = _Routing((), False, True)  # from the first publish, into its cache
+                with _transient_lock:
+                    _TRANSIENT.setdefault(self._intra_key, weakref.WeakSet()).add(self)
+            _process.add_publisher(self.gid)
+            self._liveliness = node.session.liveliness().declare_token(token.key())
+        except BaseException:
+            self._undeclare()
+            raise
 
     def __repr__(self) -> str:
         return f"Publisher({self.msg_type.__msgtype__}, {self.topic_name!r})"

@@ -196,50 +196,59 @@ class Subscription:
         self._backends = tuple(node.backends.values())
         for backend in self._backends:
             backend.on_creating_endpoint(self.info)
-        session = node.session
-        remote = zenoh.Locality.REMOTE
-        on_base = lambda s: self._on_sample(s, ROUTE_BASE)  # noqa: E731
-        if token.qos.transient_local:  # rmw_zenoh's: history from publishers' caches first,
-            # and (reliable) the misses their heartbeats reveal
-            self._subscribers = [zenoh.ext.declare_advanced_subscriber(
-                session, self.base_key, on_base, allowed_origin=remote,
-                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=depth),
-                recovery=None if token.qos.best_effort else zenoh.ext.RecoveryConfig(
-                    heartbeat=True), subscriber_detection=True)]
-        else:
-            self._subscribers = [session.declare_subscriber(self.base_key, on_base,
-                                                            allowed_origin=remote)]
-        # A buffer-aware subscription (its type has a top-level uint8[]) listens on one more key:
-        # the shared CPU stream when it advertises exactly cpu, else its own.
-        # A rate-limited CPU-only one listens on its own stream too: our publishers serve it
-        # there, at its rate (see max_rate below).
-        own_stream = False
-        if buffer_fields(msg_type) and token.backends is not None:  # (transient-local: none)
-            cpu_only = wire.subscription_channel(token) == wire.SubscriptionChannel.CPU
-            if cpu_only:
-                self._subscribers.append(session.declare_subscriber(
-                    wire.cpu_channel_key(self.base_key),
-                    lambda s: self._on_sample(s, ROUTE_CPU), allowed_origin=remote))
-            if not cpu_only or token.max_rate_hz:
-                own_stream = not cpu_only
-                self._subscribers.append(session.declare_subscriber(
-                    wire.buffer_channel_key(self.base_key, self.gid),
-                    lambda s: self._on_sample(s, ROUTE_BUFFER), allowed_origin=remote))
-        # The lane reader exists before the token: a publisher that discovers us finds the
-        # service, so its writer decides the route at once. The Zenoh channel stays for
-        # publishers that cannot open the lane (other host or user, lane off, older peers).
+        # What __init__ declares, undeclared by _undeclare() if a later step fails: the
+        # session is shared with other nodes and outlives this node (see _sessions).
+        self._subscribers: list[Any] = []
         self._lane_reader = None
-        lane = node.lane
-        # (Keep-all stays on Zenoh: the lane's keep-last ring would drop; so do queues
-        # deeper than the lane's deepest ring, see fast_lane.MAX_DEPTH.)
-        if (lane is not None and history == wire.KEEP_LAST and depth <= fast_lane.MAX_DEPTH
-                and own_stream):
-            self._lane_reader = _lane_routes.open_reader(self.base_key, self.gid, depth)
-            if self._lane_reader is not None:
-                lane.attach(self._lane_reader, self._on_lane)
-        _process.add_subscription(self.base_key, self)
-        # Declared last: a publisher that discovers us finds our Zenoh subscribers in place.
-        self._liveliness = session.liveliness().declare_token(token.key())
+        self._liveliness: Any = None
+        try:
+            session = node.session
+            remote = zenoh.Locality.REMOTE
+            on_base = lambda s: self._on_sample(s, ROUTE_BASE)  # noqa: E731
+            if token.qos.transient_local:  # rmw_zenoh's: history from publishers' caches first,
+                # and (reliable) the misses their heartbeats reveal
+                self._subscribers = [zenoh.ext.declare_advanced_subscriber(
+                    session, self.base_key, on_base, allowed_origin=remote,
+                    history=zenoh.ext.HistoryConfig(detect_late_publishers=True,
+                                                    max_samples=depth),
+                    recovery=None if token.qos.best_effort else zenoh.ext.RecoveryConfig(
+                        heartbeat=True), subscriber_detection=True)]
+            else:
+                self._subscribers = [session.declare_subscriber(self.base_key, on_base,
+                                                                allowed_origin=remote)]
+            # A buffer-aware subscription (its type has a top-level uint8[]) listens on one more
+            # key: the shared CPU stream when it advertises exactly cpu, else its own.
+            # A rate-limited CPU-only one listens on its own stream too: our publishers serve it
+            # there, at its rate (see max_rate below).
+            own_stream = False
+            if buffer_fields(msg_type) and token.backends is not None:  # (transient-local: none)
+                cpu_only = wire.subscription_channel(token) == wire.SubscriptionChannel.CPU
+                if cpu_only:
+                    self._subscribers.append(session.declare_subscriber(
+                        wire.cpu_channel_key(self.base_key),
+                        lambda s: self._on_sample(s, ROUTE_CPU), allowed_origin=remote))
+                if not cpu_only or token.max_rate_hz:
+                    own_stream = not cpu_only
+                    self._subscribers.append(session.declare_subscriber(
+                        wire.buffer_channel_key(self.base_key, self.gid),
+                        lambda s: self._on_sample(s, ROUTE_BUFFER), allowed_origin=remote))
+            # The lane reader exists before the token: a publisher that discovers us finds the
+            # service, so its writer decides the route at once. The Zenoh channel stays for
+            # publishers that cannot open the lane (other host or user, lane off, older peers).
+            lane = node.lane
+            # (Keep-all stays on Zenoh: the lane's keep-last ring would drop; so do queues
+            # deeper than the lane's deepest ring, see fast_lane.MAX_DEPTH.)
+            if (lane is not None and history == wire.KEEP_LAST and depth <= fast_lane.MAX_DEPTH
+                    and own_stream):
+                self._lane_reader = _lane_routes.open_reader(self.base_key, self.gid, depth)
+                if self._lane_reader is not None:
+                    lane.attach(self._lane_reader, self._on_lane)
+            _process.add_subscription(self.base_key, self)
+            # Declared last: a publisher that discovers us finds our Zenoh subscribers in place.
+            self._liveliness = session.liveliness().declare_token(token.key())
+        except BaseException:
+            self._undeclare()
+            raise
 
     def __repr__(self) -> str:
         return (f"Subscription({self.msg_type.__msgtype__}, {self.topic_name!r}, "

@@ -150,7 +150,8 @@ def routes_key(domain_id: int, zid: str, node_id: int) -> str:
 
 
 def routes_selector(domain_id: int) -> str:
-    return f"{ADMIN_PREFIX}/{domain_id}/*/*/routes"
+    """Every node's routes key (``**``: also the ``<zid>/routes`` keys of older versions)."""
+    return f"{ADMIN_PREFIX}/{domain_id}/**/routes"
 
 
 def gid_from_key(canonical_key: str) -> bytes:

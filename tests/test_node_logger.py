@@ -93,3 +93,43 @@ def test_a_node_keeps_one_logger_named_as_rclpy_names_it(domain):
         assert first is node.get_logger()  # filters keep their state across calls
         assert isinstance(first, logging.LoggerAdapter) and first.name == "robot1.talker"
         assert first.logger is logging.getLogger("robot1.talker")
+
+
+def test_throttle_is_judged_before_skip_first_as_in_rclpy(logger, caplog, monkeypatch):
+    """rclpy: the first call passes the throttle (starting its interval) and is skipped; the
+    next one inside the interval is throttled; the one after it logs."""
+    now = [50.0]
+    monkeypatch.setattr(node_logger.time, "monotonic", lambda: now[0])
+    results = []
+    for step in range(3):
+        results.append(logger.info(f"call {step}", throttle_duration_sec=1.0, skip_first=True))
+        now[0] += 0.6
+    assert results == [False, False, True]
+    assert _messages(caplog) == ["call 2"]
+
+
+def test_a_call_site_whose_filters_change_is_refused_as_in_rclpy(logger):
+    for duration in (1.0, 2.0):
+        try:
+            logger.info("computed interval", throttle_duration_sec=duration)
+        except ValueError as error:
+            assert "cannot change" in str(error)
+            break
+    else:
+        pytest.fail("a changed throttle_duration_sec was taken as a new call site")
+
+
+def test_the_wrapped_loggers_attributes_and_methods_are_the_node_loggers(logger, caplog):
+    logger.propagate = False  # as on a logging.Logger: caplog's handler no longer sees it
+    try:
+        assert logging.getLogger(logger.name).propagate is False
+        records: list[logging.LogRecord] = []
+        handler = logging.Handler()
+        handler.emit = records.append  # type: ignore[method-assign]
+        logger.addHandler(handler)
+        assert logger.handlers == [handler] and logger.getChild("x").name == logger.name + ".x"
+        logger.info("to my handler")
+        assert [r.getMessage() for r in records] == ["to my handler"] and not caplog.records
+    finally:
+        logger.propagate = True
+        logger.logger.handlers.clear()

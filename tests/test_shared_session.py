@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import time
 import sys
 
 import pytest
@@ -15,7 +16,7 @@ import zenoh
 
 from buffer_pubsub import Node, TransportConfigError, _sessions
 from buffer_pubsub.config import make_config
-from rosidl_buffer.messages import get_message_type
+from rosidl_buffer.messages import get_message_type, serialize_message
 from tests._pubsub_helpers import ROOT, TENSOR, Child, check_frame, child_env, make_frame
 from tests._reliability_helpers import wait_until
 
@@ -127,3 +128,159 @@ def test_a_fork_child_never_gets_its_parents_open_session(domain):
                              cwd=ROOT, env=child_env(), capture_output=True, text=True,
                              timeout=60)
     assert process.returncode == 0, (process.returncode, process.stderr[-2000:])
+
+
+def test_nodes_made_at_once_from_many_threads_share_one_session(domain):
+    import threading
+
+    nodes: list[Node] = []
+    errors: list[BaseException] = []
+    lock = threading.Lock()
+
+    def make(k: int) -> None:
+        try:
+            node = Node(f"threaded_{k}", domain_id=domain, fast_lane=False)
+            with lock:
+                nodes.append(node)
+        except BaseException as error:  # noqa: BLE001 - reported below
+            errors.append(error)
+
+    threads = [threading.Thread(target=make, args=(k,)) for k in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60)
+    try:
+        assert not errors and len(nodes) == 8
+        assert len({id(node.session) for node in nodes}) == 1
+    finally:
+        closers = [threading.Thread(target=node.close) for node in nodes]
+        for thread in closers:
+            thread.start()
+        for thread in closers:
+            thread.join(60)
+    assert nodes[0].session.is_closed()
+
+
+def test_a_node_that_fails_after_joining_the_session_leaves_no_token_behind(domain, monkeypatch):
+    from buffer_pubsub import _process
+
+    with Node("keeper", domain_id=domain, fast_lane=False) as keeper:
+        def refuse(node):
+            raise OSError("no room")
+
+        monkeypatch.setattr(_process, "add_node", refuse)
+        with pytest.raises(OSError):
+            Node("broken", domain_id=domain, fast_lane=False)
+        monkeypatch.undo()
+        with Node("witness", domain_id=domain, fast_lane=False) as witness:
+            assert wait_until(lambda: ("witness", "/") in keeper.get_node_names_and_namespaces())
+            assert ("broken", "/") not in keeper.get_node_names_and_namespaces()
+            assert witness.session is keeper.session
+        assert not keeper.session.is_closed()
+
+
+def test_a_subscription_that_fails_half_made_receives_nothing_on_the_shared_session(
+        domain, topic, monkeypatch):
+    """Its Zenoh subscribers were declared before the step that failed: they are undeclared,
+    not left on a session that outlives the node."""
+    from buffer_pubsub import _process, wire
+
+    got: list[object] = []
+    with Node("keeper", domain_id=domain, fast_lane=False) as keeper, \
+            Node("half", domain_id=domain, fast_lane=False) as half:
+        def refuse(key, subscription):
+            raise OSError("no room")
+
+        monkeypatch.setattr(_process, "add_subscription", refuse)
+        with pytest.raises(OSError):
+            half.create_subscription(STRING, topic, got.append)
+        monkeypatch.undo()
+        # a peer in another session publishes on the key, as any ROS 2 publisher would, until
+        # a healthy subscription of this process on the same key gets its samples
+        live: list[object] = []
+        keeper.create_subscription(STRING, topic, live.append)
+        peer = zenoh.open(make_config())
+        try:
+            key = wire.data_key(domain, topic, "std_msgs/msg/String")
+            sequence = iter(range(1, 1_000_000))
+
+            def put_one() -> bool:
+                number = next(sequence)
+                peer.put(key, bytes(serialize_message(STRING(data="x"))),
+                         attachment=wire.pack_attachment(number, number, b"\x07" * 16))
+                return bool(live)
+
+            assert wait_until(put_one)
+            for _ in range(5):
+                put_one()
+            assert wait_until(lambda: len(live) >= 5)
+        finally:
+            peer.close()
+    assert got == []
+
+
+def test_a_publisher_that_fails_half_made_undeclares_what_it_declared(domain, topic,
+                                                                      monkeypatch):
+    from buffer_pubsub import _process
+    from buffer_pubsub.publisher import Publisher
+
+    declared: list[object] = []
+    original = Publisher._declare_channel
+
+    def recording(self, key):
+        entity = original(self, key)
+        declared.append(entity)
+        return entity
+
+    def refuse(gid):
+        raise OSError("no room")
+
+    monkeypatch.setattr(Publisher, "_declare_channel", recording)
+    monkeypatch.setattr(_process, "add_publisher", refuse)
+    tensor = get_message_type("tensor_msgs/msg/ExperimentalTensor")
+    with Node("keeper", domain_id=domain, fast_lane=False), \
+            Node("half", domain_id=domain, fast_lane=False) as half:
+        with pytest.raises(OSError):
+            half.create_publisher(tensor, topic)
+        assert len(declared) == 2  # the base key and the CPU stream
+        for entity in declared:
+            with pytest.raises(zenoh.ZError, match="Undeclared"):
+                entity.undeclare()  # undeclared already
+
+
+def test_nodes_waiting_for_an_open_that_fails_fail_with_it_not_one_after_another(
+        domain, monkeypatch):
+    """Against a router that does not answer, each waiting node used to try again in turn:
+    N nodes took N connect timeouts."""
+    import threading
+
+    calls: list[int] = []
+    started = threading.Event()
+
+    def unreachable(config):
+        calls.append(1)
+        started.set()
+        time.sleep(0.5)
+        raise TransportConfigError("cannot connect to Zenoh router tcp/10.255.0.1:7447")
+
+    monkeypatch.setattr(_sessions, "open_session", unreachable)
+    errors: list[BaseException] = []
+
+    def make(k: int) -> None:
+        try:
+            Node(f"waiting_{k}", domain_id=domain, fast_lane=False).close()
+        except TransportConfigError as error:
+            errors.append(error)
+
+    first = threading.Thread(target=make, args=(0,))
+    first.start()
+    assert started.wait(10)
+    others = [threading.Thread(target=make, args=(k,)) for k in range(1, 4)]
+    begin = time.monotonic()
+    for thread in others:
+        thread.start()
+    for thread in (first, *others):
+        thread.join(30)
+    assert len(errors) == 4 and len(calls) == 1
+    assert time.monotonic() - begin < 1.5
