@@ -22,11 +22,14 @@ from typing import TYPE_CHECKING
 from rosidl_buffer import BufferBackend
 from rosidl_buffer import registry
 
+from .errors import NodeClosedError
+
 if TYPE_CHECKING:
     from .node import Node
     from .subscription import Subscription
 
 _log = logging.getLogger(__name__)
+_exiting = False  # the exit's close_open_nodes ran: no new node (see add_node)
 
 _lock = threading.Lock()
 _ids = itertools.count(0)
@@ -101,8 +104,19 @@ def remove_publisher(gid: bytes) -> None:
 
 
 def add_node(node: Node) -> None:
+    """Count ``node`` open (closed at exit if nobody closes it). Refused once the exit began:
+    a node opened after the exit's close would outlive it, its Zenoh threads calling into an
+    interpreter that is finalizing (the process aborts)."""
     with _lock:
+        if _exiting:
+            raise NodeClosedError("the interpreter is exiting: no new node")
         _open_nodes.add(node)
+
+
+def check_not_exiting() -> None:
+    """Raise NodeClosedError once the interpreter's exit closed the nodes."""
+    if _exiting:
+        raise NodeClosedError("the interpreter is exiting: no new node")
 
 
 def remove_node(node: Node) -> None:
@@ -117,11 +131,13 @@ def close_open_nodes() -> None:
     an rclpy script does. The application's own non-daemon threads are waited for first (they
     may still use the nodes: the interpreter would have waited for them too); a node another
     thread is closing is waited for (``Node.close`` returns once it is closed)."""
+    global _exiting
     for thread in threading.enumerate():
         if not thread.daemon and thread is not threading.current_thread() \
                 and thread is not threading.main_thread() and not _zenoh_thread(thread):
             thread.join()
     with _lock:
+        _exiting = True  # a daemon thread's new node is refused from here
         nodes = list(_open_nodes)
     for node in nodes:
         try:

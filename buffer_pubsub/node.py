@@ -111,6 +111,7 @@ class Node:
         fast_lane: bool | None = None,
         inline_callbacks: bool = True,
     ) -> None:
+        _process.check_not_exiting()  # fail fast: add_node below refuses it anyway
         self.name = validate_node_name(name)
         self.namespace = validate_namespace(namespace)
         if executor not in EXECUTOR_MODES:
@@ -142,7 +143,9 @@ class Node:
         self.default_callback_group: CallbackGroup = MutuallyExclusiveCallbackGroup()
         self._thread: threading.Thread | None = None
         # One logger for the node's life: its filters keep their state per call site.
-        self._logger = NodeLogger(logging.getLogger(
+        # (the manager's getLogger: logging.getLogger("root") is the root logger, and rclpy's
+        # node "root" has a logger of its own)
+        self._logger = NodeLogger(logging.Logger.manager.getLogger(
             self.get_fully_qualified_name().strip("/").replace("/", ".")))
 
         try:

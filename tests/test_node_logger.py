@@ -133,3 +133,10 @@ def test_the_wrapped_loggers_attributes_and_methods_are_the_node_loggers(logger,
     finally:
         logger.propagate = True
         logger.logger.handlers.clear()
+
+
+def test_a_node_named_root_has_a_logger_of_its_own_not_the_root_logger(domain):
+    with Node("root", domain_id=domain, fast_lane=False) as node:
+        logger = node.get_logger()
+        assert logger.logger is not logging.getLogger() and logger.name == "root"
+        assert logger.logger.parent is logging.getLogger()  # its records still propagate
