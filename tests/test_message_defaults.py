@@ -67,10 +67,23 @@ int32 zero
     ("int32[2] pair [1]", "1 values for an array of 2"),
     ("int32[<=1] few [1, 2]", "at most 1"),
     ("float64[] list 3", "list in brackets"),
+    ("uint8 a 300", "out of uint8's range"),  # (these registered, then failed to serialize)
+    ("int8 a -200", "out of int8's range"),
+    ("float32 f 1e300", "out of float32's range"),
+    ("int16[] v [1, 70000]", "out of int16's range"),
+    ('string<=3 s "abcd"', "bound of 3"),
 ])
 def test_a_default_its_type_cannot_hold_is_a_typed_error(line: str, words: str) -> None:
     with pytest.raises(InvalidMessageDefinitionError, match=words):
         _register(line + "\n")
+
+
+def test_defaults_at_the_edges_of_their_types_are_taken() -> None:
+    msg_type = _register('uint8 a 255\nint8 b -128\nstring<=3 s "abc"\n'
+                         'int64 c -9223372036854775808\n')
+    msg = msg_type()
+    assert (msg.a, msg.b, msg.s, msg.c) == (255, -128, "abc", -(1 << 63))
+    serialize_message(msg)  # and they go on the wire
 
 
 def test_a_type_with_array_defaults_round_trips() -> None:

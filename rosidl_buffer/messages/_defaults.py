@@ -9,6 +9,7 @@ distribution's) come without their text, so their non-zero defaults are listed h
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Iterator
 from typing import Any
@@ -26,6 +27,13 @@ _FIELD = re.compile(
 _ARRAY = re.compile(r"^(?P<base>[^\[]+)\[(?P<bound><=)?(?P<count>\d*)\]$")
 _FLOATS = frozenset({"float32", "float64"})
 _STRINGS = frozenset({"string", "wstring"})
+_FLOAT32_MAX = 3.4028234663852886e38
+#: What an integer default must fit (ROS 2's byte and char are uint8 in rosidl).
+_INT_RANGES = {
+    **{f"int{b}": (-(1 << (b - 1)), (1 << (b - 1)) - 1) for b in (8, 16, 32, 64)},
+    **{f"uint{b}": (0, (1 << b) - 1) for b in (8, 16, 32, 64)},
+    "byte": (0, 255), "char": (0, 255),
+}
 
 
 def parse_defaults(text: str, type_name: str) -> dict[str, Any]:
@@ -69,8 +77,8 @@ def _strip_comment(line: str) -> str:
 def _value(field_type: str, text: str) -> Any:
     array = _ARRAY.match(field_type)
     if array is None:
-        return _scalar(field_type.split("<=")[0], text)
-    base = array["base"].split("<=")[0]
+        return _scalar(_unbounded_number(field_type), text)
+    base = _unbounded_number(array["base"])
     if not (text.startswith("[") and text.endswith("]")):
         raise ValueError("an array's default is a list in brackets")
     inner = text[1:-1].strip()
@@ -83,6 +91,12 @@ def _value(field_type: str, text: str) -> Any:
     return tuple(items)  # (a field spec is hashable)
 
 
+def _unbounded_number(base: str) -> str:
+    """``base`` without a bound, except a string's (``string<=5``), which limits its default."""
+    name, _, bound = base.partition("<=")
+    return base if name in _STRINGS and bound else name
+
+
 def _split(text: str) -> list[str]:
     """Comma-separated items, commas inside quotes kept."""
     cuts = [i for i, char in _unquoted(text) if char == ","]
@@ -90,9 +104,12 @@ def _split(text: str) -> list[str]:
 
 
 def _scalar(base: str, text: str) -> Any:
-    if base in _STRINGS:
+    if base.split("<=")[0] in _STRINGS:
         if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":
-            return text[1:-1]
+            text = text[1:-1]
+        bound = base.partition("<=")[2]
+        if bound and len(text) > int(bound):
+            raise ValueError(f"longer than its bound of {bound} characters")
         return text
     if base == "bool":
         lowered = text.lower()
@@ -102,7 +119,14 @@ def _scalar(base: str, text: str) -> Any:
             return False
         raise ValueError("a bool is true or false")
     if base in _FLOATS:
-        return float(text)
+        value = float(text)
+        if base == "float32" and math.isfinite(value) and abs(value) > _FLOAT32_MAX:
+            raise ValueError("out of float32's range")
+        return value
     if "/" in base or base[:1].isupper():
         raise ValueError("a field of a message type has no default")
-    return int(text)
+    value = int(text)
+    low, high = _INT_RANGES.get(base, (-math.inf, math.inf))
+    if not low <= value <= high:
+        raise ValueError(f"out of {base}'s range {low}..{high}")
+    return value
