@@ -12,16 +12,19 @@ from __future__ import annotations
 
 import atexit
 import collections
+import functools
 import itertools
 import logging
 import os
 import threading
 import weakref
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from rosidl_buffer import BufferBackend
 from rosidl_buffer import registry
 
+from . import _sessions
 from .errors import NodeClosedError
 
 if TYPE_CHECKING:
@@ -30,8 +33,12 @@ if TYPE_CHECKING:
 
 _log = logging.getLogger(__name__)
 _exiting = False  # the exit's close_open_nodes ran: no new node (see add_node)
+#: How long the exit waits for a daemon thread's node call, then for each session's close.
+EXIT_WAIT_S = 3.0
 
 _lock = threading.Lock()
+_busy = 0  # Node() and Node.close() calls running now (see in_flight)
+_idle = threading.Condition(_lock)
 _ids = itertools.count(0)
 #: The local subscriptions by domain-qualified base data key: a tuple per key, replaced (never
 #: changed in place) under ``_lock``, so a publish reads it without the lock.
@@ -113,6 +120,27 @@ def add_node(node: Node) -> None:
         _open_nodes.add(node)
 
 
+def in_flight(method: Callable[..., Any]) -> Callable[..., Any]:
+    """Count the calls of ``method`` (``Node.__init__``, ``Node.close``) while they run: the
+    exit waits for them to leave Zenoh's code before it closes the sessions, since a daemon
+    thread still inside it when the interpreter finalizes takes the process down."""
+
+    @functools.wraps(method)
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        global _busy
+        with _lock:
+            _busy += 1
+        try:
+            return method(*args, **kwargs)
+        finally:
+            with _lock:
+                _busy -= 1
+                if not _busy:
+                    _idle.notify_all()
+
+    return counted
+
+
 def check_not_exiting() -> None:
     """Raise NodeClosedError once the interpreter's exit closed the nodes."""
     if _exiting:
@@ -144,6 +172,9 @@ def close_open_nodes() -> None:
             node.close()
         except Exception:  # one node's failure must not keep the others (and the exit) waiting
             _log.exception("closing node %s at exit failed", node.name)
+    with _lock:  # a daemon thread's node being made or closed now: let it finish (bounded)
+        _idle.wait_for(lambda: _busy == 0, timeout=EXIT_WAIT_S)
+    _sessions.close_all(timeout=EXIT_WAIT_S)  # and the sessions a daemon thread still holds
 
 
 def _zenoh_thread(thread: threading.Thread) -> bool:
@@ -163,7 +194,9 @@ except (AttributeError, RuntimeError):  # no such hook, or imported while the in
 
 def _after_fork_in_child() -> None:
     # The parent's nodes are not this process's: their sessions' threads did not fork with it.
+    global _busy
     _open_nodes.clear()
+    _busy = 0  # (the threads making those calls did not fork either)
 
 
 os.register_at_fork(after_in_child=_after_fork_in_child)

@@ -19,7 +19,7 @@ import zenoh
 from ._zenoh import run_bounded
 from .connectivity import open_session
 
-__all__ = ["SharedSession", "acquire", "release"]
+__all__ = ["SharedSession", "acquire", "close_all", "release"]
 
 
 @dataclass(eq=False)
@@ -71,8 +71,22 @@ def acquire(config: zenoh.Config) -> SharedSession:
 
 def release(entry: SharedSession, timeout: float) -> None:
     """One user less; the last one closes the session (bounded by ``timeout`` seconds)."""
-    if _drop(entry) and entry.session is not None:
+    if _drop(entry) and entry.session is not None and not entry.session.is_closed():
         run_bounded(entry.session.close, timeout, "closing the Zenoh session")
+
+
+def close_all(timeout: float) -> None:
+    """At the interpreter's exit, once its nodes are closed: close every session still open,
+    whoever still holds it (a daemon thread's node made meanwhile). A session left open keeps
+    Zenoh threads that call into the interpreter while it finalizes, and the process aborts.
+    A node still using one sees Zenoh errors from then on."""
+    with _lock:
+        entries = list(_shared.values())
+        _shared.clear()
+    for entry in entries:
+        session = entry.session
+        if session is not None and not session.is_closed():
+            run_bounded(session.close, timeout, "closing a Zenoh session at exit")
 
 
 def _drop(entry: SharedSession) -> bool:

@@ -97,6 +97,7 @@ class Node:
     uses it.
     """
 
+    @_process.in_flight
     def __init__(
         self,
         name: str,
@@ -202,6 +203,7 @@ class Node:
     #: Whether :meth:`close` was called (read-only; a C getter: every callback checks it).
     closed = property(operator.attrgetter("_closed"))
 
+    @_process.in_flight
     def close(self) -> None:
         """Undeclare every endpoint and token, stop the executor and close the Zenoh session
         (when no other node shares it).

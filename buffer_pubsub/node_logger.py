@@ -14,8 +14,8 @@ arguments change between calls raises ValueError, as in rclpy.
 
 from __future__ import annotations
 
+import inspect
 import logging
-import sys
 import threading
 import time
 from typing import Any
@@ -139,7 +139,8 @@ class NodeLogger(logging.LoggerAdapter):  # type: ignore[type-arg]
         if not self.logger.isEnabledFor(level):
             return False
         if throttle or skip_first or once:
-            caller = sys._getframe(2)  # the user's frame: it called debug/info/... which came here
+            # the user's frame: it called debug/info/..., which called this method
+            caller = inspect.currentframe().f_back.f_back  # type: ignore[union-attr]
             key = (caller.f_code, caller.f_lasti)
             if not self._passes(key, throttle, skip_first, once):
                 return False

@@ -286,36 +286,34 @@ def test_nodes_waiting_for_an_open_that_fails_fail_with_it_not_one_after_another
     assert time.monotonic() - begin < 1.5
 
 
-_DAEMON_MAKES_NODES_AT_EXIT = r"""
-import sys, threading, time
-from buffer_pubsub import Node
-domain = int(sys.argv[1])
-keep = Node("keep", domain_id=domain, fast_lane=False)
-def churn():
-    while True:
-        try:
-            Node("tmp", domain_id=domain, fast_lane=False).close()
-        except Exception:
-            return  # refused once the exit began
-threading.Thread(target=churn, daemon=True).start()
-time.sleep(0.5)
-"""
-
-
-def test_a_daemon_thread_making_nodes_while_the_interpreter_exits_lets_it_exit_cleanly(domain):
-    """It aborted ("FATAL: exception not rethrown") in 8 runs of 10: a node opened after the
-    exit closed the others outlived it, its Zenoh threads calling into a finalizing
-    interpreter. New nodes are refused once the exit began."""
-    for _ in range(3):
-        process = subprocess.run([sys.executable, "-c", _DAEMON_MAKES_NODES_AT_EXIT,
-                                  str(domain)], cwd=ROOT, env=child_env(),
-                                 capture_output=True, text=True, timeout=60)
-        assert process.returncode == 0, (process.returncode, process.stderr[-2000:])
-
-
 def test_no_node_is_made_once_the_exit_closed_the_others(domain, monkeypatch):
+    """A daemon thread making nodes while the interpreter exited aborted the process
+    ("FATAL: exception not rethrown") in 8 runs of 10: a node opened after the exit closed the
+    others outlived it, its Zenoh threads calling into a finalizing interpreter."""
     from buffer_pubsub import NodeClosedError, _process
 
     monkeypatch.setattr(_process, "_exiting", True)
     with pytest.raises(NodeClosedError, match="exiting"):
         Node("late", domain_id=domain, fast_lane=False)
+
+
+_HELD_AT_EXIT = r"""
+import sys
+from buffer_pubsub import Node, _process, _sessions
+node = Node("held", domain_id=int(sys.argv[1]), fast_lane=False)
+_process.remove_node(node)  # as if made after the exit took its list of nodes
+session = node.session
+_process.close_open_nodes()  # what the interpreter's exit runs
+print(session.is_closed(), _sessions._shared == {}, flush=True)
+"""
+
+
+def test_the_exit_closes_a_session_a_daemon_threads_node_still_holds(domain):
+    """The exit closes the nodes it knows, waits for node calls in flight, then closes every
+    session left: a node a daemon thread made meanwhile kept its session open, whose Zenoh
+    threads then called into the finalizing interpreter (SIGABRT or SIGSEGV in about half the
+    runs of such a program)."""
+    process = subprocess.run([sys.executable, "-c", _HELD_AT_EXIT, str(domain)], cwd=ROOT,
+                             env=child_env(), capture_output=True, text=True, timeout=60)
+    assert process.returncode == 0, (process.returncode, process.stderr[-2000:])
+    assert process.stdout.split() == ["True", "True"]
