@@ -115,8 +115,7 @@ def add_node(node: Node) -> None:
     a node opened after the exit's close would outlive it, its Zenoh threads calling into an
     interpreter that is finalizing (the process aborts)."""
     with _lock:
-        if _exiting:
-            raise NodeClosedError("the interpreter is exiting: no new node")
+        check_not_exiting()
         _open_nodes.add(node)
 
 

@@ -71,8 +71,8 @@ def acquire(config: zenoh.Config) -> SharedSession:
 
 def release(entry: SharedSession, timeout: float) -> None:
     """One user less; the last one closes the session (bounded by ``timeout`` seconds)."""
-    if _drop(entry) and entry.session is not None and not entry.session.is_closed():
-        run_bounded(entry.session.close, timeout, "closing the Zenoh session")
+    if _drop(entry):
+        _close(entry, timeout)
 
 
 def close_all(timeout: float) -> None:
@@ -84,9 +84,15 @@ def close_all(timeout: float) -> None:
         entries = list(_shared.values())
         _shared.clear()
     for entry in entries:
-        session = entry.session
-        if session is not None and not session.is_closed():
-            run_bounded(session.close, timeout, "closing a Zenoh session at exit")
+        _close(entry, timeout)
+
+
+def _close(entry: SharedSession, timeout: float) -> None:
+    """Close ``entry``'s session if it opened and is not closed yet (bounded: Zenoh can block
+    on a frozen peer)."""
+    session = entry.session
+    if session is not None and not session.is_closed():
+        run_bounded(session.close, timeout, "closing the Zenoh session")
 
 
 def _drop(entry: SharedSession) -> bool:

@@ -9,8 +9,8 @@ distribution's) come without their text, so their non-zero defaults are listed h
 
 from __future__ import annotations
 
-import math
 import re
+import struct
 from collections.abc import Iterator
 from typing import Any
 
@@ -27,13 +27,6 @@ _FIELD = re.compile(
 _ARRAY = re.compile(r"^(?P<base>[^\[]+)\[(?P<bound><=)?(?P<count>\d*)\]$")
 _FLOATS = frozenset({"float32", "float64"})
 _STRINGS = frozenset({"string", "wstring"})
-_FLOAT32_MAX = 3.4028234663852886e38
-#: What an integer default must fit (ROS 2's byte and char are uint8 in rosidl).
-_INT_RANGES = {
-    **{f"int{b}": (-(1 << (b - 1)), (1 << (b - 1)) - 1) for b in (8, 16, 32, 64)},
-    **{f"uint{b}": (0, (1 << b) - 1) for b in (8, 16, 32, 64)},
-    "byte": (0, 255), "char": (0, 255),
-}
 
 
 def parse_defaults(text: str, type_name: str) -> dict[str, Any]:
@@ -118,15 +111,22 @@ def _scalar(base: str, text: str) -> Any:
         if lowered in ("false", "0"):
             return False
         raise ValueError("a bool is true or false")
-    if base in _FLOATS:
-        value = float(text)
-        if base == "float32" and math.isfinite(value) and abs(value) > _FLOAT32_MAX:
-            raise ValueError("out of float32's range")
-        return value
     if "/" in base or base[:1].isupper():
         raise ValueError("a field of a message type has no default")
-    value = int(text)
-    low, high = _INT_RANGES.get(base, (-math.inf, math.inf))
-    if not low <= value <= high:
-        raise ValueError(f"out of {base}'s range {low}..{high}")
+    value = float(text) if base in _FLOATS else int(text)
+    _check_fits(base, value)
     return value
+
+
+def _check_fits(base: str, value: float) -> None:
+    """ValueError unless ``value`` packs as ``base`` on the wire: the codec's own check, so a
+    default is refused at registration exactly where serializing it would fail."""
+    from ._schema import PRIMITIVE_FORMATS  # (here: _schema imports this module)
+
+    fmt = PRIMITIVE_FORMATS.get(base)
+    if fmt is None:
+        return
+    try:
+        struct.pack("<" + fmt, value)
+    except (struct.error, OverflowError) as exc:  # OverflowError: 1e300 in a float32
+        raise ValueError(f"out of {base}'s range ({exc})") from None
