@@ -967,6 +967,15 @@ static PyObject *waker_close(Waker *self, PyObject *unused) {
     Py_RETURN_NONE;
 }
 
+/* In a fork's child: the threads inside wait() and notify() at the fork were the parent's, and
+ * none of them is here to leave (close would refuse, or wait for them, for ever). */
+static PyObject *waker_after_fork(Waker *self, PyObject *unused) {
+    self->in_wait = 0;
+    __atomic_store_n(&self->sleeping, 0, __ATOMIC_SEQ_CST);
+    __atomic_store_n(&self->notifying, 0, __ATOMIC_SEQ_CST);
+    Py_RETURN_NONE;
+}
+
 static PyObject *waker_get_notified(Waker *self, void *closure) {
     return PyBool_FromLong(__atomic_load_n(&self->notified, __ATOMIC_SEQ_CST));
 }
@@ -984,6 +993,8 @@ static PyMethodDef waker_methods[] = {
      "watch(rings, fds): the rings [(RingReader, callback, label)] and fds [(fd, events)] to "
      "watch (between waits only)."},
     {"close", (PyCFunction)waker_close, METH_NOARGS, "Release the eventfd and the sets."},
+    {"after_fork", (PyCFunction)waker_after_fork, METH_NOARGS,
+     "In a fork's child: forget the parent's threads inside wait() and notify()."},
     {NULL}
 };
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-from ._zenoh import run_bounded
+from ._zenoh import inherited, run_bounded
 from .connectivity import open_session
 
 __all__ = ["SharedSession", "acquire", "close_all", "release"]
@@ -89,9 +89,9 @@ def close_all(timeout: float) -> None:
 
 def _close(entry: SharedSession, timeout: float) -> None:
     """Close ``entry``'s session if it opened and is not closed yet (bounded: Zenoh can block
-    on a frozen peer)."""
+    on a frozen peer). A fork's child leaves its parent's alone (see ``_zenoh.inherited``)."""
     session = entry.session
-    if session is not None and not session.is_closed():
+    if session is not None and not inherited() and not session.is_closed():
         run_bounded(session.close, timeout, "closing the Zenoh session")
 
 

@@ -18,10 +18,30 @@ from .errors import TransportError
 
 _log = logging.getLogger(__name__)
 
+_opened = False  # this process opened a Zenoh session
+_inherited = False  # the process this one was forked from had (see inherited())
+
+
+def mark_opened() -> None:
+    """A Zenoh session is being opened here: a fork's child from now on inherits it."""
+    global _opened
+    _opened = True
+
+
+def inherited() -> bool:
+    """Is this a fork's child of a process that had opened Zenoh? Then every Zenoh object here
+    is the parent's, and its runtime's threads did not fork: a session cannot open, and a call
+    into an inherited one (an undeclare, a close) would wait for them forever. Teardown leaves
+    those objects alone; the parent's peers see nothing of the child."""
+    return _inherited
+
 
 def undeclare_quietly(*entities: Any) -> None:
     """Undeclare Zenoh entities (publishers, subscribers, tokens), ignoring ones already gone:
-    teardown runs on close, on destroy and on peer loss, in any order. None is skipped."""
+    teardown runs on close, on destroy and on peer loss, in any order. None is skipped; so is
+    everything in a fork's child (see :func:`inherited`)."""
+    if _inherited:
+        return
     for entity in entities:
         if entity is None:
             continue
@@ -87,7 +107,8 @@ atexit.register(_await_background)
 
 def _after_fork_in_child() -> None:
     # The parent's helpers are not running here: nothing for this process's exit to wait for.
-    global _background_lock
+    global _background_lock, _inherited
+    _inherited = _inherited or _opened
     _background.clear()
     _background_lock = threading.Lock()
 

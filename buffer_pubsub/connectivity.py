@@ -19,6 +19,7 @@ from collections.abc import Callable
 
 import zenoh
 
+from . import _zenoh
 from .config import LOCAL_ROUTER, make_config, zenoh_error_text
 from .errors import ForkedAfterZenohError, TransportConfigError
 
@@ -48,23 +49,11 @@ def _get(config: zenoh.Config, key: str) -> object:
         return None
 
 
-_zenoh_used = False  # this process opened a Zenoh session
-_zenoh_used_by_parent = False  # ... or the process it was forked from did
-
-
-def _after_fork_in_child() -> None:
-    global _zenoh_used_by_parent
-    _zenoh_used_by_parent = _zenoh_used_by_parent or _zenoh_used
-
-
-os.register_at_fork(after_in_child=_after_fork_in_child)
-
-
 def open_session(config: zenoh.Config | str | os.PathLike[str] | None = None,
                  router: str | None = None) -> zenoh.Session:
     """``zenoh.open`` of :func:`~buffer_pubsub.config.make_config`'s result, with the warnings
     and errors described in the module docstring."""
-    if _zenoh_used_by_parent:
+    if _zenoh.inherited():
         raise ForkedAfterZenohError(
             f"this process (pid {os.getpid()}) was forked from one that had opened a Zenoh "
             "session, and Zenoh cannot start in it (its runtime's threads are not forked; a "
@@ -79,8 +68,7 @@ def open_session(config: zenoh.Config | str | os.PathLike[str] | None = None,
         _after(WARN_AFTER_S, opened, lambda: _log.warning(
             "still waiting for Zenoh router %s after %.0f s (%s)",
             ", ".join(endpoints), WARN_AFTER_S, _HINT))
-    global _zenoh_used
-    _zenoh_used = True  # from here a fork's child cannot start Zenoh (see the at-fork hook)
+    _zenoh.mark_opened()  # from here a fork's child cannot start Zenoh
     try:
         session = zenoh.open(zconfig)
     except zenoh.ZError as exc:

@@ -41,6 +41,7 @@ import select
 import socket
 import struct
 import threading
+import weakref
 from collections.abc import Callable
 from typing import Any
 
@@ -423,6 +424,21 @@ class _Attachment:
     close_reader: bool = False  # a detach request that closes the reader once detached
 
 
+#: Every waker of this process, for the at-fork hook below
+_WAKERS: weakref.WeakSet[LaneWaker] = weakref.WeakSet()
+
+
+def _forget_waiters_in_child() -> None:
+    # The thread waiting in a waker at the fork is the parent's: the child has no such thread,
+    # and a close there must not wait for it to let the eventfd go.
+    for waker in list(_WAKERS):
+        waker._waiter = None
+        _ring.Waker.after_fork(waker)
+
+
+os.register_at_fork(after_in_child=_forget_waiters_in_child)
+
+
 class LaneWaker(_ring.Waker):
     """The executor's wait primitive (``wait(timeout)`` / ``notify()``) that also wakes for lane
     messages and delivers them on the waiting thread.
@@ -450,6 +466,7 @@ class LaneWaker(_ring.Waker):
         self._waiter: int | None = None  # the thread in wait(), if any
         self._released = threading.Event()
         self._closed = False
+        _WAKERS.add(self)
 
     # -- any thread ----------------------------------------------------------------------------
     def attach(self, reader: LaneReader, on_message: OnMessage) -> None:

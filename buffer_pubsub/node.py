@@ -38,7 +38,7 @@ from . import _process, _sessions, fast_lane as _fast_lane, wire
 from ._executor import NodeExecutor, user_spin, wait_seconds
 from ._info import endpoint_gone, endpoint_info
 from ._waker import Waker
-from ._zenoh import run_bounded, typed_zenoh_errors, undeclare_quietly
+from ._zenoh import inherited, run_bounded, typed_zenoh_errors, undeclare_quietly
 from .callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
 from .config import make_config, resolve_domain_id
 from .graph import Graph, NodeInfo, TopicEndpointInfo, node_info
@@ -259,8 +259,9 @@ class Node:
         # A callback running now (on any thread: Ctrl-C closes the node while one runs) ends
         # before the endpoints are undeclared, so its publishes still go out.
         interrupted: KeyboardInterrupt | None = None
+        # (In a fork's child the callbacks in flight were the parent's threads': none ends here.)
         for step in (hand_back,
-                     lambda: self.scheduler.in_flight.wait_idle(left()),
+                     lambda: inherited() or self.scheduler.in_flight.wait_idle(left()),
                      lambda: run_bounded(undeclare, left(), f"undeclaring node {self.name}"),
                      lambda: self._join_executor_thread(left()),
                      self._close_waker,

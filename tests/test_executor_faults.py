@@ -169,6 +169,55 @@ def test_a_node_in_a_worker_forked_after_zenoh_started_is_refused_at_once(domain
     assert float(took) < 1.0 and names_the_remedy == "True"
 
 
+_CLOSE_IN_A_FORKED_CHILD = r"""
+import os, sys, threading, time
+from buffer_pubsub import Node
+got = []
+arrived = threading.Event()
+def on_message(msg):
+    got.append(msg.data)
+    arrived.set()
+with Node("fork_closer", domain_id=int(sys.argv[1])) as node:
+    node.create_subscription("std_msgs/msg/String", sys.argv[2], on_message)
+    pub = node.create_publisher("std_msgs/msg/String", sys.argv[2])
+    pub.publish(pub.msg_type(data="before"))
+    assert arrived.wait(10), "nothing arrived before the fork"
+    pid = os.fork()  # (the node's executor thread waits in its waker meanwhile)
+    if pid == 0:
+        start = time.monotonic()
+        node.close()  # the with block's close of the inherited node, on purpose here
+        print("CHILD", round(time.monotonic() - start, 2), flush=True)
+        os._exit(0)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0, status
+    arrived.clear()
+    pub.publish(pub.msg_type(data="after"))  # the parent's node is untouched by that close
+    assert arrived.wait(10), "the parent's node stopped delivering after the child's close"
+    print("PARENT", got, flush=True)
+"""
+
+
+def test_a_forked_child_closes_an_inherited_node_at_once_and_leaves_the_parents_alone(
+        domain, topic):
+    """A child leaving a ``with Node(...)`` it inherited: nothing of Zenoh's runs there (its
+    runtime's threads did not fork), so the close must not call into it (it waited 2 s for the
+    session, then 10 s at exit blaming a frozen peer), nor wait for the executor thread that
+    slept in the node's waker at the fork (the parent's)."""
+    import subprocess
+
+    from tests._pubsub_helpers import ROOT, child_env
+
+    process = subprocess.run([sys.executable, "-c", _CLOSE_IN_A_FORKED_CHILD, str(domain),
+                              topic], cwd=ROOT, env=child_env(), capture_output=True,
+                             text=True, timeout=90)
+    assert process.returncode == 0, (process.returncode, process.stderr[-2000:])
+    lines = dict(line.split(" ", 1) for line in process.stdout.splitlines())
+    assert float(lines["CHILD"]) < 0.5, process.stdout
+    assert lines["PARENT"] == "['before', 'after']", process.stdout
+    assert "frozen peer" not in process.stderr and "did not finish" not in process.stderr, (
+        process.stderr[-2000:])
+
+
 @contextlib.contextmanager
 def _string_subscription(name: str, domain: int, topic: str):
     """A manual node's String subscription: ``(node, sub, got, token, sample)``, ``sample(n)``
