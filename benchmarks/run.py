@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import importlib.util
 import json
 import os
 import subprocess
@@ -238,8 +239,23 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     return report
 
 
+#: What the ``bench`` extra installs that a run needs (the plot, the peers, the conversions)
+BENCH_MODULES = ("matplotlib", "torch", "iceoryx2")
+
+
+def missing_bench_modules() -> list[str]:
+    """The modules of the ``bench`` extra that are not installed here."""
+    return [name for name in BENCH_MODULES if importlib.util.find_spec(name) is None]
+
+
 def run(args: argparse.Namespace) -> int:
     """Measure, print the table, write ``bench.json`` and ``latency.png`` into ``--out``."""
+    missing = missing_bench_modules()
+    if missing:  # said before minutes of measuring, not in a traceback after them
+        print(f"warp-buffer bench needs the 'bench' extra, which is not installed here "
+              f"(missing: {', '.join(missing)}): pip install 'warp-buffer[bench]'",
+              file=sys.stderr)
+        return 2
     prepare_out_dir(args.out)
     report = measure(args)
     json_path = os.path.join(args.out, "bench.json")

@@ -129,6 +129,21 @@ def test_stats_helpers() -> None:
         parse_size("0")
 
 
+def test_without_the_bench_extra_the_bench_says_so_before_measuring(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: pathlib.Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A plain ``pip install`` lacks matplotlib (and torch, iceoryx2): the bench measured for
+    minutes, then ended in a traceback at the plot."""
+    monkeypatch.setattr(bench, "BENCH_MODULES", ("matplotlib", "no_such_module_of_the_extra"))
+    monkeypatch.setattr(bench, "measure", lambda args: pytest.fail("measured without the extra"))
+    out = tmp_path / "out"
+    assert bench.run(argparse.Namespace(out=str(out))) == 2
+    err = capsys.readouterr().err
+    assert "missing: no_such_module_of_the_extra" in err and "warp-buffer[bench]" in err
+    assert "matplotlib" not in err.split("missing:")[1]  # installed: not named
+    assert not out.exists()
+
+
 def test_a_relative_xdg_state_home_is_ignored(monkeypatch) -> None:
     """XDG: relative paths are invalid; it made the bench write into the current directory."""
     monkeypatch.setenv("XDG_STATE_HOME", "rel")

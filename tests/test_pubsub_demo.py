@@ -36,6 +36,25 @@ def test_demo_passes_on_the_cpu_device():
         assert noise not in out + done.stderr
 
 
+def test_the_demo_passes_without_torch_an_optional_extra(tmp_path):
+    """``pip install warp-buffer`` has no torch: the warp subscriber views the frames through
+    Warp instead, and says so (the demo ran, then failed with ModuleNotFoundError)."""
+    fake = tmp_path / "torch"  # ahead of site-packages on the path: `import torch` fails
+    fake.mkdir()
+    (fake / "__init__.py").write_text("raise ImportError('torch is not installed (a test)')\n")
+    env = {k: v for k, v in os.environ.items() if k != "WARP_BUFFER_VERBOSE"}
+    env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), str(ROOT)])
+    done = subprocess.run(
+        [sys.executable, "-m", "warp_buffer_cli.main", "demo", "--frames", "8", "--height",
+         "16", "--width", "24", "--rate", "100", "--timeout", "40", "--device", "cpu",
+         "--domain", str(210 + os.getpid() % 20)],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=150)
+    out = done.stdout
+    assert done.returncode == 0, out + done.stderr[-3000:]
+    assert "torch is not installed" in out and "frames viewed through Warp" in out
+    assert "warp subscriber: path warp" in out and out.count("received 8/8, bad 0") == 2
+
+
 def test_subscribers_already_on_the_topic_do_not_make_the_demo_start_early(topic):
     """Two other subscriptions of the demo's topic (a recorder, ``topic echo``) were matched
     before the demo's own: counting two, the publisher started before its subscribers listened

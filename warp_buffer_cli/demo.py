@@ -3,7 +3,8 @@
 - the publisher fills ``tensor_msgs/msg/ExperimentalTensor`` frames in Warp memory with a Warp
   kernel (``tensor_conversions.warp``) and publishes them through :mod:`buffer_pubsub`;
 - the warp subscriber (``acceptable_buffer_backends="warp"``) views each frame in torch through
-  DLPack without a copy (``tensor_conversions.torch``) and checks every element;
+  DLPack without a copy (``tensor_conversions.torch``; through ``tensor_conversions.warp`` where
+  torch, an optional extra, is not installed) and checks every element;
 - the CPU subscriber (``"cpu"``) gets the same frames as CPU bytes and checks them in NumPy.
 
 Prints the path each subscriber used, messages received, the latency percentiles (publish to
@@ -209,27 +210,50 @@ def record_frame(stats: dict[str, Any], msg: Any, info: Any,
     stats["check_ms"].append((time.perf_counter() - check_start) * 1e3)
 
 
+def _torch_frame_check(args: argparse.Namespace) -> Callable[[Any], bool] | None:
+    """The warp subscriber's check of a frame viewed in torch through DLPack (zero copy), or
+    None when torch (an optional extra) is not installed."""
+    try:
+        import torch
+
+        from tensor_conversions import torch as tct
+    except ImportError:
+        return None
+
+    def frame_is_right(msg: Any) -> bool:
+        view = tct.from_input_tensor_msg(msg, clone=False)
+        frame = int(view[0, 0].item()) // 1000
+        expected = torch.from_numpy(_expected(frame, args.height, args.width))
+        return tuple(view.shape) == (args.height, args.width) and bool(torch.equal(
+            view, expected.to(view.device)))  # the frame may live on a GPU
+    return frame_is_right
+
+
 def _subscribe(args: argparse.Namespace, accept: str) -> int:
     from buffer_pubsub import Node, fast_lane
 
     # Import the conversion stack before matching: a first import inside the callback (torch
     # takes about a second) would delay every queued frame and skew the latency figures.
-    import torch
     from tensor_conversions import numpy as tcn
-    from tensor_conversions import torch as tct
 
     stats = _new_stats()
+    torch_view = _torch_frame_check(args) if accept == "warp" else None
+    if accept == "warp" and torch_view is None:  # torch is an extra: Warp views the frame then
+        from tensor_conversions import warp as tcw
+
+        stats["viewer"] = "warp"
 
     def frame_is_right(msg: Any) -> bool:
+        if torch_view is not None:
+            return torch_view(msg)
         if accept == "warp":
-            view = tct.from_input_tensor_msg(msg, clone=False)  # DLPack, zero copy
-            frame = int(view[0, 0].item()) // 1000
-            expected = torch.from_numpy(_expected(frame, args.height, args.width))
-            return tuple(view.shape) == (args.height, args.width) and bool(torch.equal(
-                view, expected.to(view.device)))  # the frame may live on a GPU
-        view = tcn.from_input_tensor_msg(msg, clone=False)
+            # zero copy; .numpy() reads it in place on the cpu device (a GPU frame is copied)
+            view = tcw.from_input_tensor_msg(msg, clone=False).numpy()
+        else:
+            view = tcn.from_input_tensor_msg(msg, clone=False)
         frame = int(view[0, 0]) // 1000
-        return bool(np.array_equal(view, _expected(frame, args.height, args.width)))
+        return view.shape == (args.height, args.width) and bool(
+            np.array_equal(view, _expected(frame, args.height, args.width)))
 
     def check(msg: Any, info: Any) -> None:
         record_frame(stats, msg, info, frame_is_right)
@@ -455,6 +479,9 @@ def run(args: argparse.Namespace) -> int:
         good = (path_ok and stats["received"] == args.frames and stats["bad"] == 0
                 and stats["lost"] == 0 and stats["transport_errors"] == 0)
         ok = ok and good
+        if stats.get("viewer") == "warp":
+            print(f"{role} subscriber: torch is not installed (pip install "
+                  "'warp-buffer[torch]'): frames viewed through Warp instead")
         print(f"{role} subscriber: path {'+'.join(stats['backends']) or '-'} "
               f"(route {'+'.join(stats['routes']) or '-'}), received {stats['received']}/"
               f"{args.frames}, bad {stats['bad']}, lost {stats['lost']}  "
