@@ -129,13 +129,17 @@ class Graph:
         self._keys: dict[str, wire.EndpointToken] = {}  # liveliness key -> its endpoint
         self._gid_keys: dict[bytes, list[str]] = {}
         self._nodes: dict[str, wire.NodeToken] = {}  # liveliness key -> node
+        self._services: dict[str, wire.EndpointToken] = {}  # liveliness key -> server, client
 
     # -- changes (the node's discovery, with ``lock`` held) ----------------------------------
     def put(self, key: str, token: wire.EndpointToken | wire.NodeToken) -> list[Event]:
-        """Record ``key``'s endpoint or node; the endpoints that appeared. A gid another live
-        key already claims keeps that endpoint: a twin never replaces it."""
+        """Record ``key``'s endpoint, node or service; the endpoints that appeared. A gid another
+        live key already claims keeps that endpoint: a twin never replaces it."""
         if isinstance(token, wire.NodeToken):
             self._nodes[key] = token
+            return []
+        if token.is_service:  # (kept apart: nothing routes to a service here)
+            self._services[key] = token
             return []
         gid = token.gid
         if key in self._keys:
@@ -151,9 +155,10 @@ class Graph:
         return [(token, True)]
 
     def delete(self, key: str) -> list[Event]:
-        """Forget ``key``'s endpoint or node; the endpoints that vanished and those that took
+        """Forget ``key``'s endpoint, node or service; the endpoints that vanished and those that took
         their gid over."""
-        if self._nodes.pop(key, None) is not None:
+        if (self._nodes.pop(key, None) is not None
+                or self._services.pop(key, None) is not None):
             return []
         token = self._keys.pop(key, None)
         if token is None:
@@ -205,6 +210,11 @@ class Graph:
     def nodes(self) -> list[wire.NodeToken]:
         with self.lock:
             return list(self._nodes.values())
+
+    def services(self) -> list[wire.EndpointToken]:
+        """The service servers and clients of other nodes."""
+        with self.lock:
+            return list(self._services.values())
 
     def count(self, kind: str, topic: str, type_name: str, type_hash: str) -> int:
         """Live endpoints of ``kind`` on ``topic`` with this type and hash."""

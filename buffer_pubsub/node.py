@@ -26,7 +26,7 @@ import operator
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import zenoh
@@ -640,8 +640,6 @@ class Node:
         except RosidlBufferError as exc:  # PubSubError, or a type name no message can have
             _log.debug("ignoring liveliness token %s: %s", key, exc)
             return
-        if token is None:
-            return
         graph = self.graph
         with self._lock:
             if self._closed:
@@ -673,10 +671,7 @@ class Node:
     def get_topic_names_and_types(self) -> list[tuple[str, list[str]]]:
         """Topics seen in the graph (this domain) with their type names, like rclpy."""
         self._check_open()
-        topics: dict[str, set[str]] = {}
-        for token in self.graph.endpoints():
-            topics.setdefault(token.topic, set()).add(token.type_name)
-        return sorted((topic, sorted(types)) for topic, types in topics.items())
+        return _names_and_types((t.topic, t.type_name) for t in self.graph.endpoints())
 
     def get_node_names_and_namespaces(self) -> list[tuple[str, str]]:
         """``(name, namespace)`` of every node of the domain, this one included, like rclpy: two
@@ -715,11 +710,50 @@ class Node:
     def get_endpoints_by_node(self, node_name: str, node_namespace: str = "/"
                               ) -> list[TopicEndpointInfo]:
         """The publishers and subscriptions of one node (``ros2 node info``)."""
-        namespace = "" if node_namespace in ("", "/") else "/" + node_namespace.strip("/")
+        namespace = _namespace(node_namespace)
         return [info for kind in (wire.PUBLISHER_KIND, wire.SUBSCRIPTION_KIND)
                 for info in self._endpoints(kind, None)
-                if info.node_name == node_name
-                and (info.node_namespace.rstrip("/") or "") == namespace]
+                if info.node_name == node_name and _namespace(info.node_namespace) == namespace]
+
+    # Services: other nodes' servers and clients, as their tokens declare them (this transport
+    # has no services of its own to offer or call).
+    def get_service_names_and_types(self) -> list[tuple[str, list[str]]]:
+        """Services seen in the graph (a server or a client declares one) with their types,
+        like rclpy."""
+        self._check_open()
+        return _names_and_types((t.topic, t.type_name) for t in self.graph.services())
+
+    def get_service_names_and_types_by_node(self, node_name: str, node_namespace: str = "/"
+                                            ) -> list[tuple[str, list[str]]]:
+        """The services one node serves (``ros2 node info``'s Service Servers)."""
+        return self._services_of(node_name, node_namespace, servers=True)
+
+    def get_client_names_and_types_by_node(self, node_name: str, node_namespace: str = "/"
+                                           ) -> list[tuple[str, list[str]]]:
+        """The services one node calls (``ros2 node info``'s Service Clients)."""
+        return self._services_of(node_name, node_namespace, servers=False)
+
+    def _services_of(self, node_name: str, node_namespace: str, servers: bool
+                     ) -> list[tuple[str, list[str]]]:
+        self._check_open()
+        namespace = _namespace(node_namespace)
+        return _names_and_types(
+            (t.topic, t.type_name) for t in self.graph.services()
+            if (t.kind == wire.SERVICE_KIND) == servers and t.node_name == node_name
+            and _namespace(t.namespace) == namespace)
+
+
+def _namespace(namespace: str) -> str:
+    """A node namespace in one form for comparing ("/" and "" alike, no trailing slash)."""
+    return "" if namespace in ("", "/") else "/" + namespace.strip("/")
+
+
+def _names_and_types(pairs: Iterable[tuple[str, str]]) -> list[tuple[str, list[str]]]:
+    """``(name, [types])`` sorted, from ``(name, type)`` pairs (rclpy's names-and-types)."""
+    found: dict[str, set[str]] = {}
+    for name, type_name in pairs:
+        found.setdefault(name, set()).add(type_name)
+    return sorted((name, sorted(types)) for name, types in found.items())
 
 
 def _max_rate(value: float | None) -> float:

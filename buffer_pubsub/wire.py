@@ -37,6 +37,8 @@ Our extension: a locality segment
 from __future__ import annotations
 
 import functools
+import logging
+import re
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -46,6 +48,8 @@ from rosidl_buffer.messages import get_type_hash, normalize_type_name
 
 from . import _streams
 from .errors import WireFormatError
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "ATTACHMENT_SIZE",
@@ -88,7 +92,10 @@ NODE_SEGMENTS = 9
 PUBLISHER_KIND = "MP"
 SUBSCRIPTION_KIND = "MS"
 NODE_KIND = "NN"
-_ENTITY_KINDS = frozenset({NODE_KIND, PUBLISHER_KIND, SUBSCRIPTION_KIND, "SS", "SC"})
+SERVICE_KIND = "SS"
+CLIENT_KIND = "SC"
+_ENTITY_KINDS = frozenset({NODE_KIND, PUBLISHER_KIND, SUBSCRIPTION_KIND, SERVICE_KIND,
+                           CLIENT_KIND})
 
 ATTACHMENT_SIZE = _streams.ATTACHMENT_SIZE  # 33: int64 sequence, int64 stamp, 0x10, gid
 
@@ -420,11 +427,13 @@ def encode_extension(locality: Locality, max_rate_hz: float = 0.0) -> str:
     return f"{text}:{max_rate_hz!r}" if max_rate_hz > 0 else text
 
 
+_INTEGER = re.compile(r"-?[0-9]+")  # (ASCII digits: str.isdecimal takes other scripts' too)
+
+
 def decode_extension(segment: str) -> tuple[Locality, float]:
     """Inverse of :func:`encode_extension`; WireFormatError for anything else."""
     fields = segment[len(LOCALITY_PREFIX):].split(":")
-    if len(fields) not in (3, 4) or not all(f.isascii() and f.lstrip("-").isdecimal()
-                                            for f in fields[1:3]):
+    if len(fields) not in (3, 4) or not all(_INTEGER.fullmatch(f) for f in fields[1:3]):
         raise WireFormatError(f"malformed locality segment {segment!r}")
     rate = 0.0
     if len(fields) == 4:
@@ -468,7 +477,9 @@ class SubscriptionChannel:
 
 @dataclass(frozen=True)
 class EndpointToken:
-    """A publisher (``MP``) or subscription (``MS``) as advertised through liveliness.
+    """A publisher (``MP``) or subscription (``MS``) as advertised through liveliness; or a
+    service server (``SS``) or client (``SC``), whose key has the same layout (``topic``: the
+    service's name), known to the graph and never routed (this transport has no services).
 
     ``backends`` is the parsed 14th segment (None: the token has none); ``locality`` and
     ``max_rate_hz`` our extension segment (None: not one of ours; 0: no rate asked). ``node_id`` and ``entity_id`` keep the text of the
@@ -530,6 +541,11 @@ class EndpointToken:
         return self.kind == PUBLISHER_KIND
 
     @property
+    def is_service(self) -> bool:
+        """A service server or client, not a topic's endpoint."""
+        return self.kind in (SERVICE_KIND, CLIENT_KIND)
+
+    @property
     def is_ours(self) -> bool:
         """Declared by warp-buffer (it carries our locality segment)."""
         return self.locality is not None
@@ -552,9 +568,9 @@ def subscription_channel(token: EndpointToken) -> str:
     return SubscriptionChannel.OWN
 
 
-def parse_token(key: str) -> NodeToken | EndpointToken | None:
-    """Parse a liveliness key as ``Entity::make`` does; None for kinds we do not route (services,
-    clients). WireFormatError where rmw_zenoh rejects the token too."""
+def parse_token(key: str) -> NodeToken | EndpointToken:
+    """Parse a liveliness key as ``Entity::make`` does. WireFormatError where rmw_zenoh rejects
+    the token too."""
     parts = key.split("/")
     if len(parts) < NODE_SEGMENTS or parts[0] != LIVELINESS_PREFIX:
         raise WireFormatError(f"not a ROS 2 liveliness key: {key!r}")
@@ -569,17 +585,19 @@ def parse_token(key: str) -> NodeToken | EndpointToken | None:
     if kind == NODE_KIND:
         return NodeToken(domain_id, parts[2], parts[3], demangle(parts[7]),
                          parts[8].replace("%", "/"), demangle(parts[6]))
-    if kind not in (PUBLISHER_KIND, SUBSCRIPTION_KIND):
-        return None
     if len(parts) < MANDATORY_ENDPOINT_SEGMENTS:
         raise WireFormatError(f"endpoint liveliness key has {len(parts)} segments: {key!r}")
     qos = QoSProfile.from_keyexpr(parts[12])
     extra = parts[MANDATORY_ENDPOINT_SEGMENTS:]
     backends = decode_backends(extra[0]) if extra else None
-    # Ours comes last; rmw_zenoh reads only a 14th segment starting with "backends:".
+    # Ours comes last; rmw_zenoh reads only a 14th segment starting with "backends:", so a
+    # malformed one of ours leaves the token valid: its endpoint is judged foreign (no locality).
     locality, max_rate_hz = None, 0.0
     if extra and extra[-1].startswith(LOCALITY_PREFIX):
-        locality, max_rate_hz = decode_extension(extra[-1])
+        try:
+            locality, max_rate_hz = decode_extension(extra[-1])
+        except WireFormatError as exc:
+            _log.debug("ignoring the locality of liveliness token %s: %s", key, exc)
     return EndpointToken(
         domain_id=domain_id, zid=parts[2], node_id=parts[3], entity_id=parts[4], kind=kind,
         namespace=demangle(parts[7]), node_name=parts[8].replace("%", "/"),

@@ -17,6 +17,13 @@ from tests.test_ros2_interop import Procs, wait_ready
 pytestmark = pytest.mark.multiprocess
 
 RATE = 20.0
+#: What else the rmw_zenoh node declares, as rclcpp nodes do: services, clients, the feedback
+#: topics of an action server and of an action client, a private topic
+GRAPH_TOKENS = ("SS:/ros2_viewer/get_parameters=rcl_interfaces/srv/GetParameters",
+                "SC:/talker/describe_parameters=rcl_interfaces/srv/DescribeParameters",
+                "MP:/fib/_action/feedback=example_interfaces/action/Fibonacci_FeedbackMessage",
+                "MS:/arm/_action/feedback=control_msgs/action/FollowJointTrajectory_FeedbackMessage",
+                "MP:/ns/_private/data=std_msgs/msg/String")
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +39,7 @@ def graph():
         viewer = procs.start("tests._graph_talker", "viewer", "--domain", str(domain),
                              "--topic", topic)
         model = procs.model("sub", domain, topic, "sensor_msgs/msg/Image", "--node-name",
-                            "ros2_viewer")
+                            "ros2_viewer", *(f"--graph-token={token}" for token in GRAPH_TOKENS))
         talker = procs.start("tests._graph_talker", "talker", "--domain", str(domain),
                              "--topic", topic, "--rate", str(RATE))
         for proc in (viewer, model, talker):
@@ -153,6 +160,65 @@ def test_node_list_and_info(graph):
     out = cli("node", "info", "/talker", "--domain", str(domain)).stdout
     assert out.startswith("/talker\n  Subscribers:\n  Publishers:\n"
                           f"    {topic}: sensor_msgs/msg/Image\n")
+
+
+def test_node_info_shows_services_and_actions_and_hides_hidden_names(graph):
+    """As ``ros2 node info``: the services and clients its tokens declare, its actions found by
+    their feedback topics (rcl_action), and no hidden name (a part starting with '_') unless
+    --include-hidden. The headings were printed empty for every rclcpp node."""
+    domain, topic = graph
+    out = cli("node", "info", "/ros2_viewer", "--domain", str(domain)).stdout
+    assert out == ("/ros2_viewer\n"
+                   "  Subscribers:\n"
+                   f"    {topic}: sensor_msgs/msg/Image\n"
+                   "  Publishers:\n"
+                   "  Service Servers:\n"
+                   "    /ros2_viewer/get_parameters: rcl_interfaces/srv/GetParameters\n"
+                   "  Service Clients:\n"
+                   "    /talker/describe_parameters: rcl_interfaces/srv/DescribeParameters\n"
+                   "  Action Servers:\n"
+                   "    /fib: example_interfaces/action/Fibonacci\n"
+                   "  Action Clients:\n"
+                   "    /arm: control_msgs/action/FollowJointTrajectory\n"), out
+    everything = cli("node", "info", "/ros2_viewer", "--include-hidden", "--domain",
+                     str(domain)).stdout
+    published = everything.split("  Publishers:\n")[1].split("  Service Servers:")[0]
+    assert published == ("    /fib/_action/feedback: "
+                         "example_interfaces/action/Fibonacci_FeedbackMessage\n"
+                         "    /ns/_private/data: std_msgs/msg/String\n"), everything
+
+
+def test_topic_list_hides_hidden_topics_as_ros2_does(graph):
+    domain, topic = graph
+    hidden = {"/fib/_action/feedback", "/arm/_action/feedback", "/ns/_private/data"}
+    listed = set(cli("topic", "list", "--domain", str(domain)).stdout.split())
+    assert topic in listed and not hidden & listed, listed
+    verbose = cli("topic", "list", "-v", "--domain", str(domain)).stdout
+    assert "_action" not in verbose and "_private" not in verbose, verbose
+    assert hidden <= set(cli("topic", "list", "--include-hidden", "--domain",
+                             str(domain)).stdout.split())
+
+
+def test_the_graph_api_answers_for_other_nodes_services(graph):
+    """rclpy's names: the services and clients other nodes declare (this transport has none of
+    its own)."""
+    from buffer_pubsub import Node
+
+    domain, _ = graph
+    with Node("_cli_graph_services", domain_id=domain, fast_lane=False) as node:
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and len(node.get_service_names_and_types()) < 2:
+            time.sleep(0.05)
+        assert node.get_service_names_and_types() == [
+            ("/ros2_viewer/get_parameters", ["rcl_interfaces/srv/GetParameters"]),
+            ("/talker/describe_parameters", ["rcl_interfaces/srv/DescribeParameters"])]
+        assert node.get_service_names_and_types_by_node("ros2_viewer", "/") == [
+            ("/ros2_viewer/get_parameters", ["rcl_interfaces/srv/GetParameters"])]
+        assert node.get_client_names_and_types_by_node("ros2_viewer") == [
+            ("/talker/describe_parameters", ["rcl_interfaces/srv/DescribeParameters"])]
+        assert node.get_service_names_and_types_by_node("talker") == []
+        names = {name for name, _ in node.get_topic_names_and_types()}
+        assert "/ros2_viewer/get_parameters" not in names  # a service is not a topic
 
 
 def test_topic_type_and_find_answer_as_ros2s(graph):

@@ -134,3 +134,74 @@ def test_qos_numbers_parse_as_upstreams_str_to_size_t(value):
             wire.QoSProfile.from_keyexpr(text)
     else:
         assert wire.QoSProfile.from_keyexpr(text).depth == expected
+
+
+def test_a_malformed_locality_of_ours_leaves_the_token_valid_and_foreign():
+    """rmw_zenoh never reads past the 14th segment: a token whose last segment is a broken
+    ``wbloc:`` is still a publisher (judged foreign: no same-host lane). ``--5`` passed the
+    digit check and raised a raw ValueError in Zenoh's callback on every PUT and DELETE."""
+    base = PREFIX + "/::,10:,:,:,,/backends:cpu:"
+    for segment in ("wbloc:h:--5:0", "wbloc:h:-:1", "wbloc:h:\u0663:1", "wbloc:h:5",
+                    "wbloc:h:5:1:nan", "wbloc:h:5:1:-2"):
+        token = wire.parse_token(base + "/" + segment)
+        assert token.locality is None and token.topic == "/image", segment
+        assert token.gid == gid_of(base)
+    assert wire.parse_token(base + "/wbloc:h:-5:7").locality == wire.Locality("h", -5, 7)
+
+
+_KEY_CHARS = "0123456789-%:/,._~@ab\u0663\u00b2\x00"
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_mutated_tokens_parse_or_are_refused_with_the_typed_error(seed):
+    """Any key a peer can declare: a token, None (a kind we do not route) or WireFormatError /
+    another RosidlBufferError, never a raw exception out of the parser (Zenoh's callback)."""
+    import random
+
+    from rosidl_buffer.errors import RosidlBufferError
+
+    rng = random.Random(seed)
+    valid = [PREFIX + "/::,10:,:,:,,/backends:cpu:;warp:v=2/wbloc:h%3Ax:12:1000",
+             PREFIX.replace("/MP/", "/MS/") + "/2:1:2,5:,1,1:,:,1,2",
+             wire.NodeToken(3, "z1", 7, "/robot1", "cam").key()]
+    for _ in range(3000):
+        key = list(rng.choice(valid))
+        for _ in range(rng.randint(1, 4)):
+            at = rng.randrange(len(key) + 1)
+            action = rng.random()
+            if action < 0.4 and at < len(key):
+                key[at] = rng.choice(_KEY_CHARS)
+            elif action < 0.7:
+                key.insert(at, rng.choice(_KEY_CHARS))
+            elif at < len(key):
+                del key[at]
+        text = "".join(key)
+        try:
+            token = wire.parse_token(text)
+            if isinstance(token, wire.EndpointToken):
+                token.gid
+        except RosidlBufferError:
+            pass
+
+
+def test_service_and_client_tokens_are_read_for_the_graph():
+    """``SS`` / ``SC`` keys have an endpoint's layout (``Entity`` constructor); the graph keeps
+    them apart from topics and forgets them on DELETE."""
+    import threading
+
+    from buffer_pubsub.graph import Graph
+
+    key = ("@ros2_lv/3/z1/7/12/SS/%/%robot1/cam/%robot1%cam%get_parameters/"
+           "rcl_interfaces::srv::dds_::GetParameters_/" + HASH + "/::,10:,:,:,,")
+    server = wire.parse_token(key)
+    assert server.is_service and server.kind == "SS" and not server.is_publisher
+    assert (server.namespace, server.node_name, server.topic, server.type_name) == (
+        "/robot1", "cam", "/robot1/cam/get_parameters", "rcl_interfaces/srv/GetParameters")
+    client_key = key.replace("/SS/", "/SC/").replace("/12/", "/13/")
+    assert wire.parse_token(client_key).is_service
+    with pytest.raises(wire.WireFormatError):  # no QoS segment: rmw_zenoh refuses it too
+        wire.parse_token(key.rsplit("/", 1)[0])
+    graph = Graph(threading.RLock())
+    assert graph.put(key, server) == [] and graph.put(client_key, wire.parse_token(client_key)) == []
+    assert len(graph.services()) == 2 and graph.endpoints() == []
+    assert graph.delete(key) == [] and [t.kind for t in graph.services()] == ["SC"]

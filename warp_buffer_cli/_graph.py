@@ -2,7 +2,8 @@
 options to reach a domain, a short-lived node that watches the graph, and their typed errors.
 
 The node is named ``_warp_buffer_cli_<pid>``: a leading underscore hides it from ``node list``
-and ``topic info`` (as ros2cli hides its ``_ros2cli_`` nodes) unless ``--include-hidden`` is given.
+and ``topic info`` (as ros2cli hides its ``_ros2cli_`` nodes) unless ``--include-hidden`` is given,
+as topics and services with a part of their name starting with one are.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any
 from rosidl_buffer.errors import RosidlBufferError
 
 __all__ = ["GraphCommandError", "UnknownTopicError", "add_graph_options", "graph_node",
-           "hidden", "latched_durability", "print_names", "resolve_topic", "routes_by_publisher",
+           "hidden", "hidden_name", "latched_durability", "print_names", "resolve_topic", "routes_by_publisher",
            "unknown_topic", "wait_for_topic"]
 
 #: How long a command watches the graph before it reports (peers answer in ~0.1-0.5 s here).
@@ -45,7 +46,8 @@ def add_graph_options(parser: argparse.ArgumentParser) -> None:
                         help=f"seconds to watch the graph before answering "
                              f"(default {DEFAULT_SPIN_TIME})")
     parser.add_argument("--include-hidden", action="store_true",
-                        help="also show nodes and endpoints whose node name starts with '_'")
+                        help="also show hidden nodes, topics and services (a name, or a "
+                             "part of one, starting with '_')")
 
 
 @contextlib.contextmanager
@@ -75,6 +77,14 @@ def print_names(names: list[str], count_only: bool) -> int:
 
 def hidden(node_name: str, args: argparse.Namespace) -> bool:
     return node_name.startswith(HIDDEN_PREFIX) and not args.include_hidden
+
+
+def hidden_name(name: str, args: argparse.Namespace) -> bool:
+    """A topic or service name that ROS 2's tools hide, unless ``--include-hidden``: one with a
+    part starting with ``_`` (rclpy's ``topic_or_service_is_hidden``: an action's
+    ``/_action/feedback``, a private ``/ns/_debug``)."""
+    return not args.include_hidden and any(part.startswith(HIDDEN_PREFIX)
+                                           for part in name.split("/"))
 
 
 def resolve_topic(node: Any, topic: str) -> tuple[str, str]:

@@ -71,6 +71,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--count", type=int, default=None,
                         help="pub: messages to publish (default 10); sub: stop after N samples")
     parser.add_argument("--no-stdin", action="store_true", help="do not watch stdin")
+    parser.add_argument("--graph-token", action="append", default=[],
+                        metavar="KIND:NAME=TYPE",
+                        help="also declare this token alone (graph only): SS, SC, MP or MS, "
+                             "e.g. SS:/node/get_parameters=rcl_interfaces/srv/GetParameters")
     pub = parser.add_argument_group("publisher")
     pub.add_argument("--rate", type=float, default=10.0, help="publishes per second")
     pub.add_argument("--size", type=int, default=1024, help="bytes in each buffer field")
@@ -177,6 +181,10 @@ def main(argv: list[str] | None = None) -> int:
             backends=parse_backend_options(args.backend))
         result.update(zid=participant.zid, node_token=participant.node.keyexpr,
                       node_gid=participant.node.gid_hex)
+        for spec in args.graph_token:
+            kind, _, rest = spec.partition(":")
+            name, _, ros_type = rest.partition("=")
+            participant.declare_graph_entity(kind, name, ros_type)
         (_run_pub if args.role.endswith("pub") else _run_sub)(args, participant, result)
     except _Stop:
         code = 0

@@ -93,6 +93,7 @@ class Participant:
         self.graph = GraphCache(self.zid, legacy=legacy)
         self._ids = itertools.count()
         self._closables: list[Any] = []
+        self._graph_tokens: list[Any] = []
         self._graph_sub = self.session.liveliness().declare_subscriber(
             subscription_token(domain), self._on_liveliness, history=True)
         node_id = str(next(self._ids))
@@ -113,6 +114,17 @@ class Participant:
         elif sample.kind == zenoh.SampleKind.DELETE:
             self.graph.parse_del(key)
 
+    def declare_graph_entity(self, kind: str, name: str, ros_type: str) -> None:
+        """A token alone (graph only, nothing behind it): a service server (``SS``) or client
+        (``SC``), as rclcpp's parameter services are, or a topic endpoint (``MP``/``MS``) of a
+        type the model has no definition for (an action's feedback topic). Its type hash is a
+        placeholder: nothing matches on it here."""
+        topic = TopicInfo(domain_id=self.domain, name=name, type=dds_type_name(ros_type),
+                          type_hash="RIHS01_" + "0" * 64, qos=qos_model.QoS())
+        entity = Entity(zid=self.zid, nid=self.node.nid, id=self.next_id(), kind=kind,
+                        node=self.node_info, topic=topic, legacy=self.legacy)
+        self._graph_tokens.append(self.session.liveliness().declare_token(entity.keyexpr))
+
     def track(self, endpoint: Any) -> Any:
         self._closables.append(endpoint)
         return endpoint
@@ -120,6 +132,8 @@ class Participant:
     def close(self) -> None:
         for endpoint in reversed(self._closables):
             endpoint.close()
+        for token in self._graph_tokens:
+            token.undeclare()
         self._node_token.undeclare()
         self._graph_sub.undeclare()
         self.session.close()

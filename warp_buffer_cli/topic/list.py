@@ -1,13 +1,13 @@
 """List the topics of the domain, one per line (``-t``: with their types), as ``ros2 topic list``
 does; ``-v``: published and subscribed topics apart, with their endpoint counts and the buffer
-backends those endpoints advertise. Topics of hidden nodes (name starting with ``_``) only with
-``--include-hidden``."""
+backends those endpoints advertise. Hidden topics (a part of the name starting with ``_``) and
+the topics of hidden nodes only with ``--include-hidden``, as ``ros2 topic list``."""
 
 from __future__ import annotations
 
 import argparse
 
-from .._graph import add_graph_options, graph_node, hidden
+from .._graph import add_graph_options, graph_node, hidden, hidden_name
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,6 +24,8 @@ def topics(node, args: argparse.Namespace) -> dict[str, set[str]]:
     """Topic -> types, from the endpoints of visible nodes."""
     found: dict[str, set[str]] = {}
     for topic, _types in node.get_topic_names_and_types():
+        if hidden_name(topic, args):
+            continue
         for info in (*node.get_publishers_info_by_topic(topic),
                      *node.get_subscriptions_info_by_topic(topic)):
             if not hidden(info.node_name, args):
@@ -39,6 +41,8 @@ def _verbose(node, args: argparse.Namespace) -> list[str]:
                               "subscriber")):
         lines.append(title)
         for topic, types in node.get_topic_names_and_types():
+            if hidden_name(topic, args):
+                continue
             infos = [i for i in get(topic) if not hidden(i.node_name, args)]
             if not infos:
                 continue
