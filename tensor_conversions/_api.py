@@ -23,9 +23,7 @@ from .errors import (
 from .metadata import (
     TensorLayout,
     check_tensor_msg,
-    contiguous_strides,
     layout_of,
-    normalize_shape,
     tensor_msg_type,
     write_metadata,
 )
@@ -120,8 +118,7 @@ def allocate_tensor_msg(adapter: Adapter[Any], shape: Sequence[int] | int, dtype
                         backend: str = "cpu", device: Any = None) -> Any:
     dt = adapter.to_dtype(dtype)
     adapter.check_dtype(dt)
-    dims = normalize_shape(shape)
-    return new_msg(TensorLayout(dt, dims, contiguous_strides(dims), 0), backend, device)
+    return new_msg(TensorLayout.contiguous(dt, shape), backend, device)
 
 
 def output_native(adapter: Adapter[T], msg: Any, layout: TensorLayout) -> T:

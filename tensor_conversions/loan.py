@@ -37,7 +37,7 @@ import numpy as np
 
 from .dlpack import TensorView, warp_dtype
 from .errors import InvalidTensorMetadataError, StorageNotWritableError, UnsupportedBackendError
-from .metadata import TensorLayout, contiguous_strides, normalize_shape, write_metadata
+from .metadata import TensorLayout, write_metadata
 from .storage import NativeState, resolve_warp_device
 
 __all__ = ["ImageLoanSpec", "LoanState", "PointCloudLoanSpec", "TensorLoanSpec",
@@ -191,8 +191,8 @@ class TensorLoanSpec(_LoanSpec):
         dt = adapter.to_dtype(dtype)
         adapter.check_dtype(dt)
         warp_dtype(dt)
-        dims = normalize_shape(shape)
-        self.layout = layout = TensorLayout(dt, dims, contiguous_strides(dims), 0)
+        self.layout = layout = TensorLayout.contiguous(dt, shape)
+        dims = layout.shape
         self.nbytes = layout.required_nbytes
         self.device = device
         # plain values: hashed in C at every loan (a dataclass's hash is a Python call)

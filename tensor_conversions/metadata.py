@@ -38,6 +38,9 @@ def tensor_msg_type() -> type:
     return get_message_type(TENSOR_MSG_TYPE)
 
 
+INT64_MAX = 2**63 - 1  # a dimension, a stride: the message's fields are int64[]
+
+
 def contiguous_strides(shape: Sequence[int]) -> tuple[int, ...]:
     """Row-major strides in elements for ``shape``."""
     strides = []
@@ -61,6 +64,8 @@ def normalize_shape(shape: Sequence[int] | int) -> tuple[int, ...]:
         raise InvalidTensorMetadataError(f"shape must be a sequence of ints, got {shape!r}")
     if any(d < 0 for d in dims):
         raise InvalidTensorMetadataError(f"shape {dims} has a negative dimension")
+    if any(d > INT64_MAX for d in dims):  # the message's shape is int64[]
+        raise InvalidTensorMetadataError(f"shape {dims} has a dimension past int64")
     return dims
 
 
@@ -144,7 +149,9 @@ class TensorLayout:
 
     @classmethod
     def contiguous(cls, dtype: DType, shape: Sequence[int]) -> TensorLayout:
+        """A new row-major layout of ``shape``, refused where a reader would refuse it."""
         dims = normalize_shape(shape)
+        check_extent(dtype, dims)
         return cls(dtype, dims, contiguous_strides(dims), 0)
 
     def check_fits(self, nbytes: int) -> None:
@@ -247,8 +254,16 @@ def _validate(code: Any, bits: Any, lanes: Any, shape: tuple[int, ...], strides:
     byte_offset = int(byte_offset)
     if byte_offset < 0:
         raise InvalidTensorMetadataError(f"byte_offset {byte_offset} is negative")
-    # What the frameworks can index: NumPy refuses an array whose dimensions (the non-zero
-    # ones, even when another is 0) multiply past its index type, with a raw ValueError.
+    check_extent(dtype, shape)
+    layout = TensorLayout(dtype, shape, strides, byte_offset)
+    layout.check_fits(nbytes)
+    return layout
+
+
+def check_extent(dtype: DType, shape: Sequence[int]) -> None:
+    """Refuse a shape the frameworks cannot index: NumPy refuses an array whose dimensions
+    (the non-zero ones, even when another is 0) multiply past its index type, with a raw
+    ValueError."""
     extent = dtype.itemsize
     for d in shape:
         extent *= max(d, 1)
@@ -256,9 +271,6 @@ def _validate(code: Any, bits: Any, lanes: Any, shape: tuple[int, ...], strides:
         raise InvalidTensorMetadataError(
             f"shape {list(shape)} of {dtype.name} spans {extent} bytes, more than any tensor "
             f"can ({MAX_LOGICAL_BYTES})")
-    layout = TensorLayout(dtype, shape, strides, byte_offset)
-    layout.check_fits(nbytes)
-    return layout
 
 
 def write_metadata(msg: Any, layout: TensorLayout) -> None:

@@ -22,8 +22,8 @@ except ImportError as _error:  # an optional extra: say which
                       f"pip install 'warp-buffer[onnx]' ({_error})") from _error
 
 from . import _api
-from .dtypes import DType, dtype_from_name
-from .errors import UnsupportedBackendError
+from .dtypes import DLDataTypeCode, DType, dtype_from_name
+from .errors import UnsupportedBackendError, UnsupportedDTypeError
 
 __all__ = ["allocate_tensor_msg", "from_input_tensor_msg", "from_output_tensor_msg",
            "to_tensor_msg"]
@@ -35,8 +35,16 @@ class _OrtAdapter(_api.DLPackAdapter[ort.OrtValue]):
     name = "onnx"
     value_type = ort.OrtValue
 
+    def check_dtype(self, dtype: DType) -> None:
+        if dtype.code == DLDataTypeCode.COMPLEX:  # (its NumPy and DLPack bridges refuse them)
+            raise UnsupportedDTypeError(f"ONNX Runtime's OrtValue has no {dtype.name} tensors")
+
     def consume(self, producer: Any) -> ort.OrtValue:
-        return ort.OrtValue.from_dlpack(producer.__dlpack__())
+        try:
+            return ort.OrtValue.from_dlpack(producer.__dlpack__())
+        except RuntimeError as exc:  # its DLPack import refuses a dtype (bool in some releases)
+            raise UnsupportedDTypeError(f"ONNX Runtime cannot import this tensor through "
+                                        f"DLPack ({exc}); clone=True copies it instead") from None
 
     def reshape(self, view: Any, tensor: ort.OrtValue) -> ort.OrtValue:
         return tensor  # OrtValues cannot be reshaped: a scalar behind Warp stays shape (1,)
@@ -46,6 +54,14 @@ class _OrtAdapter(_api.DLPackAdapter[ort.OrtValue]):
         if type(carrier) is np.ndarray:
             return ort.OrtValue.ortvalue_from_numpy(np.array(carrier, order="C", copy=True))
         return super().clone(view)
+
+    def copy_into(self, view: Any, value: Any) -> None:
+        carrier = view.carrier
+        if type(carrier) is np.ndarray and value.device_name().lower() == "cpu":
+            # its own NumPy export keeps bool (its DLPack export made it uint8 in 1.30)
+            np.copyto(carrier, value.numpy().reshape(carrier.shape), casting="no")
+            return
+        super().copy_into(view, value)
 
     def shape_dtype(self, value: Any) -> tuple[tuple[int, ...], DType]:
         name = value.data_type().removeprefix("tensor(").removesuffix(")")

@@ -207,6 +207,14 @@ class _TorchAdapter(_api.Adapter[torch.Tensor]):
         if not isinstance(value, torch.Tensor):
             raise UnsupportedValueError(
                 f"tensor_conversions.torch sends torch.Tensor values, not {type(value).__name__}")
+        if value.is_nested:  # a message holds dense elements
+            raise UnsupportedValueError("tensor_conversions.torch sends dense (strided) "
+                                        "tensors, not a nested one: pad it first "
+                                        "(.to_padded_tensor(0))")
+        if value.layout != torch.strided:
+            raise UnsupportedValueError(
+                f"tensor_conversions.torch sends dense (strided) tensors, not a "
+                f"{str(value.layout).removeprefix('torch.')} one: convert it first (.to_dense())")
         device = value.device
         if device.type == "cpu":
             backend, wp_device = "cpu", None

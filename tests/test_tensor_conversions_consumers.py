@@ -120,6 +120,16 @@ def test_ortvalue_to_msg(tc_onnx):
         tc_onnx.to_tensor_msg(np.zeros(2))
 
 
+def test_ortvalue_refuses_complex_with_the_typed_error(tc_onnx):
+    """ONNX Runtime's bridges refuse complex with raw RuntimeErrors (1.30)."""
+    msg = tc_numpy.to_tensor_msg(np.ones(3, np.complex64))
+    for clone in (True, False):
+        with pytest.raises(tc.UnsupportedDTypeError, match="complex64"):
+            tc_onnx.from_input_tensor_msg(msg, clone=clone)
+    with pytest.raises(tc.UnsupportedDTypeError, match="complex128"):
+        tc_onnx.allocate_tensor_msg((2,), np.complex128)
+
+
 # ------------------------------------------------------------------------------------ CuPy
 @pytest.mark.cuda
 def test_cupy_round_trip_on_cuda():

@@ -106,6 +106,38 @@ def test_metadata_past_what_the_frameworks_index_is_a_typed_error(code, bits, sh
                 module.from_input_tensor_msg(msg, clone=clone)
 
 
+@pytest.mark.parametrize("shape", [(0, 2**62), (0, 2**63), (2**63,), (3, 2**61)])
+def test_a_new_message_past_what_a_reader_takes_is_refused_when_made(shape):
+    """allocate (and a loan's spec) took shapes its own reader refuses, or raised a raw
+    OverflowError building the int64 shape."""
+    from tensor_conversions import numpy as tn
+    from tensor_conversions import torch as tt
+
+    with pytest.raises(tc.InvalidTensorMetadataError):
+        tt.allocate_tensor_msg(shape, torch.float32)
+    with pytest.raises(tc.InvalidTensorMetadataError):
+        tn.allocate_tensor_msg(shape, np.float64, backend="warp")
+    empty = tn.allocate_tensor_msg((0, 2**20), np.float32)  # the largest are still made
+    assert tn.from_input_tensor_msg(empty).shape == (0, 2**20)
+
+
+@pytest.mark.parametrize("make", [lambda: torch.eye(3).to_sparse(),
+                                  lambda: torch.eye(3).to_sparse_csr(),
+                                  lambda: torch.nested.nested_tensor([torch.zeros(2),
+                                                                      torch.zeros(3)])])
+def test_a_sparse_or_nested_torch_tensor_is_a_typed_error(make):
+    """They gave torch's raw RuntimeErrors ("copy_() between dense and sparse")."""
+    import warnings
+
+    from tensor_conversions import torch as tt
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (torch: sparse CSR and nested are beta/prototype)
+        value = make()
+    with pytest.raises(tc.UnsupportedValueError, match="dense"):
+        tt.to_tensor_msg(value)
+
+
 def test_warp_dimensions_past_int32_are_a_typed_error():
     from tensor_conversions import warp as tw
 
@@ -121,5 +153,5 @@ def test_a_cpu_tensor_too_large_to_index_is_a_typed_error():
     """NumPy's own ValueError ("Maximum allowed dimension exceeded") came out untyped."""
     import tensor_conversions.numpy as tn
 
-    with pytest.raises(tc.InvalidTensorMetadataError, match="cannot be held in host memory"):
+    with pytest.raises(tc.InvalidTensorMetadataError, match="more than any tensor can"):
         tn.allocate_tensor_msg((2**40, 2**30), np.float32, backend="cpu")
