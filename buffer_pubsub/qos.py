@@ -24,6 +24,8 @@ from .errors import InvalidEndpointError
 __all__ = ["DurabilityPolicy", "HistoryPolicy", "MAX_DEPTH", "QoSProfile", "ReliabilityPolicy",
            "qos_profile_sensor_data", "qos_profile_system_default", "resolve_qos"]
 
+#: What rmw_zenoh makes of depth 0 (rmw's "system default"; qos.cpp): a keep-all profile's
+SYSTEM_DEFAULT_DEPTH = 42
 #: Deepest keep-last queue (rmw's depth is a size_t; ours a queue in memory).
 MAX_DEPTH = 2**31 - 1
 
@@ -60,7 +62,8 @@ def _policy(name: str, value: Any) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class QoSProfile:
-    """An endpoint's QoS: keep-last ``depth`` (ignored by keep-all, which keeps every message),
+    """An endpoint's QoS: keep-last ``depth`` (ignored by keep-all, which keeps every message,
+    but for a transient-local publisher's cache; 0 there is rmw_zenoh's default, 42),
     ``history``, ``reliability`` and ``durability``; checked when made."""
 
     depth: int = 10
@@ -69,11 +72,19 @@ class QoSProfile:
     durability: str = wire.VOLATILE
 
     def __post_init__(self) -> None:
-        depth = self.depth
-        if isinstance(depth, bool) or not isinstance(depth, int) or not 0 < depth <= MAX_DEPTH:
-            raise InvalidEndpointError(f"depth must be an int in 1..{MAX_DEPTH}, got {depth!r}")
         for name in _CHOICES:
             object.__setattr__(self, name, _policy(name, getattr(self, name)))
+        depth = self.depth
+        keep_all = self.history == wire.KEEP_ALL
+        if keep_all and depth == 0 and not isinstance(depth, bool):
+            # rclpy's keep-all default (rmw's "system default" depth): rmw_zenoh's
+            # best_available_qos makes it its default depth, which a transient-local cache keeps
+            depth = SYSTEM_DEFAULT_DEPTH
+            object.__setattr__(self, "depth", depth)
+        if isinstance(depth, bool) or not isinstance(depth, int) or not 0 < depth <= MAX_DEPTH:
+            raise InvalidEndpointError(f"depth must be an int in 1..{MAX_DEPTH}"
+                                       + (" (or 0 for keep-all)" if keep_all else "")
+                                       + f", got {depth!r}")
 
     @property
     def transient_local(self) -> bool:

@@ -40,6 +40,19 @@ def test_profiles_read_rclpy_spellings_and_refuse_the_rest():
             QoSProfile(**bad)
 
 
+def test_keep_all_takes_rclpys_depth_0_as_rmw_zenoh_does(domain, topic):
+    """rclpy's keep-all profiles leave depth 0 (rmw's "system default"), which was refused;
+    rmw_zenoh's best_available_qos makes it its default depth, 42: the token's depth field is
+    then empty, and a transient-local cache keeps 42 samples."""
+    profile = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=0)
+    assert profile.depth == 42 and profile.history == "keep_all"
+    with pytest.raises(InvalidEndpointError, match="or 0 for keep-all"):
+        QoSProfile(history="keep_all", depth=-1)
+    with Node("qos_keep_all", domain_id=domain) as node:
+        pub = node.create_publisher(STRING, topic, depth=0, history="keep_all")
+        assert pub._token.qos.to_keyexpr() == "::2,:,:,:,,"  # keep-all (2), depth field empty
+
+
 def test_a_profile_or_keywords_but_not_both(domain, topic):
     with Node("qos_args", domain_id=domain) as node:
         with pytest.raises(InvalidEndpointError, match="in the QoSProfile"):
