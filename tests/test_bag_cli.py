@@ -864,6 +864,53 @@ def test_a_closed_bag_damaged_mid_file_fails_info_play_and_reindex_in_one_line(t
     assert mcap.read_bytes() == data  # reindex changed nothing
 
 
+def test_reindex_refuses_a_closed_bag_whose_file_was_cut_short_since(tmp_path, domain):
+    """A bag trial: half of a closed bag's MCAP file cut off. reindex rewrote its
+    metadata.yaml to 0 messages (its only record of 100) and said it succeeded."""
+    bag = tmp_path / "bag"
+    _text_bag(bag, {"/t": _texts(100)})
+    mcap = bag / "bag.mcap"
+    mcap.write_bytes(mcap.read_bytes()[:mcap.stat().st_size // 2])
+    metadata = (bag / "metadata.yaml").read_bytes()
+    _one_line_error(run_bag(domain, "reindex", str(bag)), "BagDamagedError",
+                    "records 100 messages")
+    assert (bag / "metadata.yaml").read_bytes() == metadata and mcap.stat().st_size > 0
+
+
+def test_a_fifo_in_a_bag_is_an_error_not_a_hang(tmp_path, domain):
+    """A named pipe in place of the storage file: info and reindex blocked for ever."""
+    bag = tmp_path / "bag"
+    _text_bag(bag, {"/t": _texts(3)})
+    (bag / "bag.mcap").unlink()
+    os.mkfifo(bag / "bag.mcap")
+    for command in ("info", "reindex"):
+        _one_line_error(run_bag(domain, command, str(bag)), "BagReadError",
+                        "bag.mcap is not a regular file")
+
+
+def test_info_names_the_storage_plugin_not_a_compressed_files_suffix(tmp_path, domain):
+    """A file-compressed bag (bag.mcap.zstd) showed "Storage id: zstd"; a bare file's missing
+    distro showed "None"."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+
+    from rosidl_buffer.messages import get_typestore
+
+    for plugin, name in ((StoragePlugin.MCAP, "mcap"), (StoragePlugin.SQLITE3, "sqlite3")):
+        bag = tmp_path / name
+        writer = Writer(bag, version=9, storage_plugin=plugin)
+        writer.set_compression(CompressionMode.FILE, CompressionFormat.ZSTD)
+        with writer:
+            connection = writer.add_connection("/t", STRING, typestore=get_typestore())
+            writer.write(connection, 1_000, _texts(1)[0])
+        assert any(p.suffix == ".zstd" for p in bag.iterdir())
+        out = run_bag(domain, "info", str(bag)).stdout
+        assert f"Storage id:        {name}\n" in out, out
+    bare = tmp_path / "bare"
+    _text_bag(bare, {"/t": _texts(2)})
+    out = run_bag(domain, "info", str(bare / "bare.mcap")).stdout
+    assert "ROS Distro:        \n" in out and "None" not in out, out
+
+
 def test_play_of_a_bag_whose_checksum_fails_mid_file_fails_in_one_line(tmp_path, domain):
     """Damage the check at open cannot see (a payload byte; the chunk's checksum catches it as
     rosbags reads it) ends the playback with the typed error, not rosbags' traceback."""

@@ -34,7 +34,7 @@ def describe(path: str | os.PathLike[str]) -> dict[str, Any]:
             "size_bytes": sum(p.stat().st_size for p in files) + (
                 (root / "metadata.yaml").stat().st_size if (root / "metadata.yaml").exists()
                 else 0),
-            "storage": files[0].suffix.lstrip(".").replace("db3", "sqlite3") if files else "",
+            "storage": _storage_id(reader),
             "ros_distro": reader.ros_distro,
             # metadata.yaml's duration, and end = start + duration, as ros2 bag info shows
             # them (rosbags' duration and end count one past the last message's stamp)
@@ -54,6 +54,18 @@ def describe(path: str | os.PathLike[str]) -> dict[str, Any]:
         }
     finally:
         reader.close()
+
+
+def _storage_id(reader: Any) -> str:
+    """The storage plugin's name, as metadata.yaml's ``storage_identifier`` (a compressed file's
+    suffix is its compression's)."""
+    from rosbags.rosbag2.storage_mcap import McapReader
+
+    storages = getattr(reader.storage, "storages", None)  # (a directory's files)
+    first = storages[0] if storages else None if storages is not None else reader.storage
+    if first is None:
+        return ""
+    return "mcap" if isinstance(first, McapReader) else "sqlite3"
 
 
 def _qos(profile: Any) -> dict[str, Any]:
@@ -81,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     print(label("Files:") + "\n".ljust(20).join(report["files"]))
     print(label("Bag size:") + size_text(report["size_bytes"]))
     print(label("Storage id:") + report["storage"])
-    print(label("ROS Distro:") + str(report["ros_distro"]))
+    print(label("ROS Distro:") + (report["ros_distro"] or ""))  # (a bare file has none)
     print(label("Duration:") + f"{report['duration_ns'] / 1e9:.9f}s")
     print(label("Start:") + _stamp(report["start_ns"]))
     print(label("End:") + _stamp(report["end_ns"]))

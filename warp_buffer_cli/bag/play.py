@@ -42,6 +42,7 @@ def open_bag(path: str | os.PathLike[str]) -> Any:
     when it is missing, no bag, or damaged."""
     from rosbags.rosbag2 import Reader
 
+    check_regular_files(Path(path))
     try:
         reader = Reader(Path(path))
         reader.open()
@@ -63,6 +64,17 @@ def open_bag(path: str | os.PathLike[str]) -> Any:
         reader.close()
         raise
     return reader
+
+
+def check_regular_files(path: Path) -> None:
+    """:class:`BagReadError` for a storage file that is not a regular file: reading a FIFO
+    there blocked for ever."""
+    candidates = ([p for p in path.iterdir() if p.name != "metadata.yaml"] if path.is_dir()
+                  else [path])
+    for candidate in candidates:
+        if candidate.exists() and not (candidate.is_file() or candidate.is_dir()):
+            raise BagReadError(f"cannot read the bag at {path}: {candidate.name} is not a "
+                               "regular file")
 
 
 def _check_storages(reader: Any) -> None:

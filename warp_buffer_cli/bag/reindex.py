@@ -24,6 +24,7 @@ from .damage import check_mcap
 from .errors import BagDamagedError, BagReadError
 from .lock import BagBusyError, locked_bag
 from .mcap_end import McapContents, channel_metadata, end_mcap, is_closed
+from .play import check_regular_files
 
 __all__ = ["add_arguments", "reindex", "run"]
 
@@ -42,6 +43,7 @@ def reindex(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise BagReadError(f"no bag directory at {path}" + (
             ": it does not exist" if not root.exists() else
             f": it is a file; give the bag's directory ({root.parent})"))
+    check_regular_files(root)
     files = sorted(p for p in root.iterdir() if p.suffix in (".mcap", ".db3"))
     if len(files) != 1:
         raise BagReadError(f"{path} holds {len(files)} .mcap / .db3 files; reindex needs one")
@@ -75,6 +77,13 @@ def _ended_well(root: Path, storage: Path) -> tuple[int, int] | None:
     if storage.suffix == ".mcap":
         with storage.open("rb") as file:
             if not is_closed(file, os.fstat(file.fileno()).st_size):
+                recorded = _recorded_messages(root / METADATA)
+                if recorded:  # a recorder that never ended writes no metadata.yaml
+                    raise BagDamagedError(
+                        f"cannot reindex {root}: its {METADATA} records {recorded} messages of "
+                        f"a recording that ended, but {storage.name} does not end as a closed "
+                        "MCAP file does (cut short since?); reindex ends recordings that never "
+                        f"ended, and rewriting {METADATA} would lose that record")
                 return None
     try:
         reader = open_bag(root)
@@ -87,6 +96,18 @@ def _ended_well(root: Path, storage: Path) -> tuple[int, int] | None:
         return reader.message_count, len(reader.connections)
     finally:
         reader.close()
+
+
+def _recorded_messages(metadata: Path) -> int | None:
+    """The message count a readable ``metadata.yaml`` records (None: unreadable)."""
+    from ruamel.yaml import YAML
+
+    try:
+        info = YAML(typ="safe").load(metadata.read_text(encoding="utf-8"))
+        count = info["rosbag2_bagfile_information"]["message_count"]
+    except Exception:  # any damage: the file is rebuilt as a lost one would be
+        return None
+    return count if type(count) is int else None
 
 
 def _end_mcap(path: Path) -> tuple[int, dict[str, Any]]:
