@@ -113,8 +113,7 @@ class Executor:
         """Hand ``node``'s callbacks back to the node (its own thread, or ``node.spin()``),
         once the callbacks of it that run here ended (waiting up to ``timeout_sec`` seconds for
         them; None: :data:`STOP_BUDGET_S`)."""
-        budget = STOP_BUDGET_S if timeout_sec is None else max(0.0, float(timeout_sec))
-        self._remove(node, time.monotonic() + budget)
+        self._remove(node, time.monotonic() + stop_budget(timeout_sec))
 
     def _remove(self, node: Node, deadline: float) -> None:
         with self._lock:
@@ -217,8 +216,7 @@ class Executor:
             self._shutdown = True
             self._work.notify_all()
         self._shutdown_event.set()
-        budget = STOP_BUDGET_S if timeout_sec is None else max(0.0, float(timeout_sec))
-        deadline = time.monotonic() + budget
+        deadline = time.monotonic() + stop_budget(timeout_sec)
         done = self._wait_stopped(deadline)
         for node in self.get_nodes():
             self._remove(node, deadline)
@@ -246,6 +244,22 @@ class Executor:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(nodes={[n.name for n in self.get_nodes()]})"
+
+
+def stop_budget(timeout_sec: float | None) -> float:
+    """How long :meth:`Executor.shutdown` / :meth:`Executor.remove_node` wait for running
+    callbacks: None is :data:`STOP_BUDGET_S`, a negative number 0, an infinite one no limit;
+    NaN and non-numbers are refused (InvalidTimeoutError), as every timeout is."""
+    if timeout_sec is None:
+        return STOP_BUDGET_S
+    seconds = wait_seconds(timeout_sec)
+    if seconds is not None:
+        return seconds
+    try:
+        negative = float(timeout_sec) < 0
+    except OverflowError:  # an int past any float
+        negative = int(timeout_sec) < 0
+    return 0.0 if negative else threading.TIMEOUT_MAX / 2
 
 
 class _SpinGuard:
@@ -340,4 +354,6 @@ class MultiThreadedExecutor(Executor):
     def _wait_stopped(self, deadline: float) -> bool:
         if threading.current_thread() in self._workers:  # shutdown() from a callback
             return self._join_workers(deadline)
-        return super()._wait_stopped(deadline)
+        # A spin that returned (a first shutdown, Ctrl-C) may have left a callback running
+        # past its own wait: a later shutdown waits for it too
+        return super()._wait_stopped(deadline) and self._join_workers(deadline)

@@ -371,3 +371,44 @@ def test_lane_messages_from_another_process_run_on_the_executor(domain, topic, m
     assert {route for route, _, _ in got} == {"lane"}
     assert all(ok for _, ok, _ in got)
     assert {ident for _, _, ident in got} <= workers
+
+
+def test_a_second_shutdown_still_waits_for_a_callback_the_spin_left_running(domain):
+    """shutdown() is True only if no callback still runs: after a first shutdown (or Ctrl-C)
+    ended spin() with a callback stuck, the second one (``with executor:`` makes it) said True
+    at once."""
+    running, release = threading.Event(), threading.Event()
+
+    def stuck() -> None:
+        running.set()
+        release.wait(10)
+
+    with Node("executor_stuck", domain_id=domain) as node:
+        node.create_timer(0.05, stuck)
+        executor = MultiThreadedExecutor(2)
+        executor.add_node(node)
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
+        assert running.wait(5)
+        assert executor.shutdown(timeout_sec=0.2) is False
+        spinner.join(10)
+        assert not spinner.is_alive()
+        started = time.monotonic()
+        assert executor.shutdown(timeout_sec=0.3) is False
+        assert time.monotonic() - started >= 0.25
+        release.set()
+        assert executor.shutdown(timeout_sec=5) is True
+
+
+@pytest.mark.parametrize("timeout", [float("nan"), "1", object()])
+def test_shutdown_and_remove_node_refuse_what_is_no_timeout(domain, timeout):
+    from buffer_pubsub import InvalidTimeoutError
+
+    executor = SingleThreadedExecutor()
+    with Node("executor_nan", domain_id=domain) as node:
+        executor.add_node(node)
+        with pytest.raises(InvalidTimeoutError):
+            executor.remove_node(node, timeout)
+        with pytest.raises(InvalidTimeoutError):
+            executor.shutdown(timeout)
+        assert executor.shutdown(-1) is True  # negative: no wait, as before
