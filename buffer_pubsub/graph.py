@@ -155,8 +155,8 @@ class Graph:
         return [(token, True)]
 
     def delete(self, key: str) -> list[Event]:
-        """Forget ``key``'s endpoint, node or service; the endpoints that vanished and those that took
-        their gid over."""
+        """Forget ``key``'s endpoint, node or service; the endpoints that vanished and those
+        that took their gid over."""
         if (self._nodes.pop(key, None) is not None
                 or self._services.pop(key, None) is not None):
             return []

@@ -22,7 +22,8 @@ RATE = 20.0
 GRAPH_TOKENS = ("SS:/ros2_viewer/get_parameters=rcl_interfaces/srv/GetParameters",
                 "SC:/talker/describe_parameters=rcl_interfaces/srv/DescribeParameters",
                 "MP:/fib/_action/feedback=example_interfaces/action/Fibonacci_FeedbackMessage",
-                "MS:/arm/_action/feedback=control_msgs/action/FollowJointTrajectory_FeedbackMessage",
+                "MS:/arm/_action/feedback="
+                "control_msgs/action/FollowJointTrajectory_FeedbackMessage",
                 "MP:/ns/_private/data=std_msgs/msg/String")
 
 

@@ -202,6 +202,7 @@ def test_service_and_client_tokens_are_read_for_the_graph():
     with pytest.raises(wire.WireFormatError):  # no QoS segment: rmw_zenoh refuses it too
         wire.parse_token(key.rsplit("/", 1)[0])
     graph = Graph(threading.RLock())
-    assert graph.put(key, server) == [] and graph.put(client_key, wire.parse_token(client_key)) == []
+    assert graph.put(key, server) == []
+    assert graph.put(client_key, wire.parse_token(client_key)) == []
     assert len(graph.services()) == 2 and graph.endpoints() == []
     assert graph.delete(key) == [] and [t.kind for t in graph.services()] == ["SC"]
