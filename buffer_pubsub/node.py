@@ -710,9 +710,28 @@ class Node:
     def get_endpoints_by_node(self, node_name: str, node_namespace: str = "/"
                               ) -> list[TopicEndpointInfo]:
         """The publishers and subscriptions of one node (``ros2 node info``)."""
+        return self._endpoints_of(node_name, node_namespace,
+                                  (wire.PUBLISHER_KIND, wire.SUBSCRIPTION_KIND))
+
+    def get_publisher_names_and_types_by_node(self, node_name: str, node_namespace: str = "/"
+                                              ) -> list[tuple[str, list[str]]]:
+        """The topics one node publishes, with their types, like rclpy."""
+        return self._topics_of(node_name, node_namespace, wire.PUBLISHER_KIND)
+
+    def get_subscriber_names_and_types_by_node(self, node_name: str, node_namespace: str = "/"
+                                               ) -> list[tuple[str, list[str]]]:
+        """The topics one node subscribes to, with their types, like rclpy."""
+        return self._topics_of(node_name, node_namespace, wire.SUBSCRIPTION_KIND)
+
+    def _topics_of(self, node_name: str, node_namespace: str, kind: str
+                   ) -> list[tuple[str, list[str]]]:
+        return _names_and_types((info.topic_name, info.topic_type)
+                                for info in self._endpoints_of(node_name, node_namespace, (kind,)))
+
+    def _endpoints_of(self, node_name: str, node_namespace: str, kinds: tuple[str, ...]
+                      ) -> list[TopicEndpointInfo]:
         namespace = _namespace(node_namespace)
-        return [info for kind in (wire.PUBLISHER_KIND, wire.SUBSCRIPTION_KIND)
-                for info in self._endpoints(kind, None)
+        return [info for kind in kinds for info in self._endpoints(kind, None)
                 if info.node_name == node_name and _namespace(info.node_namespace) == namespace]
 
     # Services: other nodes' servers and clients, as their tokens declare them (this transport

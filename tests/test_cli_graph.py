@@ -205,7 +205,7 @@ def test_the_graph_api_answers_for_other_nodes_services(graph):
     its own)."""
     from buffer_pubsub import Node
 
-    domain, _ = graph
+    domain, topic = graph
     with Node("_cli_graph_services", domain_id=domain, fast_lane=False) as node:
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline and len(node.get_service_names_and_types()) < 2:
@@ -218,6 +218,14 @@ def test_the_graph_api_answers_for_other_nodes_services(graph):
         assert node.get_client_names_and_types_by_node("ros2_viewer") == [
             ("/talker/describe_parameters", ["rcl_interfaces/srv/DescribeParameters"])]
         assert node.get_service_names_and_types_by_node("talker") == []
+        # (rclpy's topic names-and-types of one node, which node info prints)
+        assert node.get_subscriber_names_and_types_by_node("ros2_viewer") == [
+            ("/arm/_action/feedback",
+             ["control_msgs/action/FollowJointTrajectory_FeedbackMessage"]),
+            (topic, ["sensor_msgs/msg/Image"])]
+        assert node.get_publisher_names_and_types_by_node("ros2_viewer", "/") == [
+            ("/fib/_action/feedback", ["example_interfaces/action/Fibonacci_FeedbackMessage"]),
+            ("/ns/_private/data", ["std_msgs/msg/String"])]
         names = {name for name, _ in node.get_topic_names_and_types()}
         assert "/ros2_viewer/get_parameters" not in names  # a service is not a topic
 

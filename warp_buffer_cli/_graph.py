@@ -20,8 +20,8 @@ from typing import Any
 from rosidl_buffer.errors import RosidlBufferError
 
 __all__ = ["GraphCommandError", "UnknownTopicError", "add_graph_options", "graph_node",
-           "hidden", "hidden_name", "latched_durability", "print_names", "resolve_topic", "routes_by_publisher",
-           "unknown_topic", "wait_for_topic"]
+           "hidden", "hidden_name", "latched_durability", "print_names", "resolve_topic",
+           "routes_by_publisher", "unknown_topic", "wait_for_topic"]
 
 #: How long a command watches the graph before it reports (peers answer in ~0.1-0.5 s here).
 DEFAULT_SPIN_TIME = 1.0

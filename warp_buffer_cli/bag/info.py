@@ -61,11 +61,10 @@ def _storage_id(reader: Any) -> str:
     suffix is its compression's)."""
     from rosbags.rosbag2.storage_mcap import McapReader
 
-    storages = getattr(reader.storage, "storages", None)  # (a directory's files)
-    first = storages[0] if storages else None if storages is not None else reader.storage
-    if first is None:
+    storages = getattr(reader.storage, "storages", [reader.storage])  # (a directory's files)
+    if not storages:
         return ""
-    return "mcap" if isinstance(first, McapReader) else "sqlite3"
+    return "mcap" if isinstance(storages[0], McapReader) else "sqlite3"
 
 
 def _qos(profile: Any) -> dict[str, Any]:

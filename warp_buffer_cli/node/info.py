@@ -34,14 +34,6 @@ def actions(topics: NamesAndTypes) -> NamesAndTypes:
             for name, types in topics if name.endswith(ACTION_FEEDBACK)]
 
 
-def _topics(endpoints: list, kind: str) -> NamesAndTypes:
-    found: dict[str, set[str]] = {}
-    for endpoint in endpoints:
-        if endpoint.endpoint_type.value == kind:
-            found.setdefault(endpoint.topic_name, set()).add(endpoint.topic_type)
-    return sorted((name, sorted(types)) for name, types in found.items())
-
-
 def run(args: argparse.Namespace) -> int:
     full = args.node_name if args.node_name.startswith("/") else "/" + args.node_name
     namespace, _, name = full.rpartition("/")
@@ -50,10 +42,10 @@ def run(args: argparse.Namespace) -> int:
         if full not in {n.full_name for n in node.get_nodes()}:
             raise UnknownNodeError(f"node {full!r} is not in the graph of domain "
                                    f"{node.domain_id} (see `warp-buffer node list`)")
-        endpoints = node.get_endpoints_by_node(name, namespace)
+        subscribed = node.get_subscriber_names_and_types_by_node(name, namespace)
+        published = node.get_publisher_names_and_types_by_node(name, namespace)
         servers = node.get_service_names_and_types_by_node(name, namespace)
         clients = node.get_client_names_and_types_by_node(name, namespace)
-    subscribed, published = _topics(endpoints, "SUBSCRIPTION"), _topics(endpoints, "PUBLISHER")
     print(full)
     for title, names_and_types in (("Subscribers", subscribed), ("Publishers", published),
                                    ("Service Servers", servers), ("Service Clients", clients),
