@@ -227,16 +227,35 @@ def make_router_config(listen: list[str] | None = None, connect: list[str] | Non
     return result
 
 
+# ROS_DOMAIN_ID as rcl reads it (strtoul, base 0): decimal, 0x hexadecimal or 0 octal, ASCII
+# digits only, at most an unsigned 64-bit long.
+_DOMAIN_TEXT = re.compile(r"\+?(?:0[xX](?P<hex>[0-9a-fA-F]+)|0(?P<octal>[0-7]*)|(?P<dec>[1-9][0-9]*))",
+                          re.ASCII)
+_ULONG_MAX = (1 << 64) - 1
+
+
+def _parse_domain_env(text: str) -> int:
+    match = _DOMAIN_TEXT.fullmatch(text)
+    if match is None:
+        raise TransportConfigError(f"{DOMAIN_ENV}={text!r} is not an integer")
+    if match["hex"] is not None:
+        value = int(match["hex"], 16)
+    elif match["octal"] is not None:
+        value = int(match["octal"] or "0", 8)
+    else:
+        value = int(match["dec"])
+    if value > _ULONG_MAX:
+        raise TransportConfigError(f"{DOMAIN_ENV}={text!r} is out of range")
+    return value
+
+
 def resolve_domain_id(domain_id: int | None) -> int:
     """``domain_id``, else env ``ROS_DOMAIN_ID``, else 0; must be a non-negative integer."""
     where = ""
     if domain_id is None:
         text = os.environ.get(DOMAIN_ENV, "").strip()
         where = f" ({DOMAIN_ENV}={text!r})"
-        try:
-            domain_id = int(text) if text else 0
-        except ValueError:
-            raise TransportConfigError(f"{DOMAIN_ENV}={text!r} is not an integer") from None
+        domain_id = _parse_domain_env(text) if text else 0
     if isinstance(domain_id, bool) or not isinstance(domain_id, int) or domain_id < 0:
         raise TransportConfigError(f"domain id{where} must be a non-negative int, got "
                                    f"{domain_id!r}")

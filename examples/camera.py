@@ -24,7 +24,7 @@ import warp as wp
 import pipeline_kernels
 from pipeline_common import (
     IMAGE_TOPIC, default_device, image_phase, node_options, paced, parse_args, stamp,
-    stop_on_sigterm, summary, until_interrupted,
+    stop_on_signals, summary, until_interrupted,
 )
 from buffer_pubsub import Node
 from tensor_conversions import warp as tw
@@ -38,7 +38,7 @@ def main() -> int:
                       device=(str, None, "Warp device of the frames (default: cuda:0, else cpu)"),
                       subscribers=(int, 1, "image subscriptions to wait for before the first "
                                            "frame (up to 30 s)"))
-    stop_on_sigterm()
+    stop_on_signals()
     device = args.device or default_device()
     # Made once, outside the loop: every loan then draws from one pool (keyed by the factory).
     new_frame = functools.partial(tw.allocate_image_msg, HEIGHT, WIDTH, "rgb8",

@@ -21,7 +21,7 @@ import torch.nn.functional as F
 
 from pipeline_common import (
     FEATURES_TOPIC, IMAGE_TOPIC, POOL, expected_pixels, image_phase, node_options, parse_args,
-    percentile_ms, ready, run_for, stamp_ns, stop_on_sigterm, summary, until_interrupted,
+    percentile_ms, ready, run_for, stamp_ns, stop_on_signals, summary, until_interrupted,
 )
 from buffer_pubsub import Node
 from rosidl_buffer.messages import get_message_type
@@ -65,13 +65,13 @@ class Inference:
 
 def main() -> int:
     args = parse_args(__doc__.splitlines()[0])
-    stop_on_sigterm()
+    stop_on_signals()
     with Node("infer", executor="manual", **node_options(args)) as node:
         inference = Inference(node)
         node.create_subscription("sensor_msgs/msg/Image", IMAGE_TOPIC, inference.on_image,
                                  depth=2, acceptable_buffer_backends="warp")
-        ready("infer")
-        with until_interrupted():
+        with until_interrupted():  # (ready inside: a Ctrl-C right after it still ends well)
+            ready("infer")
             node.spin(timeout=run_for(args.duration))  # callbacks run here, on this thread
     summary("infer", frames=inference.frames, wrong=inference.wrong, storage=inference.storage,
             capture_to_features_p50_ms=percentile_ms(inference.latencies_ns, 50))

@@ -21,7 +21,7 @@ import warp as wp
 import pipeline_kernels
 from pipeline_common import (
     AZIMUTHS, RANGE_M, RING_SPACING_M, RINGS, SCAN_TOPIC, default_device, node_options, paced,
-    parse_args, scan_rotation, stamp, stop_on_sigterm, summary, until_interrupted,
+    parse_args, scan_rotation, stamp, stop_on_signals, summary, until_interrupted,
 )
 import warp_buffer
 from buffer_pubsub import Node
@@ -47,7 +47,7 @@ def main() -> int:
                       rate=(float, 10.0, "scans per second"),
                       device=(str, None, "Warp device of the scans (default: cuda:0, else cpu)"),
                       subscribers=(int, 1, "subscriptions to wait for first (up to 30 s)"))
-    stop_on_sigterm()
+    stop_on_signals()
     device = args.device or default_device()
     factory = functools.partial(new_scan, device)  # once: the loan pool is keyed by it
     published = 0

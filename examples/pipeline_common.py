@@ -52,9 +52,11 @@ def parse_args(description: str, **extra: Any) -> argparse.Namespace:
     return parser.parse_args()
 
 
-def stop_on_sigterm() -> None:
-    """Stop on SIGTERM (``kill``, systemd, docker) as on Ctrl-C: KeyboardInterrupt in the main
-    thread, so the stage closes its node and prints its summary."""
+def stop_on_signals() -> None:
+    """Stop on Ctrl-C and on SIGTERM (``kill``, systemd, docker) alike: KeyboardInterrupt in
+    the main thread, so the stage closes its node and prints its summary. SIGINT too: a stage
+    started from a background job (``&``, nohup, a script) inherits it ignored."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)
 
 
@@ -130,7 +132,7 @@ def paced(rate: float, duration: float) -> Iterator[int]:
 
 @contextlib.contextmanager
 def until_interrupted() -> Iterator[None]:
-    """Run the block until it ends or Ctrl-C (or SIGTERM, see :func:`stop_on_sigterm`)."""
+    """Run the block until it ends or Ctrl-C (or SIGTERM, see :func:`stop_on_signals`)."""
     try:
         yield
     except KeyboardInterrupt:

@@ -18,7 +18,7 @@ import torch
 
 from pipeline_common import (
     RANGE_M, RING_SPACING_M, SCAN_TOPIC, node_options, parse_args, percentile_ms, ready,
-    run_for, scan_rotation, stamp_ns, stop_on_sigterm, summary, until_interrupted,
+    run_for, scan_rotation, stamp_ns, stop_on_signals, summary, until_interrupted,
 )
 from buffer_pubsub import Node
 from tensor_conversions import torch as tc
@@ -48,13 +48,13 @@ class Ranges:
 
 def main() -> int:
     args = parse_args(__doc__.splitlines()[0])
-    stop_on_sigterm()
+    stop_on_signals()
     ranges = Ranges()
     with Node("ranges", executor="manual", **node_options(args)) as node:
         node.create_subscription("sensor_msgs/msg/PointCloud2", SCAN_TOPIC, ranges.on_scan,
                                  depth=2, acceptable_buffer_backends="warp")
-        ready("ranges")
-        with until_interrupted():
+        with until_interrupted():  # (ready inside: a Ctrl-C right after it still ends well)
+            ready("ranges")
             node.spin(timeout=run_for(args.duration))
     summary("ranges", scans=ranges.scans, wrong=ranges.wrong, nearest_m=ranges.nearest_m,
             scan_to_result_p50_ms=percentile_ms(ranges.latencies_ns, 50))

@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline_common import (
     FEATURES_TOPIC, IMAGE_TOPIC, POOL, expected_feature_rows, expected_pixels, image_phase,
-    node_options, parse_args, percentile_ms, ready, stamp_ns, stop_on_sigterm, summary,
+    node_options, parse_args, percentile_ms, ready, stamp_ns, stop_on_signals, summary,
     until_interrupted,
 )
 from buffer_pubsub import Node
@@ -76,7 +76,7 @@ def main() -> int:
                       no_images=(bool, False, "do not subscribe to the frames"),
                       image_rate=(float, 5.0, "frames a second to check (the camera "
                                               "serializes no more than that for us)"))
-    stop_on_sigterm()
+    stop_on_signals()
     viewer = Viewer()
     with Node("viewer", executor="manual", **node_options(args)) as node, \
             MultiThreadedExecutor(num_threads=2) as executor:
@@ -89,12 +89,12 @@ def main() -> int:
                                      depth=1, callback_group=MutuallyExclusiveCallbackGroup(),
                                      max_rate=args.image_rate)
         executor.add_node(node)
-        ready("viewer")
         if args.duration > 0:
             stop = threading.Timer(args.duration, executor.shutdown)
             stop.daemon = True
             stop.start()
-        with until_interrupted():
+        with until_interrupted():  # (ready inside: a Ctrl-C right after it still ends well)
+            ready("viewer")
             executor.spin()  # until executor.shutdown() (the duration is over), or Ctrl-C
     summary("viewer", **viewer.report())
     return 0

@@ -1010,3 +1010,54 @@ def test_a_latched_topic_is_recorded_with_its_history_and_played_latched(tmp_pat
                                      durability="transient_local")
             assert wait_until(lambda: got, 10)
     assert got == ["the map"]
+
+
+def _as_unprivileged(argv: list[str]) -> list[str]:
+    """``argv`` run so that file modes apply: root (the CI's user) drops the capabilities
+    that override them; anyone else meets them anyway."""
+    if os.geteuid() != 0:
+        return argv
+    drop = "-dac_override,-dac_read_search"
+    return ["setpriv", f"--bounding-set={drop}", f"--inh-caps={drop}", "--", *argv]
+
+
+def test_a_bag_this_user_may_not_read_or_write_is_a_one_line_error(tmp_path, domain):
+    """A mode-000 bag gave a PermissionError traceback from info, play and reindex, and so did
+    record into a directory it may not search."""
+    bag = tmp_path / "bag"
+    _text_bag(bag, {"/t": _texts(3)})
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o000)
+    env = dict(child_env(), ROS_DOMAIN_ID=str(domain))
+    base = [sys.executable, "-m", "warp_buffer_cli.main", "bag"]
+    try:
+        bag.chmod(0o000)
+        for command, error in (("info", "BagReadError"), ("play", "BagReadError"),
+                               ("reindex", "BagReadError")):
+            done = subprocess.run(_as_unprivileged([*base, command, str(bag)]), cwd=ROOT,
+                                  env=env, capture_output=True, text=True, timeout=120)
+            _one_line_error(done, error, "Permission denied")
+        done = subprocess.run(
+            _as_unprivileged([*base, "record", "/t", "-o", str(locked / "new"),
+                              "--duration", "1"]),
+            cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+        _one_line_error(done, "BagWriteError", "Permission denied")
+    finally:
+        bag.chmod(0o755)
+        locked.chmod(0o755)
+
+
+def test_a_file_that_is_no_bag_gets_no_reindex_hint(tmp_path, domain):
+    """``bag info notes.py`` suggested ``bag reindex``, which then found no storage file."""
+    notes = tmp_path / "notes.py"
+    notes.write_text("print(1)\n")
+    done = run_bag(domain, "info", str(notes))
+    _one_line_error(done, "BagReadError", "notes.py")
+    assert "reindex" not in done.stderr
+    cut = tmp_path / "cut"
+    _text_bag(cut, {"/t": _texts(3)})
+    (cut / "metadata.yaml").unlink()
+    storage = cut / "cut.mcap"
+    storage.write_bytes(storage.read_bytes()[:100])
+    _one_line_error(run_bag(domain, "info", str(storage)), "BagReadError",
+                    f"warp-buffer bag reindex {cut}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -71,3 +72,31 @@ def test_a_reader_that_leaves_early_gets_no_traceback() -> None:
     finally:
         os.close(write)
     assert done.returncode == 141 and "Traceback" not in done.stderr, done.stderr[-2000:]
+
+
+def _cli(*argv: str, **streams) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "warp_buffer_cli.main", *argv],
+                          stderr=subprocess.PIPE, text=True, timeout=120, **streams)
+
+
+def test_a_stdout_that_cannot_be_written_is_one_line_not_a_traceback() -> None:
+    """``warp-buffer info > /dev/full`` ended in an OSError traceback; with descriptor 1 closed
+    (``>&-``) a command died on ``None.flush()``."""
+    with open("/dev/full", "w") as full:
+        done = _cli("info", stdout=full)
+    assert done.returncode == 1, done.stderr
+    assert done.stderr.strip() == ("warp-buffer info: cannot write to stdout: No space left on "
+                                   "device"), done.stderr
+    closed = _cli("info", "--json", stdout=subprocess.DEVNULL,
+                  preexec_fn=lambda: os.close(1))
+    assert closed.returncode == 0 and "Traceback" not in closed.stderr, closed.stderr
+
+
+@pytest.mark.parametrize("command", [("bag", "info"), ("bag", "play"), ("bag", "reindex"),
+                                     ("bag", "record"), ("topic", "echo"), ("node", "info")])
+def test_help_shows_no_docstring_markup(command: tuple[str, ...]) -> None:
+    """The leaves' --help printed their docstrings' :class:`~.errors.X` and ``literals``."""
+    done = subprocess.run([sys.executable, "-m", "warp_buffer_cli.main", *command, "--help"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "`" not in done.stdout and ":class:" not in done.stdout and ":mod:" not in done.stdout

@@ -207,8 +207,13 @@ def test_the_graph_api_answers_for_other_nodes_services(graph):
 
     domain, topic = graph
     with Node("_cli_graph_services", domain_id=domain, fast_lane=False) as node:
+        def discovered() -> bool:  # every token below (they arrive in any order)
+            return (len(node.get_service_names_and_types()) == 2
+                    and len(node.get_subscriber_names_and_types_by_node("ros2_viewer")) == 2
+                    and len(node.get_publisher_names_and_types_by_node("ros2_viewer")) == 2)
+
         deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and len(node.get_service_names_and_types()) < 2:
+        while time.monotonic() < deadline and not discovered():
             time.sleep(0.05)
         assert node.get_service_names_and_types() == [
             ("/ros2_viewer/get_parameters", ["rcl_interfaces/srv/GetParameters"]),

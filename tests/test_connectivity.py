@@ -197,3 +197,26 @@ def test_a_lone_node_on_the_default_configuration_warns_of_no_missing_router(
     with Node("lone", domain_id=231):
         time.sleep(connectivity.WARN_AFTER_S + 0.5)
     assert not [r for r in caplog.records if "7447" in r.getMessage()], caplog.records
+
+
+# ROS_DOMAIN_ID as rcl's rcl_get_default_domain_id reads it: strtoul(text, base 0), so hex and
+# octal count; written from rcl/src/rcl/domain_id.c.
+@pytest.mark.parametrize(("text", "domain"), [
+    ("7", 7), (" 42 ", 42), ("+3", 3), ("0", 0), ("010", 8), ("0x10", 16), ("232", 232),
+    (str((1 << 64) - 1), (1 << 64) - 1)])
+def test_the_domain_env_is_read_as_rcl_reads_it(monkeypatch: pytest.MonkeyPatch, text: str,
+                                                domain: int) -> None:
+    monkeypatch.setenv("ROS_DOMAIN_ID", text)
+    assert config.resolve_domain_id(None) == domain
+
+
+@pytest.mark.parametrize(("text", "why"), [
+    ("-1", "not an integer"),  # (strtoul makes it 2**64 - 1, which rcl takes: refused here) ("abc", "not an integer"), ("1.5", "not an integer"),
+    ("\u0663", "not an integer"),  # an Arabic-Indic 3, which int() took
+    ("08", "not an integer"), ("0x", "not an integer"),
+    (str(1 << 64), "out of range"), ("9" * 30, "out of range")])
+def test_a_domain_env_that_names_no_domain_is_refused(monkeypatch: pytest.MonkeyPatch, text: str,
+                                             why: str) -> None:
+    monkeypatch.setenv("ROS_DOMAIN_ID", text)
+    with pytest.raises(TransportConfigError, match=why):
+        config.resolve_domain_id(None)

@@ -117,6 +117,22 @@ def test_point_cloud_pipeline(pipeline: Pipeline) -> None:
     assert abs(result["nearest_m"] - 4.0) < 1e-3  # the innermost ring
 
 
+# Starts a program with SIGINT ignored, as a shell's background job (``&``, nohup) does.
+_IGNORING_SIGINT = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+                    "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])")
+
+
+def test_a_stage_started_in_the_background_stops_on_ctrl_c(pipeline: Pipeline) -> None:
+    """A stage started with ``&`` from a script inherits SIGINT ignored: ``kill -INT`` left it
+    running (the CLI's commands took it)."""
+    stage = Stage("ranges.py", [sys.executable, "-c", _IGNORING_SIGINT,
+                                str(EXAMPLES / "ranges.py"), *pipeline.common], child_env())
+    pipeline.stages.append(stage)  # (killed at the end if it is still running)
+    stage.expect("ready", START_S)
+    stage.proc.send_signal(signal.SIGINT)
+    assert stage.finish(stop=False)["scans"] == 0
+
+
 @pytest.fixture
 def router_endpoint() -> Iterator[str]:
     """A ``warp-buffer router`` on a Unix socket of this test."""

@@ -12,7 +12,20 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 from collections.abc import Mapping
+
+# Sphinx roles (:class:`~.errors.BagDamagedError`) and literals (``ros2 bag play``) of a
+# module docstring, which a leaf's --help shows as plain text: the name and the words.
+_ROLE = re.compile(r":[a-z]+:`~?\.?(?:[\w.]*\.)?([^`.]+)`")
+_LITERAL = re.compile(r"``([^`]+)``")
+
+
+def plain_text(docstring: str | None) -> str | None:
+    """``docstring`` without its reStructuredText markup, for a terminal."""
+    if docstring is None:
+        return None
+    return _LITERAL.sub(r"\1", _ROLE.sub(r"\1", docstring))
 
 
 def add_subcommands(parser: argparse.ArgumentParser,
@@ -24,7 +37,7 @@ def add_subcommands(parser: argparse.ArgumentParser,
                                    metavar="{" + ",".join(commands) + "}")
     for name, (module_name, help_text) in commands.items():
         module = importlib.import_module(module_name)
-        leaf = leaves.add_parser(name, help=help_text, description=module.__doc__,
+        leaf = leaves.add_parser(name, help=help_text, description=plain_text(module.__doc__),
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(leaf)
         leaf.set_defaults(run=module.run, command_name=leaf.prog)

@@ -8,6 +8,7 @@ import logging
 import os
 import signal
 import sys
+from typing import Any
 
 from rosidl_buffer.errors import RosidlBufferError
 
@@ -42,7 +43,58 @@ def _configure_output(verbose: bool) -> None:
                         format="%(name)s: %(levelname)s: %(message)s")
 
 
+class StdoutWriteError(OSError):
+    """The command's report could not be written to stdout (a full disk, an I/O error)."""
+
+
+class _GuardedStdout:
+    """``sys.stdout`` while a command runs: a write or flush that fails raises
+    :class:`StdoutWriteError`, told apart from the command's own ``OSError`` (one line, not a
+    traceback); a reader that left stays ``BrokenPipeError``."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise StdoutWriteError(exc.errno, exc.strerror) from None
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise StdoutWriteError(exc.errno, exc.strerror) from None
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+def _silence_stdout() -> None:
+    """Point descriptor 1 at /dev/null: the interpreter's last flush must not fail again."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one ``warp-buffer`` command; its exit status."""
+    stream = sys.stdout
+    # A closed descriptor 1 (`>&-`) leaves sys.stdout None: the report goes nowhere, as
+    # print() does then, rather than failing at the first flush.
+    sys.stdout = _GuardedStdout(stream if stream is not None else open(os.devnull, "w"))
+    try:
+        return _main(argv)
+    finally:
+        sys.stdout = stream
+
+
+def _main(argv: list[str] | None) -> int:
     parser = argparse.ArgumentParser(prog="warp-buffer", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="log at INFO on stderr and let Warp print its own start-up banner "
@@ -65,7 +117,13 @@ def main(argv: list[str] | None = None) -> int:
     inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
     name = getattr(args, "command_name", f"warp-buffer {args.command}")
     try:
-        return int(args.run(args))
+        status = int(args.run(args))
+        sys.stdout.flush()  # a report that cannot be written fails here, not at exit
+        return status
+    except StdoutWriteError as exc:
+        print(f"{name}: cannot write to stdout: {exc.strerror}", file=sys.stderr)
+        _silence_stdout()
+        return 1
     except RosidlBufferError as exc:  # bad input the command found: one line, no traceback
         text = " ".join(str(exc).split())  # one line, whatever the message (a YAML parser's)
         print(f"{name}: {type(exc).__name__}: {text}", file=sys.stderr)
@@ -74,9 +132,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # stdout's reader left (| head -1): nothing more to write there
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())  # the interpreter's last flush must not fail too
+        _silence_stdout()
         return 141
+    except OSError as exc:  # the system refused (a path it may not read): one line
+        logging.getLogger("warp_buffer_cli").info("%s failed", name, exc_info=True)  # (-v)
+        print(f"{name}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
     finally:
         signal.signal(signal.SIGINT, inherited)  # main() called in a program leaves it as found
 

@@ -35,6 +35,7 @@ from .storage_messages import bag_messages
 __all__ = ["PlayTopic", "Player", "add_arguments", "open_bag", "run"]
 
 BACKENDS = ("cpu", "warp")
+STORAGE_SUFFIXES = (".mcap", ".db3")  # rosbag2's storage files: MCAP, sqlite3
 
 
 def open_bag(path: str | os.PathLike[str]) -> Any:
@@ -42,22 +43,29 @@ def open_bag(path: str | os.PathLike[str]) -> Any:
     when it is missing, no bag, or damaged."""
     from rosbags.rosbag2 import Reader
 
-    check_regular_files(Path(path))
     try:
-        reader = Reader(Path(path))
-        reader.open()
-    except FileNotFoundError:
-        where = Path(path)
-        why = ("it does not exist" if not where.exists() else
-               _no_metadata(where) if where.is_dir() else
-               "not a rosbag2 bag")
-        raise BagReadError(f"no bag at {path}: {why}") from None
-    except Exception as exc:  # rosbags' ReaderError, YAML and storage errors: all unreadable
-        where = Path(path)
-        hint = (f" (a recording that never ended? `warp-buffer bag reindex {where.parent}` "
-                "rebuilds it)" if where.is_file() and not (where.parent / "metadata.yaml")
-                .exists() else "")
-        raise BagReadError(f"cannot read the bag at {path}: {exc}{hint}") from exc
+        check_regular_files(Path(path))
+        try:
+            reader = Reader(Path(path))
+            reader.open()
+        except FileNotFoundError:
+            where = Path(path)
+            why = ("it does not exist" if not where.exists() else
+                   _no_metadata(where) if where.is_dir() else
+                   "not a rosbag2 bag")
+            raise BagReadError(f"no bag at {path}: {why}") from None
+        except PermissionError:
+            raise
+        except Exception as exc:  # rosbags' ReaderError, YAML and storage errors: unreadable
+            where = Path(path)
+            # A storage file alone (its recorder killed) is what reindex mends; not any file.
+            hint = (f" (a recording that never ended? `warp-buffer bag reindex {where.parent}` "
+                    "rebuilds it)" if where.is_file() and where.suffix in STORAGE_SUFFIXES
+                    and not (where.parent / "metadata.yaml").exists() else "")
+            raise BagReadError(f"cannot read the bag at {path}: {exc}{hint}") from exc
+    except PermissionError as exc:  # a bag or a file of it this user may not read
+        raise BagReadError(f"cannot read the bag at {path}: {exc.strerror}: "
+                           f"{exc.filename}") from None
     try:
         _check_storages(reader)
     except BaseException:
@@ -92,7 +100,7 @@ def _check_storages(reader: Any) -> None:
 def _no_metadata(directory: Path) -> str:
     from .lock import BagBusyError, locked_bag
 
-    if not any(p.suffix in (".mcap", ".db3") for p in directory.iterdir()):
+    if not any(p.suffix in STORAGE_SUFFIXES for p in directory.iterdir()):
         return "no metadata.yaml in it: not a rosbag2 bag"
     try:
         with locked_bag(directory):

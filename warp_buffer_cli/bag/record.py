@@ -74,7 +74,11 @@ class Recorder:
         if storage not in STORAGES:
             raise BagWriteError(f"storage must be one of {STORAGES}, got {storage!r}")
         self.path = Path(path)
-        if self.path.exists():
+        try:
+            exists = self.path.exists()
+        except OSError as exc:  # a parent it may not search (mode 000)
+            raise BagWriteError(f"cannot create the bag {self.path}: {exc.strerror}") from None
+        if exists:
             raise BagWriteError(f"{self.path} exists already: a bag is recorded into a new "
                                 "directory")
         self.storage = storage

@@ -24,7 +24,7 @@ from .damage import check_mcap
 from .errors import BagDamagedError, BagReadError
 from .lock import BagBusyError, locked_bag
 from .mcap_end import McapContents, channel_metadata, end_mcap, is_closed
-from .play import check_regular_files
+from .play import STORAGE_SUFFIXES, check_regular_files
 
 __all__ = ["add_arguments", "reindex", "run"]
 
@@ -37,16 +37,22 @@ def reindex(path: str | os.PathLike[str]) -> dict[str, Any]:
     (``.mcap`` or ``.db3``); returns what it found: ``file``, ``messages``, ``topics``,
     ``cut_bytes`` (the unfinished record cut off an MCAP file) and ``unchanged`` (a bag its
     recorder closed, left as it is). :class:`BagReadError` when
-    ``path`` holds no such file or it is not one."""
-    root = Path(path)
+    ``path`` holds no such file or it is not one, or this user may not read or write it."""
+    try:
+        return _reindex(Path(path))
+    except PermissionError as exc:
+        raise BagReadError(f"cannot reindex {path}: {exc.strerror}: {exc.filename}") from None
+
+
+def _reindex(root: Path) -> dict[str, Any]:
     if not root.is_dir():
-        raise BagReadError(f"no bag directory at {path}" + (
+        raise BagReadError(f"no bag directory at {root}" + (
             ": it does not exist" if not root.exists() else
             f": it is a file; give the bag's directory ({root.parent})"))
     check_regular_files(root)
-    files = sorted(p for p in root.iterdir() if p.suffix in (".mcap", ".db3"))
+    files = sorted(p for p in root.iterdir() if p.suffix in STORAGE_SUFFIXES)
     if len(files) != 1:
-        raise BagReadError(f"{path} holds {len(files)} .mcap / .db3 files; reindex needs one")
+        raise BagReadError(f"{root} holds {len(files)} .mcap / .db3 files; reindex needs one")
     storage = files[0]
     cut = 0
     try:
@@ -61,7 +67,7 @@ def reindex(path: str | os.PathLike[str]) -> dict[str, Any]:
                 info = _sqlite_info(storage)
             _write_metadata(root / METADATA, _metadata_text(storage, info))
     except BagBusyError as exc:
-        raise BagReadError(f"cannot reindex {path}: {exc}") from None
+        raise BagReadError(f"cannot reindex {root}: {exc}") from None
     return {"file": storage.name, "messages": info["message_count"],
             "topics": len(info["topics"]), "cut_bytes": cut, "unchanged": False}
 

@@ -3,6 +3,7 @@ line), with ``uint8[]`` buffers summarised (backend, size, first bytes) instead 
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Iterator
 from typing import Any
@@ -13,7 +14,34 @@ __all__ = ["BUFFER_PREVIEW", "csv_line", "pick", "to_plain", "yaml_lines"]
 
 #: Bytes of a buffer shown by echo.
 BUFFER_PREVIEW = 16
-_PLAIN_STRING = re.compile(r"^[A-Za-z_/][A-Za-z0-9_./\-]*$")
+# What YAML 1.1's implicit resolvers (PyYAML's, which ``ros2 topic echo`` prints with) would
+# read as something other than a string: such a string is quoted to stay one.
+_NOT_A_STRING = re.compile(r"""^(?:
+    yes|Yes|YES|no|No|NO|true|True|TRUE|false|False|FALSE|on|On|ON|off|Off|OFF
+  | ~|null|Null|NULL|<<|=
+  | [-+]?(?:0b[0-1_]+|0[0-7_]+|0|[1-9][0-9_]*|0x[0-9a-fA-F_]+|[1-9][0-9_]*(?::[0-5]?[0-9])+)
+  | [-+]?[0-9][0-9_]*\.[0-9_]*(?:[eE][-+][0-9]+)? | \.[0-9][0-9_]*(?:[eE][-+][0-9]+)?
+  | [-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+\.[0-9_]* | [-+]?\.(?:inf|Inf|INF) | \.(?:nan|NaN|NAN)
+  | [0-9]{4}-[0-9]{2}-[0-9]{2}
+  | [0-9]{4}-[0-9]{1,2}-[0-9]{1,2}(?:[Tt]|[ \t]+)[0-9]{1,2}:[0-9]{2}:[0-9]{2}(?:\.[0-9]*)?
+    (?:[ \t]*(?:Z|[-+][0-9]{1,2}(?::[0-9]{2})?))?
+)$""", re.VERBOSE)
+# A plain (unquoted) block scalar may not start with an indicator, hold ": " or " #", end with
+# ":" or a space, or start with one.
+_INDICATOR_START = re.compile(r"^(?:[#,\[\]{}&*!|>'\"%@`]|[-?:](?:\s|$)|\s)")
+_INDICATOR_INSIDE = re.compile(r": | #|:$|\s$")
+
+
+def _string(value: str) -> str:
+    """``value`` as PyYAML's block style writes it: plain when it reads back as the same
+    string, else single-quoted; double-quoted (escaped) when it holds a line break or a
+    character a terminal would not show."""
+    if not value.isprintable():
+        return json.dumps(value, ensure_ascii=False)
+    if (not value or _INDICATOR_START.match(value) or _INDICATOR_INSIDE.search(value)
+            or _NOT_A_STRING.match(value)):
+        return "'" + value.replace("'", "''") + "'"
+    return value
 
 
 def to_plain(value: Any, truncate: int) -> Any:
@@ -64,8 +92,7 @@ def _scalar(value: Any) -> str:
     if isinstance(value, float):
         return repr(value)
     if isinstance(value, str):
-        return value if _PLAIN_STRING.match(value) and value not in ("true", "false", "null") \
-            else "'" + value.replace("'", "''") + "'"
+        return _string(value)
     return str(value)
 
 

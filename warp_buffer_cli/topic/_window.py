@@ -40,7 +40,7 @@ def add_window_options(parser: argparse.ArgumentParser, default_window: int) -> 
     parser.add_argument("-w", "--window", type=int, default=default_window, metavar="N",
                         help=f"messages in the window (default {default_window})")
     parser.add_argument("--count", type=int, default=0, metavar="N",
-                        help="exit after N reports (default: until Ctrl-C)")
+                        help="exit after N reports (default 0: until Ctrl-C)")
     add_graph_options(parser)
 
 

@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", choices=["cpu", "warp"], default="cpu",
                         help="the buffer backend to accept (default cpu)")
     parser.add_argument("--count", type=int, default=0, metavar="N",
-                        help="exit after N messages (default: until Ctrl-C)")
+                        help="exit after N messages (default 0: until Ctrl-C)")
     add_graph_options(parser)
 
 
