@@ -112,6 +112,25 @@ def test_ratios_pass_miss_and_missing() -> None:
     assert ratios(paths)["slowdown_vs_iceoryx2_16MiB"]["verdict"] == "N/A"
 
 
+def test_each_warp_lane_bar_shows_the_lane_alone_beside_it() -> None:
+    """A missed warp zero-copy bar is shown beside its floor in the same run: the lane alone
+    (wake-up and doorbell, no message work)."""
+    def path(p50: float, p99: float) -> dict:
+        return {"status": "ok", "latency_us": {"4096": {"p50_us": p50, "p99_us": p99}}}
+
+    paths = {"warp_zero_copy": path(80.0, 130.0), "lane": path(42.0, 60.0),
+             "iceoryx2_listener": path(35.0, 70.0), "zenoh_copy": path(112.0, 180.0)}
+    result = ratios(paths)
+    p50 = result["warp_lane_worst_p50_over_40us"]
+    assert p50["verdict"] == "MISS" and p50["value"] == pytest.approx(2.0)
+    assert p50["detail"] == "the lane alone, its floor here: 1.05x"
+    assert result["warp_lane_vs_iceoryx2_listener_4KiB"]["detail"].endswith(": 1.20x")
+    assert result["warp_lane_worst_p99_over_120us"]["detail"].endswith(": 0.50x")
+    assert result["lane_worst_p50_over_40us"]["detail"] == ""  # (the floor itself)
+    del paths["lane"]
+    assert ratios(paths)["warp_lane_worst_p50_over_40us"]["detail"] == ""
+
+
 def test_default_out_dir_follows_xdg_state_home(monkeypatch: pytest.MonkeyPatch,
                                                 tmp_path: pathlib.Path) -> None:
     monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
