@@ -15,7 +15,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
@@ -56,6 +56,7 @@ class NodeInfo:
 
     @property
     def full_name(self) -> str:
+        """The node's namespace and name joined by one slash (``/ns/camera``, ``/camera``)."""
         return f"{self.namespace.rstrip('/')}/{self.name}"
 
 
@@ -224,17 +225,23 @@ class Graph:
                        and t.type_hash == type_hash)
 
     def wait(self, kind: str, topic: str, type_name: str, type_hash: str, count: int,
-             timeout: float | None) -> bool:
-        """Until :meth:`count` reaches ``count`` (False on timeout or close); ``count`` and
+             timeout: float | None, gone: Callable[[], bool] = lambda: False) -> bool:
+        """Until :meth:`count` reaches ``count`` (False on timeout, on close, or once ``gone()``
+        says the waiting endpoint was destroyed: :meth:`wake` makes it look); ``count`` and
         ``timeout`` as :func:`matching_wait` returns them (None: no limit)."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self.changed:
             while True:
                 if self.count(kind, topic, type_name, type_hash) >= count:
                     return True
-                if self.closed:
+                if self.closed or gone():
                     return False
                 left = None if deadline is None else deadline - time.monotonic()
                 if left is not None and left <= 0:
                     return False
                 self.changed.wait(left)
+
+    def wake(self) -> None:
+        """Make every :meth:`wait` look again (an endpoint it waits for was destroyed)."""
+        with self.changed:
+            self.changed.notify_all()

@@ -564,12 +564,15 @@ class Node:
 
     # -- rclpy's names ---------------------------------------------------------------------------
     def get_name(self) -> str:
+        """The node's name, without its namespace."""
         return self.name
 
     def get_namespace(self) -> str:
+        """The node's namespace (``"/"`` for the root namespace, as rclpy reports it)."""
         return self.namespace or "/"
 
     def get_fully_qualified_name(self) -> str:
+        """The node's namespace and name joined by a slash (``/ns/camera``, ``/camera``)."""
         return f"{self.namespace}/{self.name}"
 
     def get_logger(self) -> NodeLogger:
@@ -702,9 +705,13 @@ class Node:
         return self._endpoints(wire.SUBSCRIPTION_KIND, self._topic(topic_name))
 
     def count_publishers(self, topic_name: str) -> int:
+        """How many publishers ``topic_name`` has in the domain (see
+        :meth:`get_publishers_info_by_topic`)."""
         return len(self.get_publishers_info_by_topic(topic_name))
 
     def count_subscribers(self, topic_name: str) -> int:
+        """How many subscriptions ``topic_name`` has in the domain (see
+        :meth:`get_subscriptions_info_by_topic`)."""
         return len(self.get_subscriptions_info_by_topic(topic_name))
 
     def get_endpoints_by_node(self, node_name: str, node_namespace: str = "/"

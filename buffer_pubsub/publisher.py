@@ -556,13 +556,16 @@ class Publisher:
     def wait_for_subscriptions(self, count: int = 1, timeout: float | None = 10.0) -> bool:
         """Block until at least ``count`` subscriptions are matched and this publisher has
         settled the route to each (negotiated, same-host lane opened where one serves), so the
-        next publish() takes the route it keeps; False on timeout. ``timeout`` as rclpy reads
-        it: None, negative or infinite waits without limit."""
+        next publish() takes the route it keeps; False on timeout, or when the publisher is
+        destroyed meanwhile (a closed one raises :class:`NodeClosedError`, as publish does).
+        ``timeout`` as rclpy reads it: None, negative or infinite waits without limit."""
         count, timeout = matching_wait(count, timeout)
+        if self._closed:
+            raise NodeClosedError(f"publisher on {self.topic_name!r} is closed")
         deadline = None if timeout is None else time.monotonic() + timeout
         if not self.node.graph.wait(
                 wire.SUBSCRIPTION_KIND, self._token.topic, self._token.type_name,
-                self._token.type_hash, count, timeout):
+                self._token.type_hash, count, timeout, gone=lambda: self._closed):
             return False
         with self._ready:
             while sum(peer.ready for peer in self._peers.values()) < count:
@@ -825,6 +828,7 @@ class Publisher:
             self._peers.clear()
             self._remote = _NOBODY
             self._ready.notify_all()
+        self.node.graph.wake()  # a wait_for_subscriptions on another thread returns now
         _process.remove_publisher(self.gid)
         if self._transient:
             with _transient_lock:

@@ -31,16 +31,25 @@ MAX_DEPTH = 2**31 - 1
 
 
 class HistoryPolicy(str, enum.Enum):
+    """What an endpoint's queue keeps: ``KEEP_LAST``, the newest ``depth`` messages, or
+    ``KEEP_ALL``, every message (a reliable publisher then blocks rather than drop)."""
+
     KEEP_LAST = wire.KEEP_LAST
     KEEP_ALL = wire.KEEP_ALL
 
 
 class ReliabilityPolicy(str, enum.Enum):
+    """Whether delivery is guaranteed: ``RELIABLE`` retransmits lost messages,
+    ``BEST_EFFORT`` may drop them (what sensor data usually wants)."""
+
     RELIABLE = wire.RELIABLE
     BEST_EFFORT = wire.BEST_EFFORT
 
 
 class DurabilityPolicy(str, enum.Enum):
+    """Whether late joiners see past messages: ``VOLATILE`` sends only what is published after
+    a subscription appears, ``TRANSIENT_LOCAL`` lets it recover the publisher's cached ones."""
+
     VOLATILE = wire.VOLATILE
     TRANSIENT_LOCAL = wire.TRANSIENT_LOCAL
 
@@ -88,6 +97,7 @@ class QoSProfile:
 
     @property
     def transient_local(self) -> bool:
+        """True when ``durability`` is ``transient_local``."""
         return self.durability == wire.TRANSIENT_LOCAL
 
 

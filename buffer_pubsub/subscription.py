@@ -57,7 +57,7 @@ from ._inline import InlinePolicy
 from ._rate import RateLimit
 from ._streams import Streams
 from ._zenoh import undeclare_quietly
-from .errors import PubSubError
+from .errors import NodeClosedError, PubSubError
 
 if TYPE_CHECKING:
     from ._waker import Waker
@@ -257,14 +257,18 @@ class Subscription:
     # -- counters and matching -----------------------------------------------------------------
     @property
     def received(self) -> int:
+        """Messages delivered to the callback so far (``counters.received``)."""
         return self.counters.received
 
     @property
     def lost(self) -> int:
+        """Messages lost in transit (``counters.lost``): gaps in a publisher's sequence numbers
+        on Zenoh; what a keep-last queue overwrote counts in ``counters.dropped`` instead."""
         return self.counters.lost
 
     @property
     def errors(self) -> int:
+        """Messages that arrived but could not be deserialized (``counters.errors``)."""
         return self.counters.errors
 
     def get_publisher_count(self) -> int:
@@ -273,12 +277,15 @@ class Subscription:
             wire.PUBLISHER_KIND, self._token.topic, self._token.type_name, self._token.type_hash)
 
     def wait_for_publishers(self, count: int = 1, timeout: float | None = 10.0) -> bool:
-        """Block until at least ``count`` publishers are matched; False on timeout.
-        ``timeout`` as rclpy reads it: None, negative or infinite waits without limit."""
+        """Block until at least ``count`` publishers are matched; False on timeout (a destroyed
+        subscription raises :class:`NodeClosedError`). ``timeout`` as rclpy reads it: None,
+        negative or infinite waits without limit."""
         count, timeout = matching_wait(count, timeout)
+        if self._closed:
+            raise NodeClosedError(f"subscription on {self.topic_name!r} is closed")
         return self.node.graph.wait(
             wire.PUBLISHER_KIND, self._token.topic, self._token.type_name,
-            self._token.type_hash, count, timeout)
+            self._token.type_hash, count, timeout, gone=lambda: self._closed)
 
     def matches(self, token: wire.EndpointToken) -> bool:
         """Is ``token`` a publisher of this topic and type? (The node's discovery asks.)"""
@@ -643,6 +650,7 @@ class Subscription:
             self._closed = True
             owned = [item[0] for item in self._queue if item[4]]
             self._queue.clear()  # the rest: serialized bytes or shared intra messages
+        self.node.graph.wake()  # a wait_for_publishers on another thread returns now
         for msg in owned:
             release_buffers(msg)
         _process.remove_subscription(self.base_key, self)

@@ -63,7 +63,7 @@ class Buffer(Generic[T]):
 
     def __init__(
         self,
-        data: BufferImplBase | npt.ArrayLike | bytes | None = (),
+        data: BufferImplBase | npt.ArrayLike | bytes = (),
         dtype: npt.DTypeLike | None = None,
     ) -> None:
         if data is None:
@@ -94,26 +94,34 @@ class Buffer(Generic[T]):
 
     # -- every backend -------------------------------------------------------------------------
     def get_impl(self) -> BufferImplBase:
+        """The backend storage behind this buffer (a :class:`BufferImplBase`)."""
         return self._impl
 
     def get_backend_type(self) -> str:
+        """Name of the backend holding the data (``"cpu"``, ``"warp"``)."""
         return self._impl.get_backend_type()
 
     def is_cpu(self) -> bool:
+        """True when the data lives in host memory (a :class:`CpuBufferImpl`), so the CPU-only
+        operations work."""
         return isinstance(self._impl, CpuBufferImpl)
 
     @property
     def dtype(self) -> np.dtype:
+        """NumPy dtype of one element (uint8 unless given)."""
         return self._impl.dtype
 
     @property
     def nbytes(self) -> int:
+        """Size of the contents in bytes (elements times the item size)."""
         return self._impl.nbytes
 
     def size(self) -> int:
+        """Number of elements (bytes only for a uint8 buffer); any backend."""
         return self._impl.size()
 
     def empty(self) -> bool:
+        """True when the buffer holds no elements; any backend."""
         return self._impl.size() == 0
 
     def __len__(self) -> int:
@@ -133,6 +141,7 @@ class Buffer(Generic[T]):
         return Buffer(self._impl.to_cpu())
 
     def tobytes(self) -> bytes:
+        """The contents as ``bytes`` (a copy; any backend, copied to the host first)."""
         return self.host_view().tobytes()
 
     def host_view(self) -> np.ndarray:
@@ -275,25 +284,35 @@ class Buffer(Generic[T]):
         return bool(np.any(self._cpu("__contains__").view() == value))
 
     def capacity(self) -> int:
+        """Elements the storage holds before growing reallocates, like ``vector::capacity``
+        (CPU only)."""
         return self._cpu("capacity").capacity()
 
     def reserve(self, capacity: int) -> None:
+        """Grow the CPU storage to hold at least ``capacity`` elements without reallocating,
+        like ``vector::reserve``; the size is unchanged (CPU only)."""
         self._cpu("reserve").reserve(capacity)
 
     def resize(self, size: int, value: int | float = 0) -> None:
+        """Set the number of elements, like ``vector::resize``: new ones are ``value``, extra ones
+        are dropped (CPU only)."""
         impl = self._cpu("resize")
         impl.resize(size, _values(value, impl.dtype, 0))
 
     def clear(self) -> None:
+        """Remove every element (size 0, capacity kept; CPU only)."""
         self._cpu("clear").resize(0)
 
     def append(self, value: int | float) -> None:
+        """Add one element at the end (CPU only; ``push_back`` is the same method)."""
         impl = self._cpu("append")
         impl.resize(impl.size() + 1, _values(value, impl.dtype, 0))
 
     push_back = append
 
     def extend(self, values: Iterable[Any] | np.ndarray | bytes) -> None:
+        """Add ``values`` at the end: a sequence, an array, bytes or another ``Buffer`` (CPU only;
+        checked before the buffer grows)."""
         impl = self._cpu("extend")
         if isinstance(values, (bytes, bytearray, memoryview)):
             values = np.frombuffer(values, dtype=np.uint8)
@@ -307,6 +326,8 @@ class Buffer(Generic[T]):
         impl.writable_view()[n:] = array
 
     def insert(self, index: int, value: int | float) -> None:
+        """Insert ``value`` before ``index``, as ``list.insert`` does (out-of-range indices clamp;
+        CPU only)."""
         impl = self._cpu("insert")
         n = impl.size()
         if index < 0:
@@ -319,6 +340,8 @@ class Buffer(Generic[T]):
         view[index] = item
 
     def pop(self, index: int = -1) -> Any:
+        """Remove and return the element at ``index`` (the last by default), as ``list.pop``
+        does; :class:`IndexError` if empty or out of range (CPU only)."""
         impl = self._cpu("pop")
         n = impl.size()
         if n == 0:

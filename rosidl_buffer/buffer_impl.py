@@ -140,6 +140,7 @@ class BufferImplBase(abc.ABC):
 
     @property
     def nbytes(self) -> int:
+        """Size of the contents in bytes (:meth:`size` times the item size of ``dtype``)."""
         return self.size() * self.dtype.itemsize
 
     # -- lifetime hooks the transport calls (defaults: nothing to do) --------------------------
@@ -265,6 +266,8 @@ class CpuBufferImpl(BufferImplBase):
         return self._tracked_view()
 
     def writable_view(self) -> np.ndarray:
+        """The logical contents as a writable 1-D array view; borrowed read-only storage is
+        copied into memory of its own first (copy-on-write)."""
         self._ensure_writable(self._size)
         if self._readers is None:
             return self._storage[: self._size]
@@ -286,13 +289,18 @@ class CpuBufferImpl(BufferImplBase):
         return view
 
     def capacity(self) -> int:
+        """Elements the storage holds before growing reallocates (spare capacity included)."""
         return self._storage.shape[0]
 
     def reserve(self, capacity: int) -> None:
+        """Make room for at least ``capacity`` elements, like ``vector::reserve`` (borrowed
+        read-only storage is copied into memory of its own); the size is unchanged."""
         if capacity > self._storage.shape[0] or not self._storage.flags.writeable:
             self._reallocate(max(capacity, self._size))
 
     def resize(self, size: int, value: int | float = 0) -> None:
+        """Set the logical size, like ``vector::resize``: new elements are ``value``; growing
+        past the capacity at least doubles it (amortised appends). ``ValueError`` if negative."""
         if size < 0:
             raise ValueError(f"size must be >= 0, got {size}")
         old = self._size

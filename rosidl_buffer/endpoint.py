@@ -20,6 +20,9 @@ GID_SIZE = 16
 
 
 class EndpointType(enum.Enum):
+    """Which side of a topic an endpoint is: a ``PUBLISHER`` or a ``SUBSCRIPTION`` (as
+    ``rmw_endpoint_type_t``)."""
+
     PUBLISHER = "publisher"
     SUBSCRIPTION = "subscription"
 
@@ -58,6 +61,7 @@ class EndpointInfo:
 
     @property
     def is_publisher(self) -> bool:
+        """True for a publisher, False for a subscription."""
         return self.endpoint_type is EndpointType.PUBLISHER
 
     def is_same_process(self) -> bool:

@@ -142,10 +142,13 @@ class TensorView:
 
     @property
     def dtype(self) -> DType:
+        """Element type of the tensor (its layout's)."""
         return self.layout.dtype
 
     @property
     def shape(self) -> tuple[int, ...]:
+        """Dimensions of the tensor as the message describes them (``()`` for a scalar, even
+        when the carrier is ``(1,)``)."""
         return self.layout.shape
 
     def __dlpack_device__(self) -> tuple[int, int]:

@@ -166,6 +166,8 @@ def dtype_from_numpy(dtype: object) -> DType:
 
 
 def _dtype_from_numpy(dtype: object) -> DType:
+    if dtype is None:  # np.dtype(None) is float64: a missing dtype, not a choice
+        raise UnsupportedDTypeError("a dtype is needed (np.float32, 'uint8', ...), got None")
     try:
         np_dtype = np.dtype(dtype)  # type: ignore[call-overload]
     except TypeError:

@@ -160,14 +160,15 @@ def _validate(height: int, width: int, encoding: str, is_bigendian: int, step: i
     return TensorLayout(fmt.dtype, fmt.shape(height, width), strides, 0), native
 
 
-def _sizes(**sizes: Any) -> tuple[int, ...]:
-    """The image sizes given, as non-negative whole numbers (2.9 is refused, not truncated)."""
+def _sizes(what: str = "image", **sizes: Any) -> tuple[int, ...]:
+    """The sizes given of an ``what`` (image, point cloud), as non-negative whole numbers (2.9
+    is refused, not truncated)."""
     try:
         return normalize_shape(tuple(sizes.values()))
     except InvalidTensorMetadataError:
         given = ", ".join(f"{name}={value!r}" for name, value in sizes.items())
         raise InvalidTensorMetadataError(
-            f"image sizes must be non-negative whole numbers, got {given}") from None
+            f"{what} sizes must be non-negative whole numbers, got {given}") from None
 
 
 def image_spec(adapter: _api.Adapter[Any], height: int, width: int, encoding: str,

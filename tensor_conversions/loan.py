@@ -36,7 +36,8 @@ from typing import Any
 import numpy as np
 
 from .dlpack import TensorView, warp_dtype
-from .errors import InvalidTensorMetadataError, StorageNotWritableError, UnsupportedBackendError
+from .errors import (InvalidTensorMetadataError, StorageNotWritableError, UnsupportedBackendError,
+                     UnsupportedValueError)
 from .metadata import TensorLayout, write_metadata
 from .storage import NativeState, resolve_warp_device
 
@@ -314,7 +315,17 @@ def _loan(publisher: Any, kind: type[_LoanSpec], adapter: Any, *args: Any,
             if len(_SPECS) >= 256:
                 _SPECS.clear()
             _SPECS[key] = spec
-    return publisher.loan(spec, max_loans=max_loans)
+    return _loan_from(publisher, spec, max_loans)
+
+
+def _loan_from(publisher: Any, spec: _LoanSpec, max_loans: int | None) -> Any:
+    """``publisher.loan(spec)``; anything but a publisher is :class:`UnsupportedValueError`."""
+    try:
+        loan = publisher.loan
+    except AttributeError:
+        raise UnsupportedValueError(f"a loan comes from a buffer_pubsub Publisher, not "
+                                    f"{type(publisher).__name__}") from None
+    return loan(spec, max_loans=max_loans)
 
 
 def loan_tensor_msg(adapter: Any, publisher: Any, shape: Sequence[int] | int, dtype: Any,
@@ -335,7 +346,7 @@ def loan_tensor_msg(adapter: Any, publisher: Any, shape: Sequence[int] | int, dt
     if spec is None:
         return _loan(publisher, TensorLoanSpec, adapter, shape, dtype, backend, device,
                      max_loans=max_loans)
-    return publisher.loan(spec, max_loans=max_loans)
+    return _loan_from(publisher, spec, max_loans)
 
 
 def loan_image_msg(adapter: Any, publisher: Any, height: int, width: int, encoding: str,

@@ -155,6 +155,8 @@ class TensorLayout:
         return cls(dtype, dims, contiguous_strides(dims), 0)
 
     def check_fits(self, nbytes: int) -> None:
+        """Raise :class:`InvalidTensorMetadataError` unless ``nbytes`` bytes of data hold this
+        layout (:attr:`required_nbytes`: offset, shape and strides together)."""
         if self.required_nbytes > nbytes:
             raise InvalidTensorMetadataError(
                 f"tensor {self.dtype.name}{list(self.shape)} with strides {list(self.strides)} and "

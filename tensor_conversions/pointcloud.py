@@ -182,7 +182,7 @@ def cloud_spec(adapter: _api.Adapter[Any], width: int, fields: Sequence[str], dt
             f"a PointField holds int8..uint32, float32 or float64 values, not {dt.name}")
     from .image import _sizes
 
-    height, width = _sizes(height=height, width=width)
+    height, width = _sizes("point cloud", height=height, width=width)
     count = len(names)
     layout = TensorLayout(dt, (height * width, count), (count, 1), 0)
     return names, dt, height, width, layout

@@ -27,8 +27,10 @@ from typing import Any
 import numpy as np
 
 from rosidl_buffer import Buffer, CpuBufferImpl
+from rosidl_buffer.messages import Message
 
-from .errors import InvalidTensorMetadataError, StorageNotWritableError, UnsupportedBackendError
+from .errors import (InvalidTensorMetadataError, StorageNotWritableError, UnsupportedBackendError,
+                     WrongMessageTypeError)
 
 __all__ = [
     "BACKENDS",
@@ -216,8 +218,11 @@ def release_output(msg: Any) -> bool:
     """Release the write handle held by writable views of ``msg`` (warp storage) now.
 
     Returns True if a handle was released. Views created earlier must not be written afterwards.
-    For CPU storage there is nothing to release (returns False).
+    For CPU storage there is nothing to release (returns False); anything but a message is
+    :class:`WrongMessageTypeError`.
     """
+    if not isinstance(msg, Message):
+        raise WrongMessageTypeError(f"release_output takes a message, not {type(msg).__name__}")
     with _lock:
         handle = live_write_handle(msg)
         if handle is None:

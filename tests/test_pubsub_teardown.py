@@ -506,3 +506,30 @@ def test_a_node_closed_by_its_own_callback_as_the_interpreter_exits_does_not_abo
                               topic], cwd=ROOT, env=child_env(), capture_output=True, text=True,
                              timeout=60)
         assert app.returncode == 0, app.stderr
+
+
+@pytest.mark.parametrize("kind", ["publisher", "subscription"])
+def test_destroying_an_endpoint_ends_a_wait_on_it(domain, topic, kind):
+    """A wait_for_subscriptions / wait_for_publishers without a limit on another thread kept
+    waiting after destroy() (until the node closed); on a destroyed endpoint it waited out its
+    timeout. Now the waiter returns False at once, and a later wait raises NodeClosedError."""
+    with Node("wait_destroy", domain_id=domain, fast_lane=False) as node:
+        if kind == "publisher":
+            endpoint = node.create_publisher("std_msgs/msg/String", topic, depth=1)
+            wait = endpoint.wait_for_subscriptions
+        else:
+            endpoint = node.create_subscription("std_msgs/msg/String", topic, lambda m: None,
+                                                depth=1)
+            wait = endpoint.wait_for_publishers
+        returned: list[bool] = []
+        waiter = threading.Thread(target=lambda: returned.append(wait(1, timeout=None)),
+                                  daemon=True)
+        waiter.start()
+        time.sleep(0.3)  # the waiter is inside its wait
+        assert not returned
+        started = time.monotonic()
+        endpoint.destroy()
+        waiter.join(timeout=5)
+        assert returned == [False] and time.monotonic() - started < 2, returned
+        with pytest.raises(NodeClosedError):
+            wait(1, timeout=10)

@@ -488,7 +488,8 @@ def to_buffer(src: Any, write_handle: WriteHandle, stream: Any = None) -> None:
     cross-device one (host to GPU) is a Warp copy on ``stream`` (default: the handle's stream).
     """
     if not isinstance(write_handle, WriteHandle):
-        raise TypeError(f"to_buffer needs a WriteHandle, got {type(write_handle).__name__}")
+        raise UnsupportedSourceError(
+            f"to_buffer copies into a WriteHandle, got {type(write_handle).__name__}")
     impl = write_handle._usable()
     state = write_handle._state
     if stream is not None:

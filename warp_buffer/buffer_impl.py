@@ -377,16 +377,22 @@ class WarpBufferImpl(BufferImplBase):
 
     @property
     def is_published(self) -> bool:
+        """True once a publish sealed the buffer (its lease is PUBLISHED); for an import, once
+        it was published again (:meth:`mark_published`)."""
         lease = self.lease
         return lease.state == PUBLISHED if lease is not None else self._import_published
 
     @property
     def is_read(self) -> bool:
+        """True once a reader took the buffer or it was published: no write can follow (its
+        lease is READ or later; for an import, once it was read)."""
         lease = self.lease
         return lease.state >= READ if lease is not None else self._read
 
     @property
     def is_released(self) -> bool:
+        """True once :meth:`release` ended an import's hold, and for a released share's impl
+        (:meth:`as_released`); its data access then raises :class:`HandleReleasedError`."""
         return self._released
 
     @property

@@ -92,7 +92,8 @@ class SizeMismatchError(WarpBufferError, ValueError):
 
 
 class UnsupportedSourceError(WarpBufferError, TypeError):
-    """``to_buffer`` was given something that is not array data (a list, a str, a handle)."""
+    """``to_buffer`` was given something that is not array data (a list, a str, a handle), or a
+    destination that is not a write handle."""
 
 
 class InvalidDTypeError(WarpBufferError, TypeError):

@@ -1029,7 +1029,11 @@ def _read_python(codec: _MessageCodec, data: bytes | bytearray | memoryview,
                  backends: Mapping[str, BufferBackend] | None,
                  endpoint_info: EndpointInfo | None) -> Message:
     type_name = codec.cls.__msgtype__
-    view = memoryview(data).cast("B") if not isinstance(data, bytes) else memoryview(data)
+    try:
+        view = memoryview(data).cast("B") if not isinstance(data, bytes) else memoryview(data)
+    except TypeError:
+        raise DeserializationError(f"CDR data of a {type_name} is bytes-like, not "
+                                   f"{type(data).__name__}") from None
     if len(view) < _ORIGIN:
         raise DeserializationError(f"{len(view)} bytes is shorter than the CDR header")
     header = bytes(view[:2])

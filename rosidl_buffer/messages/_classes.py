@@ -10,7 +10,7 @@ from __future__ import annotations
 import difflib
 import threading
 from collections.abc import Iterator
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -45,6 +45,11 @@ class Message:
     __msgtype__: ClassVar[str]
     _schema: ClassVar[MessageSchema]
     _buffer_fields: ClassVar[frozenset[str]]
+
+    if TYPE_CHECKING:
+        # Fields are made per type at run time: a type checker sees them as Any (msg.data,
+        # msg.height) instead of refusing every field of a message.
+        def __getattr__(self, name: str) -> Any: ...
 
     def __init__(self, **fields: Any) -> None:
         unknown = set(fields) - set(self.__slots__)

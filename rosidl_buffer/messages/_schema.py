@@ -12,16 +12,17 @@ import enum
 import functools
 import logging
 import threading
+from collections.abc import Mapping
 from typing import Any
 from dataclasses import dataclass
 from importlib import metadata, resources
 
 from rosbags.interfaces import Nodetype
-from rosbags.typesys import Stores, get_types_from_msg
+from rosbags.typesys import Stores, TypesysError, get_types_from_msg
 from rosbags.typesys import get_typestore as _rosbags_typestore
 from rosbags.typesys.store import Typestore
 
-from ..errors import UnknownMessageTypeError
+from ..errors import InvalidMessageDefinitionError, UnknownMessageTypeError
 from ._defaults import DISTRIBUTION_DEFAULTS, parse_defaults
 
 __all__ = [
@@ -64,6 +65,9 @@ PRIMITIVE_FORMATS: dict[str, str] = {
 
 
 class FieldKind(enum.Enum):
+    """What a field's element is: a ``PRIMITIVE`` type (``bool``, ``byte``, ``uint8``,
+    ``float64``, ...), a ``STRING`` (``string`` / ``string<=N``) or a nested ``MESSAGE`` type."""
+
     PRIMITIVE = "primitive"
     STRING = "string"
     MESSAGE = "message"
@@ -95,6 +99,7 @@ class FieldSpec:
 
     @property
     def is_collection(self) -> bool:
+        """True for a fixed-size array ``T[N]`` or a sequence ``T[]`` / ``T[<=N]``."""
         return self.is_sequence or self.array_length > 0
 
 
@@ -107,6 +112,9 @@ class MessageSchema:
 
 def normalize_type_name(name: str) -> str:
     """``pkg/Name`` or ``pkg/msg/Name`` -> ``pkg/msg/Name``."""
+    if not isinstance(name, str):
+        raise UnknownMessageTypeError(f"a message type name is a str such as "
+                                      f"'sensor_msgs/msg/Image', not {type(name).__name__}")
     parts = name.strip().strip("/").split("/")
     if len(parts) == 2:
         parts = [parts[0], "msg", parts[1]]
@@ -192,18 +200,31 @@ def _register_new_packages() -> None:
 def register_message_definitions(definitions: dict[str, str]) -> None:
     """Add message types at run time: ``{"pkg/msg/Name": "<.msg text>"}``.
 
-    For definitions that do not ship as files (tests, generated code). Registering a name that
-    already exists with a different definition raises rosbags' TypesysError; a default value its
-    field's type cannot hold raises :class:`InvalidMessageDefinitionError`.
+    For definitions that do not ship as files (tests, generated code). A definition rosbags
+    cannot parse, a name that already exists with a different definition and a default value
+    its field's type cannot hold raise :class:`InvalidMessageDefinitionError`.
     """
+    if not isinstance(definitions, Mapping):
+        raise InvalidMessageDefinitionError(
+            f"definitions are a dict of 'pkg/msg/Name' -> .msg text, not "
+            f"{type(definitions).__name__}")
     types: dict[str, tuple[list, list]] = {}
     defaults: dict[str, dict[str, Any]] = {}
     for name, text in definitions.items():
         name = normalize_type_name(name)
-        types.update(_as_idl(get_types_from_msg(text, name)))
+        if not isinstance(text, str):
+            raise InvalidMessageDefinitionError(
+                f"{name}: the definition is .msg text (a str), not {type(text).__name__}")
+        try:
+            types.update(_as_idl(get_types_from_msg(text, name)))
+        except TypesysError as exc:
+            raise InvalidMessageDefinitionError(f"{name}: {exc}") from exc
         defaults[name] = parse_defaults(text, name)
     with _lock:
-        get_typestore().register(types)
+        try:
+            get_typestore().register(types)
+        except TypesysError as exc:  # a name known already, with another definition
+            raise InvalidMessageDefinitionError(str(exc)) from exc
         _DEFAULTS.update(defaults)
 
 

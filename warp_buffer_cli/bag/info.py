@@ -79,11 +79,13 @@ def _stamp(ns: int) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Register the options of ``warp-buffer bag info``."""
     parser.add_argument("bag", metavar="DIR", help="the bag directory (or its .mcap/.db3 file)")
     parser.add_argument("--json", action="store_true", help="print machine-readable JSON")
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``warp-buffer bag info``; its exit status."""
     report = describe(args.bag)
     if args.json:
         print(json.dumps(report, indent=2))

@@ -348,6 +348,7 @@ def _buffers_to_warp(msg: Any, device: str | None) -> None:
 
 # --------------------------------------------------------------------------- command line
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Register the options of ``warp-buffer bag play``."""
     parser.add_argument("bag", metavar="DIR", help="the bag directory (or its .mcap/.db3 file)")
     parser.add_argument("-r", "--rate", type=number(float, 0, inclusive=False, high=1e6), default=1.0,
                         help="time scale: 2 plays twice as fast (default: 1)")
@@ -367,6 +368,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``warp-buffer bag play``; its exit status."""
     stop = threading.Event()
     previous = {signum: signal.signal(signum, lambda *_: stop.set())
                 for signum in (signal.SIGINT, signal.SIGTERM)}

@@ -306,6 +306,7 @@ class Recorder:
 
 # --------------------------------------------------------------------------- command line
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Register the options of ``warp-buffer bag record``."""
     parser.add_argument("topics", nargs="*", type=absolute_topic_name, metavar="TOPIC",
                         help="topics to record (or -a)")
     parser.add_argument("-a", "--all", action="store_true",
@@ -335,6 +336,7 @@ def _default_output() -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``warp-buffer bag record``; its exit status."""
     if bool(args.topics) == bool(args.all):
         print(f"{args.command_name}: error: name the topics to record, or give -a "
               "(not both)", file=sys.stderr)
