@@ -277,9 +277,9 @@ class Subscription:
             wire.PUBLISHER_KIND, self._token.topic, self._token.type_name, self._token.type_hash)
 
     def wait_for_publishers(self, count: int = 1, timeout: float | None = 10.0) -> bool:
-        """Block until at least ``count`` publishers are matched; False on timeout (a destroyed
-        subscription raises :class:`NodeClosedError`). ``timeout`` as rclpy reads it: None,
-        negative or infinite waits without limit."""
+        """Block until at least ``count`` publishers are matched; False on timeout, or when the
+        subscription is destroyed meanwhile (a destroyed one raises :class:`NodeClosedError`).
+        ``timeout`` as rclpy reads it: None, negative or infinite waits without limit."""
         count, timeout = matching_wait(count, timeout)
         if self._closed:
             raise NodeClosedError(f"subscription on {self.topic_name!r} is closed")
