@@ -29,7 +29,12 @@ from collections.abc import Sequence
 from typing import Any, overload
 
 import numpy as np
-import torch
+
+try:
+    import torch
+except ImportError as _error:  # an optional extra: say which
+    raise ImportError(f"tensor_conversions.torch needs PyTorch: "
+                      f"pip install 'warp-buffer[torch]' ({_error})") from _error
 
 from . import _api
 from . import loan as _loan
