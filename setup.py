@@ -3,6 +3,22 @@ compiler and Python's headers; see docs/native.md, which also has the AddressSan
 setuptools adds the ``CFLAGS`` and ``LDFLAGS`` of the environment to these)."""
 
 from setuptools import Extension, setup
+from setuptools.command.build_ext import build_ext
+from setuptools.errors import CCompilerError, CompileError, ExecError, LinkError
+
+
+class BuildExt(build_ext):
+    """build_ext whose failure says what the machine lacks, after the compiler's own output."""
+
+    def run(self) -> None:
+        try:
+            super().run()
+        except (CCompilerError, CompileError, ExecError, LinkError) as exc:
+            raise SystemExit(
+                "warp-buffer: building its C extensions failed (the output above says why). They "
+                "need a C compiler and Python's headers: on Debian or Ubuntu `apt install gcc "
+                "python3-dev`, on Fedora `dnf install gcc python3-devel`; or install a prebuilt "
+                "wheel (docs/native.md).") from exc
 
 # -Werror=implicit-function-declaration: a CPython function this Python lacks fails the build
 # (pip install), not the import (an undefined symbol).
@@ -10,7 +26,7 @@ CFLAGS = ["-O2", "-std=gnu11", "-Wall", "-Wextra", "-Wno-unused-parameter",
           "-Wno-missing-field-initializers", "-fvisibility=hidden",
           "-Werror=implicit-function-declaration"]
 
-setup(ext_modules=[
+setup(cmdclass={"build_ext": BuildExt}, ext_modules=[
     Extension("warp_buffer._core", sources=["warp_buffer/_core.c", "warp_buffer/_core_import.c",
                                             "warp_buffer/_core_lease.c"],
               depends=["warp_buffer/_core.h"], extra_compile_args=CFLAGS),

@@ -84,3 +84,18 @@ def test_the_torch_module_names_its_extra_when_torch_is_missing(tmp_path) -> Non
                           text=True, timeout=120)
     assert done.returncode == 1
     assert "pip install 'warp-buffer[torch]'" in done.stderr, done.stderr[-1500:]
+
+
+def test_a_machine_without_a_compiler_is_told_what_to_install(tmp_path) -> None:
+    """setuptools' generic build error named nothing the user could install."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, CC="/bin/false")
+    done = subprocess.run([sys.executable, "setup.py", "build_ext", "-b", str(tmp_path / "lib"),
+                           "-t", str(tmp_path / "tmp"), "--force"], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0
+    assert "need a C compiler and Python's headers" in done.stderr, done.stderr[-2000:]
+    assert "apt install gcc python3-dev" in done.stderr
