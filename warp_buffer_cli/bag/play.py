@@ -40,29 +40,9 @@ STORAGE_SUFFIXES = (".mcap", ".db3")  # rosbag2's storage files: MCAP, sqlite3
 
 def open_bag(path: str | os.PathLike[str]) -> Any:
     """An open rosbags ``Reader`` of the bag at ``path``; :class:`BagReadError` (one line)
-    when it is missing, no bag, or damaged."""
-    from rosbags.rosbag2 import Reader
-
+    when it is missing, no bag, damaged, or not this user's to read."""
     try:
-        check_regular_files(Path(path))
-        try:
-            reader = Reader(Path(path))
-            reader.open()
-        except FileNotFoundError:
-            where = Path(path)
-            why = ("it does not exist" if not where.exists() else
-                   _no_metadata(where) if where.is_dir() else
-                   "not a rosbag2 bag")
-            raise BagReadError(f"no bag at {path}: {why}") from None
-        except PermissionError:
-            raise
-        except Exception as exc:  # rosbags' ReaderError, YAML and storage errors: unreadable
-            where = Path(path)
-            # A storage file alone (its recorder killed) is what reindex mends; not any file.
-            hint = (f" (a recording that never ended? `warp-buffer bag reindex {where.parent}` "
-                    "rebuilds it)" if where.is_file() and where.suffix in STORAGE_SUFFIXES
-                    and not (where.parent / "metadata.yaml").exists() else "")
-            raise BagReadError(f"cannot read the bag at {path}: {exc}{hint}") from exc
+        reader = _open_reader(Path(path))
     except PermissionError as exc:  # a bag or a file of it this user may not read
         raise BagReadError(f"cannot read the bag at {path}: {exc.strerror}: "
                            f"{exc.filename}") from None
@@ -71,6 +51,30 @@ def open_bag(path: str | os.PathLike[str]) -> Any:
     except BaseException:
         reader.close()
         raise
+    return reader
+
+
+def _open_reader(where: Path) -> Any:
+    """The open rosbags Reader of ``where``; BagReadError for what is no readable bag."""
+    from rosbags.rosbag2 import Reader
+
+    check_regular_files(where)
+    try:
+        reader = Reader(where)
+        reader.open()
+    except FileNotFoundError:
+        why = ("it does not exist" if not where.exists() else
+               _no_metadata(where) if where.is_dir() else
+               "not a rosbag2 bag")
+        raise BagReadError(f"no bag at {where}: {why}") from None
+    except PermissionError:
+        raise
+    except Exception as exc:  # rosbags' ReaderError, YAML and storage errors: all unreadable
+        # A storage file alone (its recorder killed) is what reindex mends; not any file.
+        hint = (f" (a recording that never ended? `warp-buffer bag reindex {where.parent}` "
+                "rebuilds it)" if where.is_file() and where.suffix in STORAGE_SUFFIXES
+                and not (where.parent / "metadata.yaml").exists() else "")
+        raise BagReadError(f"cannot read the bag at {where}: {exc}{hint}") from exc
     return reader
 
 
