@@ -229,12 +229,13 @@ def make_router_config(listen: list[str] | None = None, connect: list[str] | Non
 
 # ROS_DOMAIN_ID as rcl reads it (strtoul, base 0): decimal, 0x hexadecimal or 0 octal, ASCII
 # digits only, at most an unsigned 64-bit long.
-_DOMAIN_TEXT = re.compile(r"\+?(?:0[xX](?P<hex>[0-9a-fA-F]+)|0(?P<octal>[0-7]*)|(?P<dec>[1-9][0-9]*))",
-                          re.ASCII)
+_DOMAIN_TEXT = re.compile(
+    r"\+?(?:0[xX](?P<hex>[0-9a-fA-F]+)|0(?P<octal>[0-7]*)|(?P<dec>[1-9][0-9]*))", re.ASCII)
 _ULONG_MAX = (1 << 64) - 1
 
 
 def _parse_domain_env(text: str) -> int:
+    """The domain ``ROS_DOMAIN_ID``'s ``text`` names; :class:`TransportConfigError` if none."""
     match = _DOMAIN_TEXT.fullmatch(text)
     if match is None:
         raise TransportConfigError(f"{DOMAIN_ENV}={text!r} is not an integer")

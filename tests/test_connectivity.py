@@ -211,7 +211,8 @@ def test_the_domain_env_is_read_as_rcl_reads_it(monkeypatch: pytest.MonkeyPatch,
 
 
 @pytest.mark.parametrize(("text", "why"), [
-    ("-1", "not an integer"),  # (strtoul makes it 2**64 - 1, which rcl takes: refused here) ("abc", "not an integer"), ("1.5", "not an integer"),
+    ("-1", "not an integer"),  # (strtoul makes it 2**64 - 1, which rcl takes: refused here)
+    ("abc", "not an integer"), ("1.5", "not an integer"),
     ("\u0663", "not an integer"),  # an Arabic-Indic 3, which int() took
     ("08", "not an integer"), ("0x", "not an integer"),
     (str(1 << 64), "out of range"), ("9" * 30, "out of range")])
