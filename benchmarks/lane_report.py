@@ -42,7 +42,8 @@ def lane_ratios(paths: dict[str, Any], verdict: Callable[..., dict],
     warp = _targets(paths, WARP, "warp zero-copy", p50_4k, verdict, missing)
     # Each warp bar beside the lane alone's figure in this run: the wake-up and doorbell with
     # no message work, the floor under that bar (issue 26: a missed bar, shown at its floor).
-    for (_, floor), (key, entry) in zip(result.items(), warp.items()):
+    for key, entry in warp.items():
+        floor = result[key.removeprefix("warp_")]  # (the lane's bar of the same name)
         if floor["value"] is not None and entry["value"] is not None:
             entry["detail"] = f"the lane alone, its floor here: {floor['value']:.2f}x"
     result.update(warp)
